@@ -1,0 +1,22 @@
+// flarelab: the command-line tool. Each command parses its flags, fills an options struct and
+// calls a library; see README.md for the commands.
+#include <exception>
+#include <iostream>
+
+#include <CLI/CLI.hpp>
+
+#include "apps/lens_commands.h"
+
+int main(int argc, char** argv) {
+    try {
+        CLI::App app{"flarelab: measure and predict camera lens flare"};
+        app.require_subcommand(1);
+        int exit_code = 0;
+        flarelab::apps::addLensCommands(app, std::cout, std::cerr, exit_code);
+        CLI11_PARSE(app, argc, argv);
+        return exit_code;
+    } catch (const std::exception& e) {
+        std::cerr << "flarelab: " << e.what() << "\n";
+        return 2;
+    }
+}

@@ -1,0 +1,168 @@
+#include "optics/ray_grid.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "common/units.h"
+#include "optics/paraxial.h"
+#include "optics/tracer.h"
+
+namespace flarelab::optics {
+namespace {
+
+struct Square {
+    Eigen::Vector2d centre;
+    double half_width;
+};
+
+// The square on the entry plane that bounds the beam passing the stop on this path.
+Square pupilSquare(const Lens& lens,
+                   const GhostPath& path,
+                   const PathTracer& geometric,
+                   const EntryPlane& plane,
+                   const Eigen::Vector3d& direction,
+                   double wavelength_nm,
+                   double margin) {
+    const double stop_r = lens.surfaces()[lens.stopIndex()].semi_aperture_mm;
+    const Eigen::Vector2d slope(direction.x() / direction.z(), direction.y() / direction.z());
+    // The front lens's clear aperture projected along the beam onto the entry plane: no ray
+    // outside it gets in, so the grid never needs to be larger.
+    const LensSurface& front = lens.surfaces().front();
+    const Eigen::Vector2d front_centre = slope * (plane.entry_z_mm - front.z_mm);
+    const double front_r = front.semi_aperture_mm;
+
+    Eigen::Vector2d lo(1e300, 1e300), hi(-1e300, -1e300);
+    int aimed = 0;
+    const auto paraxial_centre =
+        paraxialEntry(lens, path, wavelength_nm, plane, direction, Eigen::Vector2d::Zero());
+    Eigen::Vector2d guess = paraxial_centre.value_or(front_centre);
+    const std::optional<Eigen::Vector2d> centre =
+        aimAtStop(geometric, plane, direction, Eigen::Vector2d::Zero(), guess);
+    if (centre) guess = *centre;
+    constexpr int kRim = 16;
+    for (int k = 0; k < kRim; ++k) {
+        const double a = 2.0 * kPi * k / kRim;
+        const Eigen::Vector2d target(stop_r * std::cos(a), stop_r * std::sin(a));
+        const auto start = paraxialEntry(lens, path, wavelength_nm, plane, direction, target);
+        Eigen::Vector2d initial = guess;
+        if (start && centre && paraxial_centre) initial = *centre + (*start - *paraxial_centre);
+        const auto entry = aimAtStop(geometric, plane, direction, target, initial);
+        if (!entry) continue;
+        lo = lo.cwiseMin(*entry);
+        hi = hi.cwiseMax(*entry);
+        ++aimed;
+    }
+    Square square;
+    if (aimed >= kRim / 2) {
+        square.centre = 0.5 * (lo + hi);
+        square.half_width = 0.5 * (hi - lo).maxCoeff() * (1.0 + margin);
+    } else {
+        // Real rays could not be aimed (light far off axis, TIR on the way): fall back to the
+        // paraxial pupil of the path, else to the front lens.
+        const PathMatrices m = pathMatrices(lens, path, wavelength_nm);
+        const double a = std::abs(m.to_stop(0, 0));
+        if (paraxial_centre && a > 1e-12) {
+            square.centre = *paraxial_centre;
+            square.half_width = stop_r / a * (1.0 + margin);
+        } else {
+            square.centre = front_centre;
+            square.half_width = front_r;
+        }
+    }
+    // Clip to the square around the front lens.
+    const Eigen::Vector2d sq_lo = (square.centre.array() - square.half_width).matrix();
+    const Eigen::Vector2d sq_hi = (square.centre.array() + square.half_width).matrix();
+    const Eigen::Vector2d fr_lo = (front_centre.array() - front_r).matrix();
+    const Eigen::Vector2d fr_hi = (front_centre.array() + front_r).matrix();
+    const Eigen::Vector2d c_lo = sq_lo.cwiseMax(fr_lo);
+    const Eigen::Vector2d c_hi = sq_hi.cwiseMin(fr_hi);
+    if ((c_hi - c_lo).minCoeff() > 0.0) {
+        square.centre = 0.5 * (c_lo + c_hi);
+        square.half_width = 0.5 * (c_hi - c_lo).maxCoeff();
+    }
+    if (!(square.half_width > 0.0) || !std::isfinite(square.half_width)) {
+        square.centre = front_centre;
+        square.half_width = front_r;
+    }
+    return square;
+}
+
+}  // namespace
+
+Eigen::Vector2d RayGrid::entryPoint(int ix, int iy) const {
+    if (n == 1) return entry_centre_mm;
+    const double step = 2.0 * entry_half_width_mm / (n - 1);
+    return entry_centre_mm + Eigen::Vector2d(-entry_half_width_mm + step * ix,
+                                             -entry_half_width_mm + step * iy);
+}
+
+int64_t RayGrid::validCount() const {
+    return std::count_if(samples.begin(), samples.end(),
+                         [](const GridSample& s) { return s.valid; });
+}
+
+Result<RayGrid> traceRayGrid(const Lens& lens,
+                             const GhostPath& path,
+                             double theta_rad,
+                             double phi_rad,
+                             double wavelength_nm,
+                             int n,
+                             const RayGridOptions& options) {
+    const auto invalid = [](const std::string& what) {
+        return makeError(ErrorCode::InvalidArgument, "ray grid: " + what);
+    };
+    if (!std::isfinite(theta_rad) || theta_rad < 0.0 || theta_rad >= 0.5 * kPi)
+        return invalid("theta must lie in [0, 90) degrees (the light must be in front)");
+    if (!std::isfinite(phi_rad)) return invalid("phi must be finite");
+    if (!(wavelength_nm >= 200.0 && wavelength_nm <= 3000.0))
+        return invalid("wavelength must lie in 200..3000 nm");
+    if (n < 1 || n > 8192) return invalid("grid size must lie in 1..8192");
+    if (!lens.isValidPath(path)) return invalid("path " + pathLabel(path) + " is not in this lens");
+    if (!(options.margin >= 0.0 && options.margin <= 10.0))
+        return invalid("margin must lie in 0..10");
+
+    RayGrid grid;
+    grid.path = path;
+    grid.n = n;
+    grid.theta_rad = theta_rad;
+    grid.phi_rad = phi_rad;
+    grid.wavelength_nm = wavelength_nm;
+    grid.plane = defaultEntryPlane(lens);
+    const Eigen::Vector3d direction = lightDirection(theta_rad, phi_rad);
+
+    const PathTracer geometric(lens, path, wavelength_nm,
+                               TraceOptions{.clip_apertures = false, .clip_stop = false,
+                                            .fresnel = false});
+    const Square square =
+        pupilSquare(lens, path, geometric, grid.plane, direction, wavelength_nm, options.margin);
+    grid.entry_centre_mm = square.centre;
+    grid.entry_half_width_mm = square.half_width;
+
+    const PathTracer tracer(lens, path, wavelength_nm,
+                            TraceOptions{.clip_apertures = options.clip_apertures,
+                                         .clip_stop = false,
+                                         .fresnel = options.fresnel});
+    grid.samples.assign(static_cast<size_t>(n) * static_cast<size_t>(n), GridSample{});
+    for (int iy = 0; iy < n; ++iy) {
+        for (int ix = 0; ix < n; ++ix) {
+            const Ray ray =
+                rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
+            const auto traced = tracer.trace(ray);
+            if (!traced) continue;
+            GridSample& s = grid.samples[static_cast<size_t>(iy) * n + ix];
+            s.sensor_x_mm = static_cast<float>(traced->ray.position.x());
+            s.sensor_y_mm = static_cast<float>(traced->ray.position.y());
+            s.throughput = static_cast<float>(traced->ray.throughput);
+            s.stop_u = static_cast<float>(traced->stop_u);
+            s.stop_v = static_cast<float>(traced->stop_v);
+            s.valid = std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
+                      std::isfinite(s.stop_u) && std::isfinite(s.stop_v) &&
+                      std::isfinite(s.throughput);
+            if (!s.valid) s = GridSample{};
+        }
+    }
+    return grid;
+}
+
+}  // namespace flarelab::optics

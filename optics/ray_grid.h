@@ -1,0 +1,74 @@
+// ============================================================================
+//  flarelab optics: RayGrid (sparse ray grids through one path)
+// ============================================================================
+//
+// The input of the tiled renderer (Bodonyi & Kunkli 2023 §3.3, after Hullin et al. 2011): an
+// n x n grid of parallel rays from one light, traced through one path at one wavelength. The grid
+// covers the square that bounds the part of the beam that passes the stop on this path (the
+// path's own entrance pupil, found with real rays, plus a margin), clipped to the front lens.
+//
+// Each sample keeps where the ray met the sensor, its throughput, and where it crossed the stop in
+// stop-normalized coordinates. The stop does not invalidate rays: the renderer applies the
+// aperture shape to interpolated stop coordinates, so ghost edges come out sharp however coarse
+// the grid. `valid` is false for rays that miss a surface, leave a clear aperture or are totally
+// reflected; their other fields are zero.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include <Eigen/Core>
+
+#include "common/result.h"
+#include "optics/aim.h"
+#include "optics/lens.h"
+
+namespace flarelab::optics {
+
+struct GridSample {
+    float sensor_x_mm = 0.0f;
+    float sensor_y_mm = 0.0f;
+    float throughput = 0.0f;
+    float stop_u = 0.0f;  // stop crossing / stop semi-aperture; inside when aperture().contains
+    float stop_v = 0.0f;
+    bool valid = false;
+};
+
+struct RayGrid {
+    GhostPath path;
+    int n = 0;  // rays per side
+    double theta_rad = 0.0;
+    double phi_rad = 0.0;
+    double wavelength_nm = 0.0;
+    EntryPlane plane;
+    Eigen::Vector2d entry_centre_mm = Eigen::Vector2d::Zero();  // of the square on the entry plane
+    double entry_half_width_mm = 0.0;
+    std::vector<GridSample> samples;  // n * n, row-major: samples[iy * n + ix]
+
+    const GridSample& at(int ix, int iy) const {
+        return samples[static_cast<size_t>(iy) * static_cast<size_t>(n) + static_cast<size_t>(ix)];
+    }
+    // Entry-plane position of grid point (ix, iy): corners of the square for n >= 2, its centre
+    // for n = 1.
+    Eigen::Vector2d entryPoint(int ix, int iy) const;
+    int64_t validCount() const;
+};
+
+struct RayGridOptions {
+    double margin = 0.1;  // the square's half-width beyond the aimed pupil, as a fraction
+    bool fresnel = true;
+    bool clip_apertures = true;
+};
+
+// theta in [0, pi/2), n in 1..8192, wavelength in 200..3000 nm, a valid path of `lens`;
+// anything else is an InvalidArgument error. A light too far off axis for any ray to get
+// through gives a grid with no valid sample, not an error.
+Result<RayGrid> traceRayGrid(const Lens& lens,
+                             const GhostPath& path,
+                             double theta_rad,
+                             double phi_rad,
+                             double wavelength_nm,
+                             int n,
+                             const RayGridOptions& options = {});
+
+}  // namespace flarelab::optics
