@@ -5,6 +5,7 @@
 
 #include <Eigen/LU>
 
+#include "common/units.h"
 #include "optics/paraxial.h"
 
 namespace flarelab::optics {
@@ -42,15 +43,16 @@ Ray rayThroughEntry(const EntryPlane& plane,
     return ray;
 }
 
-std::optional<Eigen::Vector2d> aimAtStop(const PathTracer& tracer,
-                                         const EntryPlane& plane,
-                                         const Eigen::Vector3d& direction,
-                                         const Eigen::Vector2d& target_stop_mm,
-                                         const Eigen::Vector2d& initial_entry_mm) {
+std::optional<Eigen::Vector2d> aimAtCrossing(const PathTracer& tracer,
+                                             int crossing,
+                                             const EntryPlane& plane,
+                                             const Eigen::Vector3d& direction,
+                                             const Eigen::Vector2d& target_stop_mm,
+                                             const Eigen::Vector2d& initial_entry_mm) {
     if (!(direction.z() > 0.0)) return std::nullopt;
     const auto stop_at = [&](const Eigen::Vector2d& entry) -> std::optional<Eigen::Vector2d> {
         const Ray ray = rayThroughEntry(plane, entry, direction, tracer.wavelength_nm());
-        return tracer.traceToStop(ray.position, ray.direction);
+        return tracer.traceToCrossing(crossing, ray.position, ray.direction);
     };
     Eigen::Vector2d entry = initial_entry_mm;
     std::optional<Eigen::Vector2d> hit = stop_at(entry);
@@ -90,19 +92,134 @@ std::optional<Eigen::Vector2d> aimAtStop(const PathTracer& tracer,
     return std::nullopt;
 }
 
-std::optional<Eigen::Vector2d> paraxialEntry(const Lens& lens,
-                                             const GhostPath& path,
-                                             double wavelength_nm,
+std::optional<Eigen::Vector2d> aimAtStop(const PathTracer& tracer,
+                                         const EntryPlane& plane,
+                                         const Eigen::Vector3d& direction,
+                                         const Eigen::Vector2d& target_stop_mm,
+                                         const Eigen::Vector2d& initial_entry_mm) {
+    return aimAtCrossing(tracer, tracer.firstStopCrossing(), plane, direction, target_stop_mm,
+                         initial_entry_mm);
+}
+
+std::optional<Eigen::Vector2d> paraxialEntry(const Eigen::Matrix2d& to_here,
                                              const EntryPlane& plane,
                                              const Eigen::Vector3d& direction,
-                                             const Eigen::Vector2d& target_stop_mm) {
-    const PathMatrices m = pathMatrices(lens, path, wavelength_nm);
-    const double a = m.to_stop(0, 0), b = m.to_stop(0, 1);
+                                             const Eigen::Vector2d& target_mm) {
+    const double a = to_here(0, 0), b = to_here(0, 1);
     if (!(std::abs(a) > 1e-12) || !(direction.z() > 0.0)) return std::nullopt;
     const Eigen::Vector2d slope(direction.x() / direction.z(), direction.y() / direction.z());
     // Height at the first vertex (z = 0), then carried along the ray to the entry plane.
-    const Eigen::Vector2d at_vertex = (target_stop_mm - b * slope) / a;
+    const Eigen::Vector2d at_vertex = (target_mm - b * slope) / a;
     return Eigen::Vector2d(at_vertex + slope * plane.entry_z_mm);
+}
+
+namespace {
+
+// The centre ray of a beam found by continuation from the axis, where it is the axis itself:
+// the light is moved off in steps and each aim starts from the previous answer. A path with an
+// internal focus can have several rays through the same aperture point; this picks the one that
+// joins the paraxial chief ray continuously, instead of whichever Newton's method happens on.
+std::optional<Eigen::Vector2d> aimCentreByContinuation(const PathTracer& tracer,
+                                                       int crossing,
+                                                       const EntryPlane& plane,
+                                                       const Eigen::Vector3d& direction,
+                                                       const Eigen::Matrix2d& to_here,
+                                                       double beam_radius_mm) {
+    const double theta = std::acos(std::clamp(direction.z(), -1.0, 1.0));
+    const double phi = std::atan2(direction.y(), direction.x());
+    constexpr double kMaxStep = degToRad(1.0), kMinStep = degToRad(1e-3);
+    double reached = 0.0, step = std::min(kMaxStep, theta);
+    Eigen::Vector2d entry = Eigen::Vector2d::Zero();  // on the axis the centre ray is the axis
+    Eigen::Vector2d velocity = Eigen::Vector2d::Zero();  // d entry / d theta, for the next guess
+    while (reached < theta) {
+        const double next = std::min(theta, reached + step);
+        const Eigen::Vector3d d = lightDirection(next, phi);
+        Eigen::Vector2d guess = entry + velocity * (next - reached);
+        if (reached == 0.0) {
+            if (const auto paraxial = paraxialEntry(to_here, plane, d, Eigen::Vector2d::Zero()))
+                guess = *paraxial;
+        }
+        const auto aimed = aimAtCrossing(tracer, crossing, plane, d, Eigen::Vector2d::Zero(), guess);
+        // Accept only an answer near the prediction: a far one is another branch of the path, and
+        // a step that needs it has run into a fold, which smaller steps then locate. "Near" is a
+        // quarter of the predicted move, or a twentieth of the beam where the chief ray hardly
+        // moves (an entry plane at the path's own pupil).
+        const double predicted_move = (guess - entry).norm();
+        const double tolerance = 0.25 * predicted_move + 0.05 * beam_radius_mm;
+        if (!aimed || (*aimed - guess).norm() > tolerance) {
+            step *= 0.5;
+            if (step < kMinStep) return std::nullopt;
+            continue;
+        }
+        velocity = (*aimed - entry) / (next - reached);
+        entry = *aimed;
+        reached = next;
+        step = std::min(kMaxStep, step * 2.0);
+    }
+    if (theta == 0.0) {
+        return aimAtCrossing(tracer, crossing, plane, direction, Eigen::Vector2d::Zero(), entry);
+    }
+    return entry;
+}
+
+}  // namespace
+
+std::optional<AimedBeam> aimBeam(const Lens& lens,
+                                 const GhostPath& path,
+                                 double wavelength_nm,
+                                 const EntryPlane& plane,
+                                 const Eigen::Vector3d& direction,
+                                 int rim_points) {
+    const auto ghost = paraxialGhost(lens, path, wavelength_nm);
+    if (!ghost) return std::nullopt;
+    const PathTransfer transfer = pathTransfer(lens, path, wavelength_nm);
+    const PathCrossing& lim = transfer.crossings[ghost->limiting_crossing];
+    AimedBeam beam;
+    beam.crossing = ghost->limiting_crossing;
+    beam.paraxial_beam_radius_mm = ghost->beam_radius_mm;
+    const auto paraxial_centre =
+        paraxialEntry(lim.to_here, plane, direction, Eigen::Vector2d::Zero());
+    if (!paraxial_centre) return std::nullopt;
+    beam.paraxial_centre_entry = *paraxial_centre;
+    const PathTracer geometric(
+        lens, path, wavelength_nm,
+        TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = false});
+    beam.centre_entry =
+        aimCentreByContinuation(geometric, beam.crossing, plane, direction, lim.to_here,
+                                ghost->beam_radius_mm);
+
+    // The rim, by bisection between a ray that passes and one beyond the front lens.
+    const PathTracer clipping(
+        lens, path, wavelength_nm,
+        TraceOptions{.clip_apertures = true, .clip_stop = true, .fresnel = false});
+    const auto passes = [&](const Eigen::Vector2d& entry) {
+        return clipping.trace(rayThroughEntry(plane, entry, direction, wavelength_nm))
+            .has_value();
+    };
+    Eigen::Vector2d inside = beam.centre_entry.value_or(*paraxial_centre);
+    if (!passes(inside)) {
+        if (passes(*paraxial_centre)) {
+            inside = *paraxial_centre;
+        } else {
+            return beam;  // fully vignetted (or the centre cannot be found): no rim
+        }
+    }
+    const LensSurface& front = lens.surfaces().front();
+    const Eigen::Vector2d slope(direction.x() / direction.z(), direction.y() / direction.z());
+    const Eigen::Vector2d front_centre = slope * (plane.entry_z_mm - front.z_mm);
+    // Every entry point farther than this from `inside` misses the front lens.
+    const double reach = (inside - front_centre).norm() + 2.0 * front.semi_aperture_mm + 1.0;
+    for (int k = 0; k < rim_points; ++k) {
+        const double angle = 2.0 * kPi * k / rim_points;
+        const Eigen::Vector2d dir(std::cos(angle), std::sin(angle));
+        double lo = 0.0, hi = reach;
+        for (int i = 0; i < 48 && hi - lo > 1e-9 * reach; ++i) {
+            const double mid = 0.5 * (lo + hi);
+            (passes(inside + mid * dir) ? lo : hi) = mid;
+        }
+        beam.rim_entries.push_back(inside + lo * dir);
+    }
+    return beam;
 }
 
 }  // namespace flarelab::optics

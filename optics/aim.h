@@ -11,6 +11,7 @@
 #pragma once
 
 #include <optional>
+#include <vector>
 
 #include <Eigen/Core>
 
@@ -36,22 +37,52 @@ Ray rayThroughEntry(const EntryPlane& plane,
                     const Eigen::Vector3d& direction,
                     double wavelength_nm);
 
-// Entry point whose ray crosses the stop plane (first crossing along the tracer's path) at
-// `target_stop_mm`, to 1e-9 mm. Aiming ignores clear apertures: it answers where the ray would
-// go. nullopt when Newton's method does not converge (e.g. the ray is totally reflected on the
-// way, or no ray of this direction reaches that stop point).
+// Entry point whose ray meets crossing `crossing` of the tracer's path (see pathTransfer) at
+// x, y = `target_mm`, to 1e-9 of the problem's scale. Aiming ignores clear apertures: it answers
+// where the ray would go. nullopt when Newton's method does not converge (e.g. the ray is totally
+// reflected on the way, or no ray of this direction reaches that point).
+std::optional<Eigen::Vector2d> aimAtCrossing(const PathTracer& tracer,
+                                             int crossing,
+                                             const EntryPlane& plane,
+                                             const Eigen::Vector3d& direction,
+                                             const Eigen::Vector2d& target_mm,
+                                             const Eigen::Vector2d& initial_entry_mm);
+
+// The same, aimed at the first crossing of the stop.
 std::optional<Eigen::Vector2d> aimAtStop(const PathTracer& tracer,
                                          const EntryPlane& plane,
                                          const Eigen::Vector3d& direction,
                                          const Eigen::Vector2d& target_stop_mm,
                                          const Eigen::Vector2d& initial_entry_mm);
 
-// The paraxial guess for aimAtStop: from the path's to-stop matrix. nullopt when A = 0.
-std::optional<Eigen::Vector2d> paraxialEntry(const Lens& lens,
-                                             const GhostPath& path,
-                                             double wavelength_nm,
+// The paraxial guess for aiming: the entry point whose ray reaches `target_mm` at a surface, from
+// the path's transfer `to_here` to that surface. nullopt when its A = 0.
+std::optional<Eigen::Vector2d> paraxialEntry(const Eigen::Matrix2d& to_here,
                                              const EntryPlane& plane,
                                              const Eigen::Vector3d& direction,
-                                             const Eigen::Vector2d& target_stop_mm);
+                                             const Eigen::Vector2d& target_mm);
+
+// The beam of one path under one light, found with real rays.
+//
+// Its centre is the ray through the centre of the path's limiting aperture (see ParaxialGhost),
+// the real counterpart of the paraxial chief ray. Its rim is the edge of the set of entry points
+// whose rays pass every clear aperture and the stop shape and reach the image plane, found by
+// bisection from the centre along `rim_points` directions of the entry plane. The rim therefore
+// holds whatever really cuts the beam: the stop, a clear aperture where the path's aberrations
+// squeeze the beam through the stop, or vignetting far off axis.
+struct AimedBeam {
+    int crossing = -1;  // the paraxial limiting aperture's crossing on the path
+    Eigen::Vector2d paraxial_centre_entry = Eigen::Vector2d::Zero();
+    double paraxial_beam_radius_mm = 0.0;
+    std::optional<Eigen::Vector2d> centre_entry;  // nullopt when the centre ray cannot be aimed
+    std::vector<Eigen::Vector2d> rim_entries;     // empty when no ray of the beam gets through
+};
+// nullopt when first-order optics finds no limiting aperture on the path.
+std::optional<AimedBeam> aimBeam(const Lens& lens,
+                                 const GhostPath& path,
+                                 double wavelength_nm,
+                                 const EntryPlane& plane,
+                                 const Eigen::Vector3d& direction,
+                                 int rim_points);
 
 }  // namespace flarelab::optics

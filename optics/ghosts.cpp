@@ -133,7 +133,7 @@ std::optional<ExactGhost> exactGhost(const Lens& lens,
                                      const LightDirectionDeg& light,
                                      double wavelength_nm,
                                      int rim_points) {
-    if (!lens.isValidPath(path) || rim_points < 3 || !(light.theta_deg >= 0.0) ||
+    if (!lens.isValidPath(path) || rim_points < 0 || !(light.theta_deg >= 0.0) ||
         !(light.theta_deg < 90.0))
         return std::nullopt;
     const Eigen::Vector3d direction =
@@ -147,29 +147,18 @@ std::optional<ExactGhost> exactGhost(const Lens& lens,
         if (!traced) return std::nullopt;
         return Eigen::Vector2d(traced->ray.position.x(), traced->ray.position.y());
     };
-    const auto paraxial_centre =
-        paraxialEntry(lens, path, wavelength_nm, plane, direction, Eigen::Vector2d::Zero());
-    if (!paraxial_centre) return std::nullopt;
-    const auto centre_entry =
-        aimAtStop(geometric, plane, direction, Eigen::Vector2d::Zero(), *paraxial_centre);
-    if (!centre_entry) return std::nullopt;
-    const auto centre = to_sensor(*centre_entry);
+    const std::optional<AimedBeam> beam =
+        aimBeam(lens, path, wavelength_nm, plane, direction, rim_points);
+    if (!beam || !beam->centre_entry) return std::nullopt;
+    const auto centre = to_sensor(*beam->centre_entry);
     if (!centre) return std::nullopt;
 
     ExactGhost ghost;
     ghost.centre_mm = *centre;
     ghost.extent_mm << centre->x(), centre->y(), centre->x(), centre->y();
-    const double stop_r = lens.surfaces()[lens.stopIndex()].semi_aperture_mm;
     double radius_sum = 0.0;
-    for (int k = 0; k < rim_points; ++k) {
-        const double a = 2.0 * kPi * k / rim_points;
-        const Eigen::Vector2d target(stop_r * std::cos(a), stop_r * std::sin(a));
-        const auto start = paraxialEntry(lens, path, wavelength_nm, plane, direction, target);
-        if (!start) continue;
-        const Eigen::Vector2d initial = *centre_entry + (*start - *paraxial_centre);
-        const auto entry = aimAtStop(geometric, plane, direction, target, initial);
-        if (!entry) continue;
-        const auto rim = to_sensor(*entry);
+    for (const Eigen::Vector2d& entry : beam->rim_entries) {
+        const auto rim = to_sensor(entry);
         if (!rim) continue;
         radius_sum += (*rim - *centre).norm();
         ghost.extent_mm[0] = std::min(ghost.extent_mm[0], rim->x());

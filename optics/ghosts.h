@@ -89,6 +89,7 @@ struct ExactGhost {
     Eigen::Vector4d extent_mm = Eigen::Vector4d::Zero();  // min x, min y, max x, max y
     int rim_points = 0;                                   // rim rays that could be aimed
 };
+// rim_points = 0 finds only the centre (radius and extent stay zero).
 std::optional<ExactGhost> exactGhost(const Lens& lens,
                                      const GhostPath& path,
                                      const LightDirectionDeg& light,

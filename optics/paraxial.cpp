@@ -1,34 +1,30 @@
 #include "optics/paraxial.h"
 
 #include <cmath>
+#include <limits>
+
+#include <Eigen/LU>
 
 #include "common/check.h"
 
 namespace flarelab::optics {
 namespace {
 
-// Calls `visit(matrix)` for each elementary matrix of the path in order, and `at_stop()` when the
-// light first reaches the stop plane.
-template <typename Visit, typename AtStop>
+// Calls `visit(matrix)` for each elementary matrix of the path in order, and `at_surface(k)`
+// when the light arrives at surface k (after the translation to it, before its own matrix).
+template <typename Visit, typename AtSurface>
 void walkPath(const Lens& lens,
               const GhostPath& path,
               double wavelength_nm,
               Visit&& visit,
-              AtStop&& at_stop) {
+              AtSurface&& at_surface) {
     const auto& s = lens.surfaces();
     const int n = static_cast<int>(s.size());
-    bool stop_seen = false;
-    const auto stop_check = [&](int k) {
-        if (!stop_seen && s[k].is_stop) {
-            stop_seen = true;
-            at_stop();
-        }
-    };
     // Forward leg to `second` (or to the end for the imaging path).
     const int forward_end = path.isImaging() ? n - 1 : path.second;
     for (int k = 0; k <= forward_end; ++k) {
         if (k > 0) visit(translationMatrix(s[k].z_mm - s[k - 1].z_mm));
-        stop_check(k);
+        at_surface(k);
         if (k == path.second) {
             visit(reflectionMatrix(s[k].curvature));
         } else if (!s[k].is_stop) {
@@ -40,7 +36,7 @@ void walkPath(const Lens& lens,
         // Back from `second` to `first`: curvature seen reversed, media swapped.
         for (int k = path.second - 1; k >= path.first; --k) {
             visit(translationMatrix(s[k + 1].z_mm - s[k].z_mm));
-            stop_check(k);
+            at_surface(k);
             if (k == path.first) {
                 visit(reflectionMatrix(-s[k].curvature));
             } else if (!s[k].is_stop) {
@@ -51,7 +47,7 @@ void walkPath(const Lens& lens,
         // Forward again from `first` to the last surface.
         for (int k = path.first + 1; k < n; ++k) {
             visit(translationMatrix(s[k].z_mm - s[k - 1].z_mm));
-            stop_check(k);
+            at_surface(k);
             if (!s[k].is_stop)
                 visit(refractionMatrix(lens.mediumIndex(k - 1, wavelength_nm),
                                        lens.mediumIndex(k, wavelength_nm), s[k].curvature));
@@ -86,7 +82,8 @@ PathMatrices pathMatrices(const Lens& lens, const GhostPath& path, double wavele
     bool split = false;
     walkPath(
         lens, path, wavelength_nm, [&](const Matrix2& m) { current = m * current; },
-        [&] {
+        [&](int k) {
+            if (split || !lens.surfaces()[k].is_stop) return;
             result.to_stop = current;
             current = Matrix2::Identity();
             split = true;
@@ -126,20 +123,47 @@ std::optional<ParaxialProperties> paraxialProperties(const Lens& lens, double wa
     return p;
 }
 
+PathTransfer pathTransfer(const Lens& lens, const GhostPath& path, double wavelength_nm) {
+    PathTransfer result;
+    Matrix2 current = Matrix2::Identity();
+    walkPath(
+        lens, path, wavelength_nm, [&](const Matrix2& m) { current = m * current; },
+        [&](int k) {
+            const LensSurface& s = lens.surfaces()[k];
+            result.crossings.push_back(PathCrossing{k, s.is_stop, s.semi_aperture_mm, current});
+        });
+    result.total = current;
+    return result;
+}
+
 std::optional<ParaxialGhost> paraxialGhost(const Lens& lens,
                                            const GhostPath& path,
                                            double wavelength_nm) {
-    const PathMatrices m = pathMatrices(lens, path, wavelength_nm);
-    const double a1 = m.to_stop(0, 0), b1 = m.to_stop(0, 1);
-    const double c1 = m.to_stop(1, 0), d1 = m.to_stop(1, 1);
-    const double a2 = m.from_stop(0, 0), b2 = m.from_stop(0, 1);
-    if (!(std::abs(a1) > 1e-12)) return std::nullopt;
-    // Parametrize the beam by its stop height y_s: y0 = (y_s - B1 u0) / A1, and the sensor height
-    // is y_s (A2 + B2 C1 / A1) + u0 B2 (D1 - C1 B1 / A1).
+    const PathTransfer transfer = pathTransfer(lens, path, wavelength_nm);
     ParaxialGhost ghost;
+    double narrowest = std::numeric_limits<double>::infinity();
+    for (size_t i = 0; i < transfer.crossings.size(); ++i) {
+        const PathCrossing& c = transfer.crossings[i];
+        const double a = std::abs(c.to_here(0, 0));
+        if (!(a > 1e-12)) continue;  // the beam is focused here: this surface does not cut it
+        const double beam = c.semi_aperture_mm / a;
+        if (beam < narrowest) {
+            narrowest = beam;
+            ghost.limiting_crossing = static_cast<int>(i);
+            ghost.limiting_surface = c.surface;
+        }
+    }
+    if (ghost.limiting_crossing < 0) return std::nullopt;
+    const PathCrossing& lim = transfer.crossings[ghost.limiting_crossing];
+    const Matrix2& m1 = lim.to_here;
+    const Matrix2 m2 = transfer.total * m1.inverse();
+    const double a1 = m1(0, 0), b1 = m1(0, 1), c1 = m1(1, 0), d1 = m1(1, 1);
+    const double a2 = m2(0, 0), b2 = m2(0, 1);
+    // Parametrize the beam by its height y_l at the limiting aperture: y0 = (y_l - B1 u0) / A1,
+    // and the sensor height is y_l (A2 + B2 C1 / A1) + u0 B2 (D1 - C1 B1 / A1).
     ghost.centre_per_tan_mm = b2 * (d1 - c1 * b1 / a1);
-    ghost.radius_mm =
-        lens.surfaces()[lens.stopIndex()].semi_aperture_mm * std::abs(a2 + b2 * c1 / a1);
+    ghost.radius_mm = lim.semi_aperture_mm * std::abs(a2 + b2 * c1 / a1);
+    ghost.beam_radius_mm = narrowest;
     return ghost;
 }
 

@@ -17,6 +17,7 @@
 #pragma once
 
 #include <optional>
+#include <vector>
 
 #include <Eigen/Core>
 
@@ -32,7 +33,8 @@ Matrix2 reflectionMatrix(double curvature_eff);
 
 // First-order properties of the imaging path at one wavelength (lengths in mm).
 struct ParaxialProperties {
-    double efl_mm = 0.0;         // effective focal length, -1 / C of the lens matrix
+    double efl_mm = 0.0;  // -1 / C of the lens matrix: the rear focal length, which is the
+                          // effective focal length when image space is air, as in a camera
     double bfl_mm = 0.0;         // back focal distance: last surface to the rear focal point
     double ffl_mm = 0.0;         // front focal distance: first surface to the front focal point
                                  // (positive when the focal point lies in front of the lens)
@@ -58,13 +60,33 @@ struct PathMatrices {
 };
 PathMatrices pathMatrices(const Lens& lens, const GhostPath& path, double wavelength_nm);
 
-// A ghost as first-order optics sees it: the image of the stop through the path. For a parallel
-// beam of slope tan(theta), its centre lies at centre_per_tan * tan(theta) along the light's roll
-// direction and its radius is radius_mm (independent of theta). nullopt when the path focuses
-// light from infinity onto the stop plane (to_stop A = 0), where paraxial optics has no answer.
+// Every surface the light meets along a path, in order, with the transfer from the first vertex
+// to its arrival there. Crossing k is step k of a PathTracer on the same path.
+struct PathCrossing {
+    int surface = 0;
+    bool is_stop = false;
+    double semi_aperture_mm = 0.0;
+    Matrix2 to_here;
+};
+struct PathTransfer {
+    std::vector<PathCrossing> crossings;
+    Matrix2 total;  // to the image plane
+};
+PathTransfer pathTransfer(const Lens& lens, const GhostPath& path, double wavelength_nm);
+
+// A ghost as first-order optics sees it. A parallel beam of slope tan(theta) is cut down by the
+// path's limiting aperture: of all surfaces it meets, the one that admits the narrowest on-axis
+// beam (semi-aperture / |A| of its transfer). That is usually the stop, but when the path focuses
+// the beam near the stop plane the stop barely cuts it and a clear aperture takes over. The ghost
+// is the image of the limiting aperture: its centre lies at centre_per_tan * tan(theta) along the
+// light's roll direction, its radius is radius_mm. nullopt when no surface limits the beam (every
+// transfer has A = 0), where paraxial optics has no answer.
 struct ParaxialGhost {
     double centre_per_tan_mm = 0.0;
     double radius_mm = 0.0;
+    int limiting_crossing = -1;  // index into pathTransfer(...).crossings
+    int limiting_surface = -1;   // index into Lens::surfaces()
+    double beam_radius_mm = 0.0;  // radius of the admitted beam at the first vertex
 };
 std::optional<ParaxialGhost> paraxialGhost(const Lens& lens,
                                            const GhostPath& path,

@@ -19,12 +19,10 @@ struct Square {
 // The square on the entry plane that bounds the beam passing the stop on this path.
 Square pupilSquare(const Lens& lens,
                    const GhostPath& path,
-                   const PathTracer& geometric,
+                   double wavelength_nm,
                    const EntryPlane& plane,
                    const Eigen::Vector3d& direction,
-                   double wavelength_nm,
                    double margin) {
-    const double stop_r = lens.surfaces()[lens.stopIndex()].semi_aperture_mm;
     const Eigen::Vector2d slope(direction.x() / direction.z(), direction.y() / direction.z());
     // The front lens's clear aperture projected along the beam onto the entry plane: no ray
     // outside it gets in, so the grid never needs to be larger.
@@ -32,43 +30,23 @@ Square pupilSquare(const Lens& lens,
     const Eigen::Vector2d front_centre = slope * (plane.entry_z_mm - front.z_mm);
     const double front_r = front.semi_aperture_mm;
 
-    Eigen::Vector2d lo(1e300, 1e300), hi(-1e300, -1e300);
-    int aimed = 0;
-    const auto paraxial_centre =
-        paraxialEntry(lens, path, wavelength_nm, plane, direction, Eigen::Vector2d::Zero());
-    Eigen::Vector2d guess = paraxial_centre.value_or(front_centre);
-    const std::optional<Eigen::Vector2d> centre =
-        aimAtStop(geometric, plane, direction, Eigen::Vector2d::Zero(), guess);
-    if (centre) guess = *centre;
+    Square square{front_centre, front_r};
     constexpr int kRim = 16;
-    for (int k = 0; k < kRim; ++k) {
-        const double a = 2.0 * kPi * k / kRim;
-        const Eigen::Vector2d target(stop_r * std::cos(a), stop_r * std::sin(a));
-        const auto start = paraxialEntry(lens, path, wavelength_nm, plane, direction, target);
-        Eigen::Vector2d initial = guess;
-        if (start && centre && paraxial_centre) initial = *centre + (*start - *paraxial_centre);
-        const auto entry = aimAtStop(geometric, plane, direction, target, initial);
-        if (!entry) continue;
-        lo = lo.cwiseMin(*entry);
-        hi = hi.cwiseMax(*entry);
-        ++aimed;
-    }
-    Square square;
-    if (aimed >= kRim / 2) {
+    const std::optional<AimedBeam> beam =
+        aimBeam(lens, path, wavelength_nm, plane, direction, kRim);
+    if (beam && !beam->rim_entries.empty()) {
+        Eigen::Vector2d lo = beam->rim_entries.front(), hi = lo;
+        for (const Eigen::Vector2d& e : beam->rim_entries) {
+            lo = lo.cwiseMin(e);
+            hi = hi.cwiseMax(e);
+        }
         square.centre = 0.5 * (lo + hi);
         square.half_width = 0.5 * (hi - lo).maxCoeff() * (1.0 + margin);
-    } else {
-        // Real rays could not be aimed (light far off axis, TIR on the way): fall back to the
-        // paraxial pupil of the path, else to the front lens.
-        const PathMatrices m = pathMatrices(lens, path, wavelength_nm);
-        const double a = std::abs(m.to_stop(0, 0));
-        if (paraxial_centre && a > 1e-12) {
-            square.centre = *paraxial_centre;
-            square.half_width = stop_r / a * (1.0 + margin);
-        } else {
-            square.centre = front_centre;
-            square.half_width = front_r;
-        }
+    } else if (beam) {
+        // No real ray gets through (light far off axis, TIR on the way): the paraxial beam of
+        // the path, so that the grid still shows where the light would be.
+        square.centre = beam->paraxial_centre_entry;
+        square.half_width = beam->paraxial_beam_radius_mm * (1.0 + margin);
     }
     // Clip to the square around the front lens.
     const Eigen::Vector2d sq_lo = (square.centre.array() - square.half_width).matrix();
@@ -131,11 +109,8 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
     grid.plane = defaultEntryPlane(lens);
     const Eigen::Vector3d direction = lightDirection(theta_rad, phi_rad);
 
-    const PathTracer geometric(lens, path, wavelength_nm,
-                               TraceOptions{.clip_apertures = false, .clip_stop = false,
-                                            .fresnel = false});
     const Square square =
-        pupilSquare(lens, path, geometric, grid.plane, direction, wavelength_nm, options.margin);
+        pupilSquare(lens, path, wavelength_nm, grid.plane, direction, options.margin);
     grid.entry_centre_mm = square.centre;
     grid.entry_half_width_mm = square.half_width;
 

@@ -89,6 +89,7 @@ PathTracer::PathTracer(const Lens& lens,
         if (s[k].is_stop && !stop_seen) {
             step.first_stop_crossing = true;
             stop_seen = true;
+            first_stop_crossing_ = static_cast<int>(steps_.size());
         }
         if (!s[k].is_stop && s[k].coating_wavelength_nm > 0.0) {
             const double design = s[k].coating_wavelength_nm;
@@ -144,30 +145,14 @@ std::optional<TracedRay> PathTracer::trace(const Ray& input) const {
             continue;
         }
         if (options_.clip_apertures && r2 > step.semi_aperture2) return std::nullopt;
-        // Unit normal of c|p - v|^2 - 2 (p - v)_z = 0, facing the incoming light.
-        Eigen::Vector3d normal(step.curvature * p.x(), step.curvature * p.y(),
-                               step.curvature * (p.z() - step.z_mm) - 1.0);
-        normal.normalize();
-        if (normal.dot(d) > 0.0) normal = -normal;
-        const double cos_i = std::min(1.0, -normal.dot(d));
-        FresnelResult f{0.0, 1.0};
+        double cos_i = 1.0;
+        if (!bend(step, p, d, cos_i)) return std::nullopt;  // total internal reflection
         if (options_.fresnel) {
-            f = step.coated ? fresnelCoated(step.n1, step.coat_index, step.coat_thickness_nm,
+            const FresnelResult f =
+                step.coated ? fresnelCoated(step.n1, step.coat_index, step.coat_thickness_nm,
                                             step.n2, cos_i, wavelength_nm_)
                             : fresnelUncoated(step.n1, step.n2, cos_i);
-        }
-        if (step.kind == StepKind::Reflect) {
-            d = d + 2.0 * cos_i * normal;
-            d.normalize();
-            throughput *= f.reflectance;
-        } else {
-            if (step.n1 != step.n2) {
-                const std::optional<Eigen::Vector3d> refracted =
-                    refractDirection(d, normal, step.n1, step.n2);
-                if (!refracted) return std::nullopt;  // total internal reflection
-                d = *refracted;
-            }
-            throughput *= f.transmittance;
+            throughput *= step.kind == StepKind::Reflect ? f.reflectance : f.transmittance;
         }
     }
     out.ray.position = p;
@@ -179,30 +164,41 @@ std::optional<TracedRay> PathTracer::trace(const Ray& input) const {
     return out;
 }
 
-std::optional<Eigen::Vector2d> PathTracer::traceToStop(const Eigen::Vector3d& position,
-                                                       const Eigen::Vector3d& direction) const {
+bool PathTracer::bend(const Step& step,
+                      const Eigen::Vector3d& p,
+                      Eigen::Vector3d& d,
+                      double& cos_i) {
+    // Unit normal of c|p - v|^2 - 2 (p - v)_z = 0, turned to face the incoming light.
+    Eigen::Vector3d normal(step.curvature * p.x(), step.curvature * p.y(),
+                           step.curvature * (p.z() - step.z_mm) - 1.0);
+    normal.normalize();
+    if (normal.dot(d) > 0.0) normal = -normal;
+    cos_i = std::min(1.0, -normal.dot(d));
+    if (step.kind == StepKind::Reflect) {
+        d = (d + 2.0 * cos_i * normal).normalized();
+        return true;
+    }
+    if (step.n1 == step.n2) return true;
+    const std::optional<Eigen::Vector3d> refracted = refractDirection(d, normal, step.n1, step.n2);
+    if (!refracted) return false;
+    d = *refracted;
+    return true;
+}
+
+std::optional<Eigen::Vector2d> PathTracer::traceToCrossing(int crossing,
+                                                           const Eigen::Vector3d& position,
+                                                           const Eigen::Vector3d& direction) const {
+    if (crossing < 0 || crossing >= crossingCount()) return std::nullopt;
     Eigen::Vector3d p = position;
     Eigen::Vector3d d = direction;
-    for (const Step& step : steps_) {
+    for (int k = 0; k <= crossing; ++k) {
+        const Step& step = steps_[k];
         const std::optional<double> t = intersectSurface(p, d, step.z_mm, step.curvature);
         if (!t) return std::nullopt;
         p += *t * d;
-        if (step.kind == StepKind::Stop && step.first_stop_crossing)
-            return Eigen::Vector2d(p.x(), p.y());
-        if (step.kind == StepKind::Image || step.kind == StepKind::Stop) continue;
-        Eigen::Vector3d normal(step.curvature * p.x(), step.curvature * p.y(),
-                               step.curvature * (p.z() - step.z_mm) - 1.0);
-        normal.normalize();
-        if (normal.dot(d) > 0.0) normal = -normal;
-        if (step.kind == StepKind::Reflect) {
-            d = d + 2.0 * std::min(1.0, -normal.dot(d)) * normal;
-            d.normalize();
-        } else if (step.n1 != step.n2) {
-            const std::optional<Eigen::Vector3d> refracted =
-                refractDirection(d, normal, step.n1, step.n2);
-            if (!refracted) return std::nullopt;
-            d = *refracted;
-        }
+        if (k == crossing) return Eigen::Vector2d(p.x(), p.y());
+        double cos_i = 1.0;
+        if (step.kind != StepKind::Stop && !bend(step, p, d, cos_i)) return std::nullopt;
     }
     return std::nullopt;
 }

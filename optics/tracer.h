@@ -60,10 +60,18 @@ public:
     // surface to the image plane.
     std::optional<TracedRay> trace(const Ray& ray) const;
 
-    // Traces only up to the first crossing of the stop plane, without any clipping or Fresnel
-    // terms, and returns where it crossed (mm). For aiming rays at points of the stop.
+    // Traces only up to crossing `crossing` of the path (the k-th surface the light meets, as
+    // numbered by pathTransfer), without any clipping or Fresnel terms, and returns the x, y
+    // where the ray meets that surface (mm). For aiming rays at points of an aperture.
+    std::optional<Eigen::Vector2d> traceToCrossing(int crossing,
+                                                   const Eigen::Vector3d& position,
+                                                   const Eigen::Vector3d& direction) const;
     std::optional<Eigen::Vector2d> traceToStop(const Eigen::Vector3d& position,
-                                               const Eigen::Vector3d& direction) const;
+                                               const Eigen::Vector3d& direction) const {
+        return traceToCrossing(first_stop_crossing_, position, direction);
+    }
+    int firstStopCrossing() const { return first_stop_crossing_; }
+    int crossingCount() const { return static_cast<int>(steps_.size()) - 1; }
 
     // Ray-surface intersections one ray needs on this path (image plane included).
     int intersectionsPerRay() const { return static_cast<int>(steps_.size()); }
@@ -84,7 +92,12 @@ private:
         double coat_thickness_nm = 0.0;
         bool first_stop_crossing = false;
     };
-    std::vector<Step> steps_;
+    // Bends direction d at the surface of `step` hit at p; false on total internal reflection.
+    // Writes the incidence cosine for the Fresnel terms.
+    static bool bend(const Step& step, const Eigen::Vector3d& p, Eigen::Vector3d& d, double& cos_i);
+
+    std::vector<Step> steps_;  // one per crossing, then the image plane
+    int first_stop_crossing_ = -1;
     GhostPath path_;
     double wavelength_nm_;
     double stop_semi_aperture_mm_;
