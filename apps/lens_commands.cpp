@@ -77,7 +77,7 @@ std::optional<Lens> loadLens(const std::string& path, const CameraFlags& flags, 
 }
 
 // Round for JSON so that documents stay readable and diffs stable (0.1 nm resolution in mm).
-double tidy(double v) { return std::round(v * 1e7) / 1e7; }
+double tidy(double v) { return std::round(v * 1e7) / 1e7 + 0.0; }  // + 0.0 turns -0 into 0
 
 std::string fixed(double v, int digits) {
     std::ostringstream out;
@@ -290,7 +290,9 @@ int runGhosts(const std::string& file, const CameraFlags& flags, const GhostFlag
         const auto cell = [](std::optional<double> v, int width, int digits) {
             std::ostringstream s;
             s << std::setw(width);
-            if (v) s << std::fixed << std::setprecision(digits) << *v;
+            // Values that round to zero print as 0, never as -0.
+            if (v) s << std::fixed << std::setprecision(digits)
+                     << (std::abs(*v) < 0.5 * std::pow(10.0, -digits) ? 0.0 : *v);
             else s << "-";
             return s.str();
         };

@@ -89,6 +89,20 @@ TEST(FresnelCoated, FrustratedTotalReflectionInTheLayerStillConservesEnergy) {
     EXPECT_NEAR(thick.reflectance, 1.0, 1e-9);
 }
 
+TEST(FresnelCoated, IsContinuousWhereTheLayerTurnsEvanescent) {
+    // Real (propagating) and complex (evanescent) evaluations meet at the layer's critical angle.
+    const double n1 = 1.9, n_coat = 1.38, n2 = 1.7;
+    const double critical_cos = std::sqrt(1.0 - std::pow(n_coat / n1, 2));
+    for (double thickness : {20.0, 110.0, 300.0}) {
+        const FresnelResult below =
+            fresnelCoated(n1, n_coat, thickness, n2, critical_cos * (1.0 + 1e-9), 550.0);
+        const FresnelResult above =
+            fresnelCoated(n1, n_coat, thickness, n2, critical_cos * (1.0 - 1e-9), 550.0);
+        EXPECT_NEAR(below.reflectance, above.reflectance, 1e-6) << thickness;
+        EXPECT_NEAR(below.transmittance, above.transmittance, 1e-6) << thickness;
+    }
+}
+
 TEST(FresnelCoated, ZeroThicknessLayerIsTheBareInterface) {
     for (double c : {1.0, 0.8, 0.3, 0.05}) {
         const FresnelResult bare = fresnelUncoated(1.0, 1.62, c);

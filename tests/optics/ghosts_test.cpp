@@ -227,8 +227,9 @@ TEST(ExactGhost, DivergesFromParaxialSmoothlyAsTheLightMovesOff) {
             const double gap = std::abs(exact->centre_mm.x() -
                                         paraxial->centre_per_tan_mm * std::tan(degToRad(theta_deg)));
             const double cube = std::pow(theta_deg / (theta_deg - 0.5), 3);
-            if (previous > 1e-6)
+            if (previous > 1e-6) {
                 EXPECT_LT(gap, previous * cube * 1.5) << pathLabel(path) << " " << theta_deg;
+            }
             previous = gap;
         }
     }

@@ -283,7 +283,7 @@ TEST(AimAtStop, FindsTheRayThroughAnyStopPoint) {
                             TraceOptions{.clip_apertures = false, .clip_stop = false});
     for (double theta_deg : {0.0, 5.0, 20.0}) {
         const Eigen::Vector3d d = lightDirection(degToRad(theta_deg), 0.3);
-        for (const Eigen::Vector2d target : {Eigen::Vector2d(0, 0), Eigen::Vector2d(3, -7)}) {
+        for (const Eigen::Vector2d& target : {Eigen::Vector2d(0, 0), Eigen::Vector2d(3, -7)}) {
             const auto guess =
                 paraxialEntry(pathMatrices(lens, GhostPath{}, 550.0).to_stop, plane, d, target);
             ASSERT_TRUE(guess);
