@@ -1,9 +1,8 @@
 // flarelab: the command-line tool. Each command parses its flags, fills an options struct and
 // calls a library; see README.md for the commands.
+#include <CLI/CLI.hpp>
 #include <exception>
 #include <iostream>
-
-#include <CLI/CLI.hpp>
 
 #include "apps/lens_commands.h"
 

@@ -4,11 +4,10 @@
 #include <cstdio>
 #include <iomanip>
 #include <memory>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <sstream>
 #include <string>
-
-#include <nlohmann/json.hpp>
 
 #include "common/units.h"
 #include "optics/ghosts.h"
@@ -85,7 +84,10 @@ std::string fixed(double v, int digits) {
     return out.str();
 }
 
-int runShow(const std::string& file, const CameraFlags& flags, bool json, std::ostream& out,
+int runShow(const std::string& file,
+            const CameraFlags& flags,
+            bool json,
+            std::ostream& out,
             std::ostream& err) {
     const auto lens = loadLens(file, flags, err);
     if (!lens) return 1;
@@ -148,15 +150,17 @@ int runShow(const std::string& file, const CameraFlags& flags, bool json, std::o
         out << doc.dump(2) << "\n";
         return 0;
     }
-    out << lens->name() << "\n" << "  file " << file << "\n\n";
-    out << "   #  kind      radius_mm  thickness_mm   ior_d   abbe  semi_ap_mm  coat_nm      z_mm\n";
+    out << lens->name() << "\n"
+        << "  file " << file << "\n\n";
+    out << "   #  kind      radius_mm  thickness_mm   ior_d   abbe  semi_ap_mm  coat_nm      "
+           "z_mm\n";
     for (size_t k = 0; k < s.size(); ++k) {
         const Surface& row = prescription->surfaces[k];
         char line[160];
-        std::snprintf(line, sizeof line, "%4zu  %-7s %11.4f %13.4f %7.4f %6.2f %11.4f %8.0f %9.3f\n",
-                      k + 1, s[k].is_stop ? "stop" : "surface", row.radius_mm, row.thickness_mm,
-                      row.ior_d, row.abbe, s[k].semi_aperture_mm, s[k].coating_wavelength_nm,
-                      s[k].z_mm);
+        std::snprintf(line, sizeof line,
+                      "%4zu  %-7s %11.4f %13.4f %7.4f %6.2f %11.4f %8.0f %9.3f\n", k + 1,
+                      s[k].is_stop ? "stop" : "surface", row.radius_mm, row.thickness_mm, row.ior_d,
+                      row.abbe, s[k].semi_aperture_mm, s[k].coating_wavelength_nm, s[k].z_mm);
         out << line;
     }
     out << "\nparaxial, d line (587.56 nm):\n";
@@ -203,8 +207,12 @@ struct GhostFlags {
 
 Json optionalNumber(std::optional<double> v) { return v ? Json(tidy(*v)) : Json(); }
 
-int runGhosts(const std::string& file, const CameraFlags& flags, const GhostFlags& g, bool json,
-              std::ostream& out, std::ostream& err) {
+int runGhosts(const std::string& file,
+              const CameraFlags& flags,
+              const GhostFlags& g,
+              bool json,
+              std::ostream& out,
+              std::ostream& err) {
     if (!(g.angle_deg >= 0.0 && g.angle_deg < 90.0)) {
         err << "flarelab: --angle must lie in [0, 90) degrees (the light in front of the camera)\n";
         return 1;
@@ -291,9 +299,11 @@ int runGhosts(const std::string& file, const CameraFlags& flags, const GhostFlag
             std::ostringstream s;
             s << std::setw(width);
             // Values that round to zero print as 0, never as -0.
-            if (v) s << std::fixed << std::setprecision(digits)
-                     << (std::abs(*v) < 0.5 * std::pow(10.0, -digits) ? 0.0 : *v);
-            else s << "-";
+            if (v)
+                s << std::fixed << std::setprecision(digits)
+                  << (std::abs(*v) < 0.5 * std::pow(10.0, -digits) ? 0.0 : *v);
+            else
+                s << "-";
             return s.str();
         };
         table << std::left << std::setw(7) << pathLabel(path) << std::right << std::setw(6)
@@ -328,12 +338,13 @@ int runGhosts(const std::string& file, const CameraFlags& flags, const GhostFlag
         out << doc.dump(2) << "\n";
         return 0;
     }
-    out << lens->name() << " at theta " << g.angle_deg << " deg, roll " << g.roll_deg
-        << " deg, " << g.wavelength_nm << " nm, f/" << fixed(lens->camera().f_number, 2) << "\n";
+    out << lens->name() << " at theta " << g.angle_deg << " deg, roll " << g.roll_deg << " deg, "
+        << g.wavelength_nm << " nm, f/" << fixed(lens->camera().f_number, 2) << "\n";
     out << "sensor mm; d_centre in % of the sensor half-diagonal (" << fixed(half_diag, 2)
         << " mm); rel_power: ghost power on the sensor / imaging power (RGB mean)\n\n";
     out << table.str();
-    out << "\n" << enumeration->ghosts.size() << " ghosts shown; " << enumeration->all_pairs
+    out << "\n"
+        << enumeration->ghosts.size() << " ghosts shown; " << enumeration->all_pairs
         << " two-reflection paths in all, " << enumeration->double_stop_skipped
         << " skipped for crossing the stop three times (--all keeps them), "
         << enumeration->culled.size() << " culled below --min-power\n";
@@ -368,17 +379,17 @@ void addLensCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& e
     };
     auto ghost_state = std::make_shared<GhostState>();
     CLI::App* ghosts = lens->add_subcommand("ghosts", "two-reflection ghosts at one light angle");
-    ghosts->add_option("file", ghost_state->file, "lens prescription (CSV, format v1)")
-        ->required();
-    ghosts->add_option("--angle", ghost_state->ghost.angle_deg,
-                       "light angle theta from the optical axis, degrees [0, 90)")
+    ghosts->add_option("file", ghost_state->file, "lens prescription (CSV, format v1)")->required();
+    ghosts
+        ->add_option("--angle", ghost_state->ghost.angle_deg,
+                     "light angle theta from the optical axis, degrees [0, 90)")
         ->required();
     ghosts->add_option("--roll", ghost_state->ghost.roll_deg, "light roll phi, degrees");
-    ghosts->add_option("--wavelength-nm", ghost_state->ghost.wavelength_nm,
-                       "wavelength of the centre and size columns")
+    ghosts
+        ->add_option("--wavelength-nm", ghost_state->ghost.wavelength_nm,
+                     "wavelength of the centre and size columns")
         ->capture_default_str();
-    ghosts->add_flag("--all", ghost_state->ghost.all,
-                     "also paths that cross the stop three times");
+    ghosts->add_flag("--all", ghost_state->ghost.all, "also paths that cross the stop three times");
     ghosts->add_option("--min-power", ghost_state->ghost.min_power,
                        "cull ghosts below this power relative to the imaging path");
     ghosts->add_option("--grid", ghost_state->ghost.grid, "rays per side for the intensities")

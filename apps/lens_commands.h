@@ -7,9 +7,8 @@
 // returns the process exit code (0 success, 1 bad input, with a message on `err`).
 #pragma once
 
-#include <ostream>
-
 #include <CLI/CLI.hpp>
+#include <ostream>
 
 namespace flarelab::apps {
 

@@ -34,15 +34,14 @@ std::string describeComparison(const char* expr, const A& a, const B& b) {
         if (!(cond)) ::flarelab::detail::checkFailed(__FILE__, __LINE__, #cond); \
     } while (false)
 
-#define FLARELAB_CHECK_OP(a, op, b)                                                   \
-    do {                                                                              \
-        const auto& flarelab_a_ = (a);                                                \
-        const auto& flarelab_b_ = (b);                                                \
-        if (!(flarelab_a_ op flarelab_b_))                                            \
-            ::flarelab::detail::checkFailed(                                          \
-                __FILE__, __LINE__,                                                   \
-                ::flarelab::detail::describeComparison(#a " " #op " " #b, flarelab_a_, \
-                                                       flarelab_b_));                 \
+#define FLARELAB_CHECK_OP(a, op, b)                                                            \
+    do {                                                                                       \
+        const auto& flarelab_a_ = (a);                                                         \
+        const auto& flarelab_b_ = (b);                                                         \
+        if (!(flarelab_a_ op flarelab_b_))                                                     \
+            ::flarelab::detail::checkFailed(__FILE__, __LINE__,                                \
+                                            ::flarelab::detail::describeComparison(            \
+                                                #a " " #op " " #b, flarelab_a_, flarelab_b_)); \
     } while (false)
 
 #define FLARELAB_CHECK_EQ(a, b) FLARELAB_CHECK_OP(a, ==, b)

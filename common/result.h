@@ -27,12 +27,18 @@ enum class ErrorCode {
 
 inline const char* errorCodeName(ErrorCode code) {
     switch (code) {
-        case ErrorCode::InvalidArgument: return "invalid argument";
-        case ErrorCode::ParseError: return "parse error";
-        case ErrorCode::NotFound: return "not found";
-        case ErrorCode::IoError: return "i/o error";
-        case ErrorCode::Unsupported: return "unsupported";
-        case ErrorCode::Internal: return "internal error";
+        case ErrorCode::InvalidArgument:
+            return "invalid argument";
+        case ErrorCode::ParseError:
+            return "parse error";
+        case ErrorCode::NotFound:
+            return "not found";
+        case ErrorCode::IoError:
+            return "i/o error";
+        case ErrorCode::Unsupported:
+            return "unsupported";
+        case ErrorCode::Internal:
+            return "internal error";
     }
     return "error";
 }
@@ -52,8 +58,8 @@ class [[nodiscard]] Result {
 public:
     using value_type = T;
 
-    Result(const T& value) : storage_(std::in_place_index<0>, value) {}  // NOLINT
-    Result(T&& value) : storage_(std::in_place_index<0>, std::move(value)) {}  // NOLINT
+    Result(const T& value) : storage_(std::in_place_index<0>, value) {}          // NOLINT
+    Result(T&& value) : storage_(std::in_place_index<0>, std::move(value)) {}    // NOLINT
     Result(Error error) : storage_(std::in_place_index<1>, std::move(error)) {}  // NOLINT
 
     bool has_value() const { return storage_.index() == 0; }

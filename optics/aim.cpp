@@ -1,9 +1,8 @@
 #include "optics/aim.h"
 
+#include <Eigen/LU>
 #include <algorithm>
 #include <cmath>
-
-#include <Eigen/LU>
 
 #include "common/units.h"
 #include "optics/paraxial.h"
@@ -129,7 +128,7 @@ std::optional<Eigen::Vector2d> aimCentreByContinuation(const PathTracer& tracer,
     const double phi = std::atan2(direction.y(), direction.x());
     constexpr double kMaxStep = degToRad(1.0), kMinStep = degToRad(1e-3);
     double reached = 0.0, step = std::min(kMaxStep, theta);
-    Eigen::Vector2d entry = Eigen::Vector2d::Zero();  // on the axis the centre ray is the axis
+    Eigen::Vector2d entry = Eigen::Vector2d::Zero();     // on the axis the centre ray is the axis
     Eigen::Vector2d velocity = Eigen::Vector2d::Zero();  // d entry / d theta, for the next guess
     while (reached < theta) {
         const double next = std::min(theta, reached + step);
@@ -139,7 +138,8 @@ std::optional<Eigen::Vector2d> aimCentreByContinuation(const PathTracer& tracer,
             if (const auto paraxial = paraxialEntry(to_here, plane, d, Eigen::Vector2d::Zero()))
                 guess = *paraxial;
         }
-        const auto aimed = aimAtCrossing(tracer, crossing, plane, d, Eigen::Vector2d::Zero(), guess);
+        const auto aimed =
+            aimAtCrossing(tracer, crossing, plane, d, Eigen::Vector2d::Zero(), guess);
         // Accept only an answer near the prediction: a far one is another branch of the path, and
         // a step that needs it has run into a fold, which smaller steps then locate. "Near" is a
         // quarter of the predicted move, or a twentieth of the beam where the chief ray hardly
@@ -184,17 +184,15 @@ std::optional<AimedBeam> aimBeam(const Lens& lens,
     const PathTracer geometric(
         lens, path, wavelength_nm,
         TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = false});
-    beam.centre_entry =
-        aimCentreByContinuation(geometric, beam.crossing, plane, direction, lim.to_here,
-                                ghost->beam_radius_mm);
+    beam.centre_entry = aimCentreByContinuation(geometric, beam.crossing, plane, direction,
+                                                lim.to_here, ghost->beam_radius_mm);
 
     // The rim, by bisection between a ray that passes and one beyond the front lens.
     const PathTracer clipping(
         lens, path, wavelength_nm,
         TraceOptions{.clip_apertures = true, .clip_stop = true, .fresnel = false});
     const auto passes = [&](const Eigen::Vector2d& entry) {
-        return clipping.trace(rayThroughEntry(plane, entry, direction, wavelength_nm))
-            .has_value();
+        return clipping.trace(rayThroughEntry(plane, entry, direction, wavelength_nm)).has_value();
     };
     Eigen::Vector2d inside = beam.centre_entry.value_or(*paraxial_centre);
     if (!passes(inside)) {

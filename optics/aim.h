@@ -10,10 +10,9 @@
 // pupil aberration moves the beam far from its paraxial place.
 #pragma once
 
+#include <Eigen/Core>
 #include <optional>
 #include <vector>
-
-#include <Eigen/Core>
 
 #include "optics/lens.h"
 #include "optics/tracer.h"

@@ -59,12 +59,8 @@ FresnelResult fresnelUncoated(double n1, double n2, double cos_i) {
     return {reflectance, transmittance};
 }
 
-FresnelResult fresnelCoated(double n1,
-                            double n_coat,
-                            double d_coat_nm,
-                            double n2,
-                            double cos_i,
-                            double wavelength_nm) {
+FresnelResult fresnelCoated(
+    double n1, double n_coat, double d_coat_nm, double n2, double cos_i, double wavelength_nm) {
     cos_i = std::clamp(cos_i, 0.0, 1.0);
     const double sin_i = std::sqrt(std::max(0.0, 1.0 - cos_i * cos_i));
     if (n1 * sin_i >= n2) return {1.0, 0.0};  // no propagating wave in n2: all is reflected

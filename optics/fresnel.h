@@ -22,12 +22,8 @@ FresnelResult fresnelUncoated(double n1, double n2, double cos_i);
 // A single layer of index n_coat and thickness d_coat_nm between media n1 and n2, for light of
 // `wavelength_nm` arriving from n1 at incidence cosine cos_i. Thin-film (Airy) summation for s and
 // p polarizations, averaged.
-FresnelResult fresnelCoated(double n1,
-                            double n_coat,
-                            double d_coat_nm,
-                            double n2,
-                            double cos_i,
-                            double wavelength_nm);
+FresnelResult fresnelCoated(
+    double n1, double n_coat, double d_coat_nm, double n2, double cos_i, double wavelength_nm);
 
 // The quarter-wave layer flarelab puts on a coated surface: index max(sqrt(n1 n2), 1.38) (1.38 is
 // magnesium fluoride, the lowest-index coating material in common use; sqrt(n1 n2) is the ideal

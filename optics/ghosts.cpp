@@ -24,8 +24,8 @@ struct GridPower {
 GridPower gridPower(const Lens& lens, const RayGrid& grid, bool require_on_sensor) {
     const double half_w = 0.5 * lens.camera().sensor_width_mm;
     const double half_h = 0.5 * lens.camera().sensor_height_mm;
-    const double cell = grid.n > 1 ? 2.0 * grid.entry_half_width_mm / (grid.n - 1)
-                                   : 2.0 * grid.entry_half_width_mm;
+    const double cell =
+        grid.n > 1 ? 2.0 * grid.entry_half_width_mm / (grid.n - 1) : 2.0 * grid.entry_half_width_mm;
     GridPower result;
     for (const GridSample& s : grid.samples) {
         if (!s.valid || !lens.aperture().contains(s.stop_u, s.stop_v)) continue;
@@ -143,7 +143,8 @@ std::optional<ExactGhost> exactGhost(const Lens& lens,
         lens, path, wavelength_nm,
         TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = false});
     const auto to_sensor = [&](const Eigen::Vector2d& entry) -> std::optional<Eigen::Vector2d> {
-        const auto traced = geometric.trace(rayThroughEntry(plane, entry, direction, wavelength_nm));
+        const auto traced =
+            geometric.trace(rayThroughEntry(plane, entry, direction, wavelength_nm));
         if (!traced) return std::nullopt;
         return Eigen::Vector2d(traced->ray.position.x(), traced->ray.position.y());
     };

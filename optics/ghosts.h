@@ -10,11 +10,10 @@
 // threshold relative to the imaging path can cull further.
 #pragma once
 
+#include <Eigen/Core>
 #include <optional>
 #include <string>
 #include <vector>
-
-#include <Eigen/Core>
 
 #include "common/result.h"
 #include "optics/lens.h"
@@ -59,8 +58,8 @@ struct EnumerationOptions {
     // enumeration never reflects at the last surface behind the stop. Those ghosts are real and
     // among the bright ones, so flarelab keeps them by default.
     bool include_last_surface = true;
-    double min_relative_power = 0.0;        // 0: no intensity culling
-    LightDirectionDeg cull_light;           // where the culling measures intensity
+    double min_relative_power = 0.0;  // 0: no intensity culling
+    LightDirectionDeg cull_light;     // where the culling measures intensity
     int cull_grid = 24;
 };
 
@@ -73,8 +72,8 @@ struct CulledGhost {
 struct GhostEnumeration {
     std::vector<GhostPath> ghosts;  // kept, ordered by (first, second)
     std::vector<CulledGhost> culled;
-    int all_pairs = 0;            // C(number of non-stop surfaces, 2)
-    int double_stop_skipped = 0;  // paths skipped for crossing the stop three times
+    int all_pairs = 0;             // C(number of non-stop surfaces, 2)
+    int double_stop_skipped = 0;   // paths skipped for crossing the stop three times
     int last_surface_skipped = 0;  // paths skipped for reflecting at the last surface
 };
 Result<GhostEnumeration> enumerateGhosts(const Lens& lens, const EnumerationOptions& options = {});

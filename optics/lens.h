@@ -27,11 +27,11 @@
 namespace flarelab::optics {
 
 struct LensSurface {
-    double z_mm = 0.0;          // vertex position on the axis
-    double curvature = 0.0;     // 1 / radius_mm (1/mm); 0 for flat
+    double z_mm = 0.0;       // vertex position on the axis
+    double curvature = 0.0;  // 1 / radius_mm (1/mm); 0 for flat
     double semi_aperture_mm = 0.0;
-    double ior_d = 1.0;         // medium after the surface
-    double abbe = 0.0;          // 0: non-dispersive
+    double ior_d = 1.0;                  // medium after the surface
+    double abbe = 0.0;                   // 0: non-dispersive
     double coating_wavelength_nm = 0.0;  // 0: uncoated
     bool is_stop = false;
 };

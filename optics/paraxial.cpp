@@ -1,9 +1,8 @@
 #include "optics/paraxial.h"
 
+#include <Eigen/LU>
 #include <cmath>
 #include <limits>
-
-#include <Eigen/LU>
 
 #include "common/check.h"
 
@@ -99,8 +98,7 @@ std::optional<ParaxialProperties> paraxialProperties(const Lens& lens, double wa
     ParaxialProperties p;
     const PathMatrices imaging = pathMatrices(lens, GhostPath{}, wavelength_nm);
     p.system_matrix = imaging.total;
-    p.lens_matrix =
-        translationMatrix(-(lens.sensorZ_mm() - s.back().z_mm)) * imaging.total;
+    p.lens_matrix = translationMatrix(-(lens.sensorZ_mm() - s.back().z_mm)) * imaging.total;
     const double a = p.lens_matrix(0, 0), c = p.lens_matrix(1, 0), d = p.lens_matrix(1, 1);
     if (!(std::abs(c) > 1e-15)) return std::nullopt;  // afocal
     p.efl_mm = -1.0 / c;

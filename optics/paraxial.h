@@ -16,10 +16,9 @@
 // Slopes are plain (not reduced) slopes, so det(M) = n_in / n_out.
 #pragma once
 
+#include <Eigen/Core>
 #include <optional>
 #include <vector>
-
-#include <Eigen/Core>
 
 #include "optics/lens.h"
 
@@ -35,16 +34,16 @@ Matrix2 reflectionMatrix(double curvature_eff);
 struct ParaxialProperties {
     double efl_mm = 0.0;  // -1 / C of the lens matrix: the rear focal length, which is the
                           // effective focal length when image space is air, as in a camera
-    double bfl_mm = 0.0;         // back focal distance: last surface to the rear focal point
-    double ffl_mm = 0.0;         // front focal distance: first surface to the front focal point
-                                 // (positive when the focal point lies in front of the lens)
+    double bfl_mm = 0.0;  // back focal distance: last surface to the rear focal point
+    double ffl_mm = 0.0;  // front focal distance: first surface to the front focal point
+                          // (positive when the focal point lies in front of the lens)
     double entrance_pupil_z_mm = 0.0;       // from the first vertex, positive towards the sensor
     double entrance_pupil_radius_mm = 0.0;  // paraxial, for the lens's current stop
     double exit_pupil_z_mm = 0.0;           // from the first vertex
     double stop_magnification = 0.0;  // stop height per entrance height of a ray from infinity
     double working_f_number = 0.0;    // efl / (2 * entrance pupil radius)
-    Matrix2 lens_matrix;    // first vertex to last vertex
-    Matrix2 system_matrix;  // first vertex to the image plane
+    Matrix2 lens_matrix;              // first vertex to last vertex
+    Matrix2 system_matrix;            // first vertex to the image plane
 };
 
 // Fails (nullopt) only for an afocal lens (C = 0) or a stop no paraxial ray from infinity reaches.
@@ -84,8 +83,8 @@ PathTransfer pathTransfer(const Lens& lens, const GhostPath& path, double wavele
 struct ParaxialGhost {
     double centre_per_tan_mm = 0.0;
     double radius_mm = 0.0;
-    int limiting_crossing = -1;  // index into pathTransfer(...).crossings
-    int limiting_surface = -1;   // index into Lens::surfaces()
+    int limiting_crossing = -1;   // index into pathTransfer(...).crossings
+    int limiting_surface = -1;    // index into Lens::surfaces()
     double beam_radius_mm = 0.0;  // radius of the admitted beam at the first vertex
 };
 std::optional<ParaxialGhost> paraxialGhost(const Lens& lens,

@@ -34,8 +34,8 @@ struct Surface {
 };
 
 struct Prescription {
-    std::string source;  // file name or other label used in messages
-    std::string name;    // from the "# name:" header, else the file stem
+    std::string source;                           // file name or other label used in messages
+    std::string name;                             // from the "# name:" header, else the file stem
     std::map<std::string, std::string> metadata;  // "# key: value" header comments
     std::vector<Surface> surfaces;
     int stop_index = -1;  // index into surfaces of the aperture stop

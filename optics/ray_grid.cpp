@@ -71,8 +71,8 @@ Square pupilSquare(const Lens& lens,
 Eigen::Vector2d RayGrid::entryPoint(int ix, int iy) const {
     if (n == 1) return entry_centre_mm;
     const double step = 2.0 * entry_half_width_mm / (n - 1);
-    return entry_centre_mm + Eigen::Vector2d(-entry_half_width_mm + step * ix,
-                                             -entry_half_width_mm + step * iy);
+    return entry_centre_mm +
+           Eigen::Vector2d(-entry_half_width_mm + step * ix, -entry_half_width_mm + step * iy);
 }
 
 int64_t RayGrid::validCount() const {

@@ -14,10 +14,9 @@
 // reflected; their other fields are zero.
 #pragma once
 
+#include <Eigen/Core>
 #include <cstdint>
 #include <vector>
-
-#include <Eigen/Core>
 
 #include "common/result.h"
 #include "optics/aim.h"

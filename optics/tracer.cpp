@@ -107,10 +107,8 @@ PathTracer::PathTracer(const Lens& lens,
         add(k, k == path.second ? StepKind::Reflect : StepKind::Refract, index(k - 1), index(k));
     if (!path.isImaging()) {
         for (int k = path.second - 1; k >= path.first; --k)
-            add(k, k == path.first ? StepKind::Reflect : StepKind::Refract, index(k),
-                index(k - 1));
-        for (int k = path.first + 1; k < n; ++k)
-            add(k, StepKind::Refract, index(k - 1), index(k));
+            add(k, k == path.first ? StepKind::Reflect : StepKind::Refract, index(k), index(k - 1));
+        for (int k = path.first + 1; k < n; ++k) add(k, StepKind::Refract, index(k - 1), index(k));
     }
     Step image;
     image.kind = StepKind::Image;

@@ -17,18 +17,17 @@
 // blocked by the stop or totally reflected where it should refract is std::nullopt.
 #pragma once
 
+#include <Eigen/Core>
 #include <optional>
 #include <vector>
-
-#include <Eigen/Core>
 
 #include "optics/lens.h"
 
 namespace flarelab::optics {
 
 struct Ray {
-    Eigen::Vector3d position = Eigen::Vector3d::Zero();        // mm, lens space
-    Eigen::Vector3d direction = Eigen::Vector3d::UnitZ();      // unit length
+    Eigen::Vector3d position = Eigen::Vector3d::Zero();    // mm, lens space
+    Eigen::Vector3d direction = Eigen::Vector3d::UnitZ();  // unit length
     double wavelength_nm = 550.0;
     double throughput = 1.0;  // fraction of the ray's power still carried at this wavelength
     bool valid = true;
@@ -41,8 +40,8 @@ struct TraceOptions {
 };
 
 struct TracedRay {
-    Ray ray;                 // on the image plane, with the path's throughput
-    double stop_u = 0.0;     // first stop crossing, normalized by the stop semi-aperture
+    Ray ray;              // on the image plane, with the path's throughput
+    double stop_u = 0.0;  // first stop crossing, normalized by the stop semi-aperture
     double stop_v = 0.0;
     bool inside_stop = true;  // whether (stop_u, stop_v) lies in the aperture shape
 };

@@ -5,8 +5,8 @@
 #include <cmath>
 #include <random>
 
-#include "optics/glass.h"
 #include "common/units.h"
+#include "optics/glass.h"
 
 namespace flarelab::optics {
 namespace {
@@ -136,7 +136,8 @@ TEST(FresnelCoated, QuarterWaveOnCrownGlassBeatsBareGlassAcrossTheVisible) {
 TEST(CauchyFromAbbe, ReproducesIndexAndPrincipalDispersion) {
     for (const auto& [nd, vd] : {std::pair{1.5168, 64.17}, {1.7847, 25.68}, {1.603, 38.03}}) {
         EXPECT_NEAR(refractiveIndex(nd, vd, kLambdaD_nm), nd, 1e-14);
-        const double dn = refractiveIndex(nd, vd, kLambdaF_nm) - refractiveIndex(nd, vd, kLambdaC_nm);
+        const double dn =
+            refractiveIndex(nd, vd, kLambdaF_nm) - refractiveIndex(nd, vd, kLambdaC_nm);
         EXPECT_NEAR(dn, (nd - 1.0) / vd, 1e-14);
         EXPECT_GT(refractiveIndex(nd, vd, 450.0), refractiveIndex(nd, vd, 650.0));
     }

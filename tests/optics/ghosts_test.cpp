@@ -55,9 +55,9 @@ TEST(EnumerateGhosts, CountsEveryPairOnOneSideOfTheStopForEveryShippedLens) {
 
 TEST(EnumerateGhosts, WithoutTheLastSurfaceReproducesThePaperCounts) {
     const std::pair<const char*, int> paper[] = {
-        {"heliar-tronnier.csv", 11},       {"heliar-tronnier-paper2023.csv", 11},
-        {"itoh-wide-zoom.csv", 64},        {"nikon-tele-zoom.csv", 139},
-        {"canon-tele-zoom-135.csv", 304},  {"canon-tele-zoom-200.csv", 304}};
+        {"heliar-tronnier.csv", 11},      {"heliar-tronnier-paper2023.csv", 11},
+        {"itoh-wide-zoom.csv", 64},       {"nikon-tele-zoom.csv", 139},
+        {"canon-tele-zoom-135.csv", 304}, {"canon-tele-zoom-200.csv", 304}};
     for (const auto& [file, count] : paper) {
         SCOPED_TRACE(file);
         EnumerationOptions options;
@@ -98,8 +98,8 @@ TEST(EnumerateGhosts, IntensityThresholdCullsOnlyTheDimGhosts) {
 }
 
 TEST(EnumerateGhosts, LensWithOnlyOneSurfaceHasNoGhost) {
-    const Lens lens = testing::lensOf(
-        {testing::stop(0.0, 5.0), testing::refracting(50.0, 150.0, 1.5, 10.0)});
+    const Lens lens =
+        testing::lensOf({testing::stop(0.0, 5.0), testing::refracting(50.0, 150.0, 1.5, 10.0)});
     const auto ghosts = enumerateGhosts(lens);
     ASSERT_TRUE(ghosts);
     EXPECT_TRUE(ghosts->ghosts.empty());
@@ -115,7 +115,8 @@ std::map<std::pair<std::string, std::string>, double> readExceptions() {
     while (std::getline(in, line)) {
         if (line.empty() || line[0] == '#' || line.rfind("lens,", 0) == 0) continue;
         const size_t a = line.find(','), b = line.find(',', a + 1);
-        exceptions[{line.substr(0, a), line.substr(a + 1, b - a - 1)}] = std::stod(line.substr(b + 1));
+        exceptions[{line.substr(0, a), line.substr(a + 1, b - a - 1)}] =
+            std::stod(line.substr(b + 1));
     }
     return exceptions;
 }
@@ -145,8 +146,8 @@ TEST(ParaxialGhost, CentreAgreesWithRealRaysWithinOneDegreeExceptListedGhosts) {
             for (const double theta_deg : angles) {
                 if (theta_deg > agrees_up_to && theta_deg > angles[0]) {
                     // The first angle past the listed one must really disagree.
-                    const double previous = *(std::find(std::begin(angles), std::end(angles),
-                                                        theta_deg) - 1);
+                    const double previous =
+                        *(std::find(std::begin(angles), std::end(angles), theta_deg) - 1);
                     if (previous != agrees_up_to) break;
                 }
                 const double phi_deg = compared % 3 == 0 ? 37.0 : 0.0;  // roll must not matter
@@ -172,7 +173,7 @@ TEST(ParaxialGhost, KnownDistortedGhostsDivergeAsTheCubeOfTheAngle) {
         const char* lens;
         GhostPath path;
     };
-    for (const Known& known : {Known{"canon-tele-zoom-135.csv", GhostPath{1, 18}},    // 2-19
+    for (const Known& known : {Known{"canon-tele-zoom-135.csv", GhostPath{1, 18}},     // 2-19
                                Known{"canon-tele-zoom-135.csv", GhostPath{2, 18}}}) {  // 3-19
         SCOPED_TRACE(pathLabel(known.path));
         const Lens lens = shippedLens(known.lens);
@@ -224,8 +225,8 @@ TEST(ExactGhost, DivergesFromParaxialSmoothlyAsTheLightMovesOff) {
         for (double theta_deg = 0.5; theta_deg <= 8.0; theta_deg += 0.5) {
             const auto exact = exactGhost(lens, path, {theta_deg, 0.0}, 550.0, 4);
             ASSERT_TRUE(exact) << pathLabel(path) << " " << theta_deg;
-            const double gap = std::abs(exact->centre_mm.x() -
-                                        paraxial->centre_per_tan_mm * std::tan(degToRad(theta_deg)));
+            const double gap = std::abs(exact->centre_mm.x() - paraxial->centre_per_tan_mm *
+                                                                   std::tan(degToRad(theta_deg)));
             const double cube = std::pow(theta_deg / (theta_deg - 0.5), 3);
             if (previous > 1e-6) {
                 EXPECT_LT(gap, previous * cube * 1.5) << pathLabel(path) << " " << theta_deg;

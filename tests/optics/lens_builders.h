@@ -8,8 +8,12 @@
 
 namespace flarelab::optics::testing {
 
-inline Surface refracting(double radius, double thickness, double ior, double semi_ap,
-                          double abbe = 0.0, double coating_nm = 0.0) {
+inline Surface refracting(double radius,
+                          double thickness,
+                          double ior,
+                          double semi_ap,
+                          double abbe = 0.0,
+                          double coating_nm = 0.0) {
     Surface s;
     s.radius_mm = radius;
     s.thickness_mm = thickness;

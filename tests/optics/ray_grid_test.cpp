@@ -25,7 +25,9 @@ void expectAllFinite(const RayGrid& grid) {
         ASSERT_TRUE(std::isfinite(s.throughput));
         ASSERT_GE(s.throughput, 0.0f);
         ASSERT_LE(s.throughput, 1.0f);
-        if (!s.valid) ASSERT_EQ(s.throughput, 0.0f);
+        if (!s.valid) {
+            ASSERT_EQ(s.throughput, 0.0f);
+        }
     }
     ASSERT_TRUE(std::isfinite(grid.entry_half_width_mm));
     ASSERT_GT(grid.entry_half_width_mm, 0.0);
@@ -131,8 +133,8 @@ TEST(TraceRayGrid, RejectsArgumentsOutsideTheirRange) {
 TEST(TraceRayGrid, EveryGhostOfEveryShippedLensGivesFiniteGridsAtAllAngles) {
     for (const char* file : flarelab::testing::kShippedLenses) {
         SCOPED_TRACE(file);
-        const Lens lens = *Lens::make(*loadPrescription(flarelab::testing::lensPath(file)),
-                                      CameraDescription{});
+        const Lens lens =
+            *Lens::make(*loadPrescription(flarelab::testing::lensPath(file)), CameraDescription{});
         const auto ghosts = enumerateGhosts(lens);
         ASSERT_TRUE(ghosts);
         for (size_t k = 0; k < ghosts->ghosts.size(); k += 5) {

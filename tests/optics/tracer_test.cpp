@@ -2,10 +2,9 @@
 
 #include <gtest/gtest.h>
 
+#include <Eigen/Geometry>
 #include <cmath>
 #include <random>
-
-#include <Eigen/Geometry>
 
 #include "common/units.h"
 #include "optics/aim.h"
@@ -178,8 +177,8 @@ TEST(PathTracer, PolygonalStopBlocksTheCornersOfTheCircle) {
 TEST(PathTracer, TotalInternalReflectionDropsTheRay) {
     // Light enters a flat glass block and must leave through a steep spherical face: rays far
     // off axis meet it beyond the critical angle.
-    const Lens lens = lensOf({stop(1.0, 20.0), refracting(0.0, 10.0, 1.8, 20.0),
-                              refracting(-20.5, 50.0, 1.0, 20.0)});
+    const Lens lens = lensOf(
+        {stop(1.0, 20.0), refracting(0.0, 10.0, 1.8, 20.0), refracting(-20.5, 50.0, 1.0, 20.0)});
     const PathTracer tracer(lens, GhostPath{}, 550.0);
     Ray ray;
     ray.wavelength_nm = 550.0;
@@ -208,10 +207,10 @@ TEST(PathTracer, OneSurfaceLensImagesAndHasNoGhost) {
 TEST(PathTracer, NearlyFlatSurfaceBendsRaysAsFirstOrderOpticsPredicts) {
     // A 1e7 mm face is a lens of focal length 1.7e7 mm: it moves the image by ~1e-5 mm. That
     // difference survives only if no digit is lost in the intersection.
-    const Lens flat = lensOf({stop(2.0, 10.0), refracting(0.0, 5.0, 1.6, 20.0),
-                              refracting(-60.0, 90.0, 1.0, 20.0)});
-    const Lens near_flat = lensOf({stop(2.0, 10.0), refracting(1e7, 5.0, 1.6, 20.0),
-                                   refracting(-60.0, 90.0, 1.0, 20.0)});
+    const Lens flat = lensOf(
+        {stop(2.0, 10.0), refracting(0.0, 5.0, 1.6, 20.0), refracting(-60.0, 90.0, 1.0, 20.0)});
+    const Lens near_flat = lensOf(
+        {stop(2.0, 10.0), refracting(1e7, 5.0, 1.6, 20.0), refracting(-60.0, 90.0, 1.0, 20.0)});
     const PathTracer a(flat, GhostPath{}, 550.0), b(near_flat, GhostPath{}, 550.0);
     const double a_parax = paraxialProperties(flat, 550.0)->system_matrix(0, 0);
     const double b_parax = paraxialProperties(near_flat, 550.0)->system_matrix(0, 0);
