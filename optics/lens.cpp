@@ -8,6 +8,12 @@
 #include "optics/paraxial.h"
 
 namespace flarelab::optics {
+namespace {
+
+constexpr double kMaxFocalLength_mm = 1e6;
+constexpr double kMaxFNumber = 1e4;
+
+}  // namespace
 
 Result<Lens> Lens::make(const Prescription& prescription, const CameraDescription& camera) {
     if (const auto reason = camera.invalidReason())
@@ -54,19 +60,41 @@ Result<Lens> Lens::make(const Prescription& prescription, const CameraDescriptio
                          prescription.source +
                              ": afocal lens, or a stop that no paraxial ray from infinity "
                              "reaches; cannot place the entrance pupil");
-    // Resolve the camera's zeros from the lens.
-    if (lens.camera_.focal_length_mm == 0.0)
+    // Resolve the camera's zeros from the lens. Labels are header prose: one out of the range a
+    // camera description accepts is an error naming it, never a silent substitute.
+    const auto label_error = [&](const std::string& key, double value) {
+        std::ostringstream msg;
+        msg << prescription.source << ": header label " << key << ": " << value
+            << " is outside " << (key == "f_number" ? "0.5..10000" : "0.01..1e6 mm")
+            << "; give the camera's value explicitly (--"
+            << (key == "f_number" ? "f-number" : "focal-mm") << ")";
+        return makeError(ErrorCode::InvalidArgument, msg.str());
+    };
+    if (lens.camera_.focal_length_mm == 0.0) {
+        if (lens.label_focal_mm_ > 0.0 && !(lens.label_focal_mm_ >= 0.01 &&
+                                            lens.label_focal_mm_ <= kMaxFocalLength_mm))
+            return label_error("focal_length_mm", lens.label_focal_mm_);
         lens.camera_.focal_length_mm =
             lens.label_focal_mm_ > 0.0 ? lens.label_focal_mm_ : std::abs(paraxial->efl_mm);
+    }
     if (lens.camera_.f_number == 0.0) {
         const double label_f = prescription.metadataNumber("f_number").value_or(0.0);
-        lens.camera_.f_number = label_f >= 0.5 ? label_f : 0.0;
+        if (label_f > 0.0 && !(label_f >= 0.5 && label_f <= kMaxFNumber))
+            return label_error("f_number", label_f);
+        lens.camera_.f_number = label_f;
     }
     if (lens.camera_.f_number > 0.0) {
         // Entrance pupil radius F / (2N), carried to the stop by the paraxial stop magnification.
         const double pupil_radius = lens.camera_.focal_length_mm / (2.0 * lens.camera_.f_number);
-        lens.surfaces_[lens.stop_index_].semi_aperture_mm =
-            pupil_radius * std::abs(paraxial->stop_magnification);
+        const double stop_mm = pupil_radius * std::abs(paraxial->stop_magnification);
+        if (!(stop_mm >= 1e-6 && stop_mm <= 1e6)) {
+            std::ostringstream msg;
+            msg << prescription.source << ": f/" << lens.camera_.f_number << " at "
+                << lens.camera_.focal_length_mm << " mm needs a stop semi-aperture of " << stop_mm
+                << " mm, outside 1e-6..1e6 mm";
+            return makeError(ErrorCode::InvalidArgument, msg.str());
+        }
+        lens.surfaces_[lens.stop_index_].semi_aperture_mm = stop_mm;
     } else {
         lens.camera_.f_number =
             lens.camera_.focal_length_mm / (2.0 * paraxial->entrance_pupil_radius_mm);

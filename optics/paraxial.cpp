@@ -118,6 +118,10 @@ std::optional<ParaxialProperties> paraxialProperties(const Lens& lens, double wa
         translationMatrix(-(lens.sensorZ_mm() - s.back().z_mm)) * imaging.from_stop;
     const double b2 = stop_to_last(0, 1), d2 = stop_to_last(1, 1);
     p.exit_pupil_z_mm = std::abs(d2) > 1e-15 ? s.back().z_mm - b2 / d2 : s.back().z_mm;
+    // Extreme but legal tables can overflow the matrix products; no infinity leaves here.
+    for (const double v : {p.efl_mm, p.bfl_mm, p.ffl_mm, p.entrance_pupil_z_mm,
+                           p.entrance_pupil_radius_mm, p.exit_pupil_z_mm, p.working_f_number})
+        if (!std::isfinite(v)) return std::nullopt;
     return p;
 }
 

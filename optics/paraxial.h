@@ -46,7 +46,8 @@ struct ParaxialProperties {
     Matrix2 system_matrix;            // first vertex to the image plane
 };
 
-// Fails (nullopt) only for an afocal lens (C = 0) or a stop no paraxial ray from infinity reaches.
+// Fails (nullopt) for an afocal lens (C = 0), a stop no paraxial ray from infinity reaches, or a
+// table so extreme that a property overflows.
 std::optional<ParaxialProperties> paraxialProperties(const Lens& lens, double wavelength_nm);
 
 // The unfolded transfer of a path from the first vertex (light in object space) to the image

@@ -9,6 +9,16 @@
 namespace flarelab::optics {
 namespace {
 
+constexpr size_t kMaxSurfaces = 512;
+
+// Lengths beyond any lens ever built, by many orders of magnitude either way. They keep each
+// value the optics derives from one row finite: the vertex positions sum at most 512 gaps of 1e6,
+// and since semi_aperture_mm <= |radius_mm|, no curvature exceeds 1e6 per mm, nor does a stop
+// underflow to zero. Radii get no upper bound: a huge radius (often written for "flat") is
+// harmless.
+constexpr double kMinLength_mm = 1e-6;
+constexpr double kMaxLength_mm = 1e6;
+
 constexpr std::array<std::string_view, 7> kColumns = {
     "kind", "radius_mm", "thickness_mm", "ior_d", "abbe", "semi_aperture_mm",
     "coating_wavelength_nm"};
@@ -48,15 +58,29 @@ Error parseError(const std::string& source, int line, int column, const std::str
     return makeError(ErrorCode::ParseError, out.str());
 }
 
-// A finite decimal number and nothing else ("1e3" and "-0.5" pass; "nan", "1.2mm", "" do not).
-std::optional<double> parseNumber(std::string_view text) {
-    if (text.empty()) return std::nullopt;
-    if (text.front() == '+') text.remove_prefix(1);
+enum class NumberFault { None, NotANumber, OutOfRange };
+
+struct ParsedNumber {
+    double value = 0.0;
+    NumberFault fault = NumberFault::None;
+};
+
+// A finite decimal number and nothing else ("1e3", "+2" and "-0.5" pass; "nan", "1.2mm", "+-1",
+// "" do not). from_chars takes no '+', so one is stripped here, and only one: after it a second
+// sign would be read by from_chars as the number's own.
+ParsedNumber parseNumber(std::string_view text) {
+    if (!text.empty() && text.front() == '+') {
+        text.remove_prefix(1);
+        if (!text.empty() && (text.front() == '-' || text.front() == '+'))
+            return {0.0, NumberFault::NotANumber};
+    }
+    if (text.empty()) return {0.0, NumberFault::NotANumber};
     double value = 0.0;
     const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-    if (ec != std::errc() || end != text.data() + text.size() || !std::isfinite(value))
-        return std::nullopt;
-    return value;
+    if (end != text.data() + text.size()) return {0.0, NumberFault::NotANumber};
+    if (ec == std::errc::result_out_of_range) return {0.0, NumberFault::OutOfRange};
+    if (ec != std::errc() || !std::isfinite(value)) return {0.0, NumberFault::NotANumber};
+    return {value, NumberFault::None};
 }
 
 void parseMetadataComment(std::string_view comment, std::map<std::string, std::string>& metadata) {
@@ -88,19 +112,22 @@ void parseMetadataComment(std::string_view comment, std::map<std::string, std::s
 std::optional<double> Prescription::metadataNumber(const std::string& key) const {
     const auto it = metadata.find(key);
     if (it == metadata.end()) return std::nullopt;
-    const std::string_view value = trim(it->second);
-    size_t end = 0;
-    while (end < value.size() &&
-           (std::isdigit(static_cast<unsigned char>(value[end])) || value[end] == '.' ||
-            value[end] == '-' || value[end] == '+' || value[end] == 'e' || value[end] == 'E'))
-        ++end;
-    return parseNumber(value.substr(0, end));
+    std::string_view value = trim(it->second);
+    if (!value.empty() && value.front() == '+') value.remove_prefix(1);
+    // from_chars stops where the number ends, which is what "leading" asks for: "28-75" gives 28
+    // and "1e" gives 1, where scanning number-like characters first would give nothing.
+    double number = 0.0;
+    const auto [end, ec] = std::from_chars(value.data(), value.data() + value.size(), number);
+    if (ec != std::errc() || end == value.data() || !std::isfinite(number)) return std::nullopt;
+    return number;
 }
 
 std::optional<std::string> CameraDescription::invalidReason() const {
     const auto bad = [](double v) { return !std::isfinite(v) || v < 0.0; };
-    if (bad(focal_length_mm)) return "focal_length_mm must be finite and >= 0 (0: from the lens)";
-    if (bad(f_number)) return "f_number must be finite and >= 0 (0: from the lens)";
+    if (bad(focal_length_mm) || focal_length_mm > 1e6 ||
+        (focal_length_mm > 0.0 && focal_length_mm < 0.01))
+        return "focal_length_mm must lie in 0.01..1e6 (0: from the lens)";
+    if (bad(f_number) || f_number > 1e4) return "f_number must lie in 0.5..1e4 (0: from the lens)";
     if (f_number > 0.0 && f_number < 0.5) return "f_number below 0.5 is not a real lens";
     if (!std::isfinite(sensor_width_mm) || sensor_width_mm <= 0.0)
         return "sensor_width_mm must be positive";
@@ -128,6 +155,7 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
     size_t header_width = 0;
     int line_number = 0;
     int first_stop_line = 0;
+    int last_thickness_column = 1;  // where the last row's thickness_mm stands, for its check
     size_t pos = 0;
     while (pos < text.size()) {
         size_t eol = text.find('\n', pos);
@@ -135,9 +163,9 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
         const std::string_view raw_line = text.substr(pos, eol - pos);
         pos = eol + 1;
         ++line_number;
-        for (char c : raw_line)
-            if (c == '\0')
-                return parseError(source, line_number, 1, "NUL byte: not a text file");
+        if (const size_t nul = raw_line.find('\0'); nul != std::string_view::npos)
+            return parseError(source, line_number, static_cast<int>(nul) + 1,
+                              "NUL byte: not a text file");
         const std::string_view line = trim(raw_line);
         if (line.empty()) continue;
         if (line.front() == '#') {
@@ -174,7 +202,13 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
             std::ostringstream msg;
             msg << "row has " << fields.size() << " fields, header (line " << header_line
                 << ") has " << header_width;
-            return parseError(source, line_number, 1, msg.str());
+            // Point at the first field too many, or just past the last one when fields are
+            // missing.
+            const int column =
+                fields.size() > header_width
+                    ? fields[header_width].column
+                    : fields.back().column + static_cast<int>(fields.back().text.size());
+            return parseError(source, line_number, column, msg.str());
         }
         const auto field = [&](size_t k) -> const Field& { return fields[column_of[k]]; };
         Surface surface;
@@ -215,16 +249,21 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
                 return parseError(source, line_number, f.column,
                                   std::string(kColumns[col.index]) + " is empty");
             }
-            const std::optional<double> value = parseNumber(f.text);
-            if (!value)
-                return parseError(source, line_number, f.column,
-                                  std::string(kColumns[col.index]) + " '" + std::string(f.text) +
-                                      "' is not a finite number");
-            *col.target = *value;
+            const ParsedNumber number = parseNumber(f.text);
+            if (number.fault != NumberFault::None)
+                return parseError(
+                    source, line_number, f.column,
+                    std::string(kColumns[col.index]) + " '" + std::string(f.text) +
+                        (number.fault == NumberFault::OutOfRange ? "' is out of the range of double"
+                                                                 : "' is not a finite number"));
+            *col.target = number.value;
         }
         const auto at = [&](size_t k) { return field(k).column; };
         if (surface.thickness_mm < 0.0)
             return parseError(source, line_number, at(2), "negative thickness_mm");
+        if (surface.thickness_mm > kMaxLength_mm)
+            return parseError(source, line_number, at(2),
+                              "thickness_mm above 1e6 (a kilometre) is not a lens");
         if (surface.ior_d < 1.0)
             return parseError(source, line_number, at(3), "ior_d below 1");
         if (surface.ior_d > 4.0)
@@ -232,6 +271,10 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
                               "ior_d above 4 is not an optical glass");
         if (surface.semi_aperture_mm <= 0.0)
             return parseError(source, line_number, at(5), "semi_aperture_mm must be positive");
+        if (surface.semi_aperture_mm < kMinLength_mm || surface.semi_aperture_mm > kMaxLength_mm)
+            return parseError(source, line_number, at(5),
+                              "semi_aperture_mm must lie in 1e-6..1e6 (a nanometre to a "
+                              "kilometre)");
         if (surface.radius_mm != 0.0 && surface.semi_aperture_mm > std::abs(surface.radius_mm))
             return parseError(source, line_number, at(5),
                               "semi_aperture_mm exceeds |radius_mm|: no spherical cap is that "
@@ -256,16 +299,29 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
             }
             if (surface.radius_mm != 0.0)
                 return parseError(source, line_number, at(1), "the stop must be flat (radius 0)");
-            const double before =
-                lens.surfaces.empty() ? 1.0 : lens.surfaces.back().ior_d;
-            if (surface.ior_d != before)
+            // The tracers do not refract at the stop, so a different glass after it would bend
+            // no ray at the d line and still disperse differently at every other wavelength.
+            const Surface air;
+            const Surface& before = lens.surfaces.empty() ? air : lens.surfaces.back();
+            if (surface.ior_d != before.ior_d)
                 return parseError(source, line_number, at(3),
                                   "the stop cannot change the medium: ior_d must equal the "
+                                  "medium before it");
+            if (surface.abbe != before.abbe)
+                return parseError(source, line_number, at(4),
+                                  "the stop cannot change the medium: abbe must equal the "
                                   "medium before it");
             first_stop_line = line_number;
             lens.stop_index = static_cast<int>(lens.surfaces.size());
         }
+        // Checked per row, not after the loop, so a huge input is refused before it is held.
+        if (lens.surfaces.size() == kMaxSurfaces) {
+            std::ostringstream msg;
+            msg << "more than " << kMaxSurfaces << " surfaces";
+            return parseError(source, line_number, kind.column, msg.str());
+        }
         lens.surfaces.push_back(surface);
+        last_thickness_column = at(2);
     }
     if (!have_header)
         return parseError(source, std::max(line_number, 1), 1,
@@ -276,11 +332,9 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
         return parseError(source, line_number, 1,
                           "no aperture stop: exactly one row must have kind 'stop'");
     if (lens.surfaces.back().thickness_mm <= 0.0)
-        return parseError(source, lens.surfaces.back().line, 1,
+        return parseError(source, lens.surfaces.back().line, last_thickness_column,
                           "the last row's thickness_mm (distance to the image plane) must be "
                           "positive");
-    if (lens.surfaces.size() > 512)
-        return parseError(source, line_number, 1, "more than 512 surfaces");
     const auto name = lens.metadata.find("name");
     if (name != lens.metadata.end() && !name->second.empty()) {
         lens.name = name->second;

@@ -70,3 +70,39 @@ TEST(LensMake, ScalesStopToTheHeaderFNumberCheck) {
 
 }  // namespace
 }  // namespace flarelab::optics
+
+namespace flarelab::optics {
+namespace {
+
+TEST(LensMake, RejectsHeaderLabelsOutsideTheCameraRangeAndNamesThem) {
+    for (const char* file :
+         {"label-focal-length-overflows-stop.csv", "label-values-close-the-stop.csv"}) {
+        SCOPED_TRACE(file);
+        const auto prescription = loadPrescription(
+            flarelab::testing::sourcePath(std::string("fuzz/corpus/prescription/") + file));
+        ASSERT_TRUE(prescription);
+        const auto lens = Lens::make(*prescription, CameraDescription{});
+        ASSERT_FALSE(lens);
+        EXPECT_NE(lens.error().message.find("header label focal_length_mm"), std::string::npos)
+            << lens.error().message;
+        // The camera's own values override the labels and make the lens usable.
+        CameraDescription camera;
+        camera.focal_length_mm = 50.0;
+        camera.f_number = 8.0;
+        EXPECT_TRUE(Lens::make(*prescription, camera));
+    }
+}
+
+TEST(LensMake, RejectsAnFNumberWhoseStopWouldBeAbsurd) {
+    const auto prescription =
+        loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv"));
+    CameraDescription camera;
+    camera.f_number = 9000.0;
+    camera.focal_length_mm = 0.02;
+    const auto lens = Lens::make(*prescription, camera);
+    ASSERT_FALSE(lens);
+    EXPECT_NE(lens.error().message.find("stop semi-aperture"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace flarelab::optics
