@@ -310,7 +310,8 @@ std::string markdown(const std::vector<LensReport>& reports, const Acceptance& a
         out << "\nn: exponent of theta in the divergence. A: of the path's transfer to the stop. "
                "Chief: height of the paraxial ray through the stop's centre at the first vertex, "
                "beam: radius of the beam the stop admits there, both over the front lens's clear "
-               "semi-aperture. Rim: rim rays exactGhost found by bisection (of 32; 0 when the centre ray itself is vignetted).\n\n";
+               "semi-aperture. Rim: rim rays exactGhost found by bisection (of 32; 0 when the "
+               "centre ray itself is vignetted).\n\n";
         out << "| lens | ghost | theta (deg) | centre divergence % | paraxial centre mm | "
                "exact centre mm | n | A | chief | beam | rim |\n";
         out << "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |\n";
