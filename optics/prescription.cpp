@@ -20,8 +20,8 @@ constexpr double kMinLength_mm = 1e-6;
 constexpr double kMaxLength_mm = 1e6;
 
 constexpr std::array<std::string_view, 7> kColumns = {
-    "kind", "radius_mm", "thickness_mm", "ior_d", "abbe", "semi_aperture_mm",
-    "coating_wavelength_nm"};
+    "kind", "radius_mm",        "thickness_mm",         "ior_d",
+    "abbe", "semi_aperture_mm", "coating_wavelength_nm"};
 
 std::string_view trim(std::string_view s) {
     const auto is_space = [](char c) { return c == ' ' || c == '\t' || c == '\r' || c == '\n'; };
@@ -40,9 +40,8 @@ std::vector<Field> splitFields(std::string_view line) {
     size_t start = 0;
     while (true) {
         const size_t comma = line.find(',', start);
-        const std::string_view raw =
-            line.substr(start, comma == std::string_view::npos ? std::string_view::npos
-                                                               : comma - start);
+        const std::string_view raw = line.substr(
+            start, comma == std::string_view::npos ? std::string_view::npos : comma - start);
         size_t lead = 0;
         while (lead < raw.size() && (raw[lead] == ' ' || raw[lead] == '\t')) ++lead;
         fields.push_back(Field{trim(raw), static_cast<int>(start + lead) + 1});
@@ -83,27 +82,39 @@ ParsedNumber parseNumber(std::string_view text) {
     return {value, NumberFault::None};
 }
 
+// The identifier before the first colon of `part`, or empty when `part` does not start "key:".
+std::string_view leadingKey(std::string_view part) {
+    const size_t colon = part.find(':');
+    if (colon == std::string_view::npos || colon == 0) return {};
+    const std::string_view key = trim(part.substr(0, colon));
+    for (char c : key)
+        if (!std::isalnum(static_cast<unsigned char>(c)) && c != '_') return {};
+    return key;
+}
+
 void parseMetadataComment(std::string_view comment, std::map<std::string, std::string>& metadata) {
     // "# key: value" or "# key1: value1 ; key2: value2". Keys are identifiers; anything else in
-    // a comment is prose and ignored.
-    size_t start = 0;
-    while (start <= comment.size()) {
-        size_t semi = comment.find(';', start);
-        const std::string_view part =
-            trim(comment.substr(start, semi == std::string_view::npos ? std::string_view::npos
-                                                                      : semi - start));
-        const size_t colon = part.find(':');
-        if (colon != std::string_view::npos && colon > 0) {
-            const std::string_view key = trim(part.substr(0, colon));
-            bool identifier = !key.empty();
-            for (char c : key)
-                identifier = identifier && (std::isalnum(static_cast<unsigned char>(c)) ||
-                                            c == '_');
-            if (identifier && !metadata.count(std::string(key)))
-                metadata[std::string(key)] = std::string(trim(part.substr(colon + 1)));
-        }
+    // a comment is prose and ignored. A ';' separates pairs only where another "key:" follows,
+    // so a value may hold semicolons of its own ("name: a toy; not a patent").
+    comment = trim(comment);
+    const std::string_view first = leadingKey(comment);
+    if (first.empty()) return;
+    size_t value_start = comment.find(':') + 1;
+    std::string key(first);
+    size_t search = value_start;
+    while (true) {
+        size_t semi = comment.find(';', search);
+        while (semi != std::string_view::npos && leadingKey(trim(comment.substr(semi + 1))).empty())
+            semi = comment.find(';', semi + 1);
+        const std::string_view value =
+            trim(comment.substr(value_start, semi == std::string_view::npos ? std::string_view::npos
+                                                                            : semi - value_start));
+        if (!metadata.count(key)) metadata[key] = std::string(value);
         if (semi == std::string_view::npos) break;
-        start = semi + 1;
+        const std::string_view rest = trim(comment.substr(semi + 1));
+        key = std::string(leadingKey(rest));
+        value_start = comment.size() - rest.size() + rest.find(':') + 1;
+        search = value_start;
     }
 }
 
@@ -184,9 +195,9 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
                                           "' in header (expected kind,radius_mm,thickness_mm,"
                                           "ior_d,abbe,semi_aperture_mm,coating_wavelength_nm)");
                 if (column_of[known] >= 0)
-                    return parseError(source, line_number, fields[f].column,
-                                      "column '" + std::string(fields[f].text) +
-                                          "' appears twice in header");
+                    return parseError(
+                        source, line_number, fields[f].column,
+                        "column '" + std::string(fields[f].text) + "' appears twice in header");
                 column_of[known] = static_cast<int>(f);
             }
             for (size_t k = 0; k < kColumns.size(); ++k)
@@ -220,9 +231,9 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
         } else if (kind.text == "stop") {
             surface.kind = SurfaceKind::Stop;
         } else {
-            return parseError(source, line_number, kind.column,
-                              "kind must be 'surface' or 'stop', not '" + std::string(kind.text) +
-                                  "'");
+            return parseError(
+                source, line_number, kind.column,
+                "kind must be 'surface' or 'stop', not '" + std::string(kind.text) + "'");
         }
 
         // Numeric fields: name, where to store, whether it may be empty.
@@ -264,11 +275,9 @@ Result<Prescription> parsePrescription(std::string_view text, const std::string&
         if (surface.thickness_mm > kMaxLength_mm)
             return parseError(source, line_number, at(2),
                               "thickness_mm above 1e6 (a kilometre) is not a lens");
-        if (surface.ior_d < 1.0)
-            return parseError(source, line_number, at(3), "ior_d below 1");
+        if (surface.ior_d < 1.0) return parseError(source, line_number, at(3), "ior_d below 1");
         if (surface.ior_d > 4.0)
-            return parseError(source, line_number, at(3),
-                              "ior_d above 4 is not an optical glass");
+            return parseError(source, line_number, at(3), "ior_d above 4 is not an optical glass");
         if (surface.semi_aperture_mm <= 0.0)
             return parseError(source, line_number, at(5), "semi_aperture_mm must be positive");
         if (surface.semi_aperture_mm < kMinLength_mm || surface.semi_aperture_mm > kMaxLength_mm)

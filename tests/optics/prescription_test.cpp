@@ -313,6 +313,16 @@ TEST(PrescriptionMetadata, SplitsSeveralPairsOnOneLineAtSemicolons) {
     EXPECT_EQ(lens->metadataNumber("f_number"), 11.0);
 }
 
+TEST(PrescriptionMetadata, KeepsSemicolonsThatDoNotStartAnotherPair) {
+    const auto lens = parsePrescription(
+        std::string("# name: a toy (three surfaces; surface 2 is inert) ; f_number: 11\n") +
+            kHeader + kRows,
+        "t");
+    ASSERT_TRUE(lens);
+    EXPECT_EQ(lens->name, "a toy (three surfaces; surface 2 is inert)");
+    EXPECT_EQ(lens->metadataNumber("f_number"), 11.0);
+}
+
 TEST(PrescriptionMetadata, IgnoresProseAndKeepsTheFirstValueOfAKey) {
     const auto lens =
         parsePrescription(std::string("# flarelab lens prescription, format v1 (see README.md)\n"
