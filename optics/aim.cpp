@@ -18,7 +18,7 @@ EntryPlane defaultEntryPlane(const Lens& lens) {
         if (s.curvature != 0.0) {
             const double r = 1.0 / s.curvature;
             const double h = std::min(s.semi_aperture_mm, std::abs(r));
-            sag = r - std::copysign(std::sqrt(std::max(0.0, r * r - h * h)), r);
+            sag = h * h / (r + std::copysign(std::sqrt(std::max(0.0, r * r - h * h)), r));
         }
         front = std::min(front, s.z_mm + std::min(0.0, sag));
     }
@@ -46,19 +46,19 @@ std::optional<Eigen::Vector2d> aimAtCrossing(const PathTracer& tracer,
                                              int crossing,
                                              const EntryPlane& plane,
                                              const Eigen::Vector3d& direction,
-                                             const Eigen::Vector2d& target_stop_mm,
+                                             const Eigen::Vector2d& target_mm,
                                              const Eigen::Vector2d& initial_entry_mm) {
     if (!(direction.z() > 0.0)) return std::nullopt;
-    const auto stop_at = [&](const Eigen::Vector2d& entry) -> std::optional<Eigen::Vector2d> {
+    const auto crossing_at = [&](const Eigen::Vector2d& entry) -> std::optional<Eigen::Vector2d> {
         const Ray ray = rayThroughEntry(plane, entry, direction, tracer.wavelength_nm());
         return tracer.traceToCrossing(crossing, ray.position, ray.direction);
     };
     Eigen::Vector2d entry = initial_entry_mm;
-    std::optional<Eigen::Vector2d> hit = stop_at(entry);
+    std::optional<Eigen::Vector2d> hit = crossing_at(entry);
     if (!hit) return std::nullopt;
-    const double scale = std::max(1.0, initial_entry_mm.norm() + target_stop_mm.norm());
+    const double scale = std::max(1.0, initial_entry_mm.norm() + target_mm.norm());
     for (int iteration = 0; iteration < 50; ++iteration) {
-        const Eigen::Vector2d residual = *hit - target_stop_mm;
+        const Eigen::Vector2d residual = *hit - target_mm;
         if (residual.norm() < 1e-9 * scale) return entry;
         // Jacobian by central differences.
         const double h = 1e-6 * scale;
@@ -66,8 +66,8 @@ std::optional<Eigen::Vector2d> aimAtCrossing(const PathTracer& tracer,
         for (int axis = 0; axis < 2; ++axis) {
             Eigen::Vector2d step = Eigen::Vector2d::Zero();
             step[axis] = h;
-            const auto plus = stop_at(entry + step);
-            const auto minus = stop_at(entry - step);
+            const auto plus = crossing_at(entry + step);
+            const auto minus = crossing_at(entry - step);
             if (!plus || !minus) return std::nullopt;
             jacobian.col(axis) = (*plus - *minus) / (2.0 * h);
         }
@@ -78,8 +78,8 @@ std::optional<Eigen::Vector2d> aimAtCrossing(const PathTracer& tracer,
         bool moved = false;
         for (int halving = 0; halving < 30; ++halving, lambda *= 0.5) {
             const Eigen::Vector2d candidate = entry - lambda * delta;
-            const auto candidate_hit = stop_at(candidate);
-            if (candidate_hit && (*candidate_hit - target_stop_mm).norm() < residual.norm()) {
+            const auto candidate_hit = crossing_at(candidate);
+            if (candidate_hit && (*candidate_hit - target_mm).norm() < residual.norm()) {
                 entry = candidate;
                 hit = candidate_hit;
                 moved = true;
@@ -94,9 +94,9 @@ std::optional<Eigen::Vector2d> aimAtCrossing(const PathTracer& tracer,
 std::optional<Eigen::Vector2d> aimAtStop(const PathTracer& tracer,
                                          const EntryPlane& plane,
                                          const Eigen::Vector3d& direction,
-                                         const Eigen::Vector2d& target_stop_mm,
+                                         const Eigen::Vector2d& target_mm,
                                          const Eigen::Vector2d& initial_entry_mm) {
-    return aimAtCrossing(tracer, tracer.firstStopCrossing(), plane, direction, target_stop_mm,
+    return aimAtCrossing(tracer, tracer.firstStopCrossing(), plane, direction, target_mm,
                          initial_entry_mm);
 }
 
