@@ -169,7 +169,8 @@ std::optional<AimedBeam> aimBeam(const Lens& lens,
                                  double wavelength_nm,
                                  const EntryPlane& plane,
                                  const Eigen::Vector3d& direction,
-                                 int rim_points) {
+                                 int rim_points,
+                                 double rim_tolerance) {
     const auto ghost = paraxialGhost(lens, path, wavelength_nm);
     if (!ghost) return std::nullopt;
     const PathTransfer transfer = pathTransfer(lens, path, wavelength_nm);
@@ -211,7 +212,8 @@ std::optional<AimedBeam> aimBeam(const Lens& lens,
         const double angle = 2.0 * kPi * k / rim_points;
         const Eigen::Vector2d dir(std::cos(angle), std::sin(angle));
         double lo = 0.0, hi = reach;
-        for (int i = 0; i < 48 && hi - lo > 1e-9 * reach; ++i) {
+        const double tolerance = std::max(rim_tolerance, 1e-12) * 2.0 * front.semi_aperture_mm;
+        for (int i = 0; i < 64 && hi - lo > tolerance; ++i) {
             const double mid = 0.5 * (lo + hi);
             (passes(inside + mid * dir) ? lo : hi) = mid;
         }

@@ -76,12 +76,14 @@ struct AimedBeam {
     std::optional<Eigen::Vector2d> centre_entry;  // nullopt when the centre ray cannot be aimed
     std::vector<Eigen::Vector2d> rim_entries;     // empty when no ray of the beam gets through
 };
-// nullopt when first-order optics finds no limiting aperture on the path.
+// The rim is located to `rim_tolerance` of the front lens's diameter (bisection steps cost one
+// trace each). nullopt when first-order optics finds no limiting aperture on the path.
 std::optional<AimedBeam> aimBeam(const Lens& lens,
                                  const GhostPath& path,
                                  double wavelength_nm,
                                  const EntryPlane& plane,
                                  const Eigen::Vector3d& direction,
-                                 int rim_points);
+                                 int rim_points,
+                                 double rim_tolerance = 1e-9);
 
 }  // namespace flarelab::optics

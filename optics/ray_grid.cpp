@@ -31,9 +31,10 @@ Square pupilSquare(const Lens& lens,
     const double front_r = front.semi_aperture_mm;
 
     Square square{front_centre, front_r};
+    // The square is padded by `margin` anyway: a rim to 1e-3 of the front lens is plenty.
     constexpr int kRim = 16;
     const std::optional<AimedBeam> beam =
-        aimBeam(lens, path, wavelength_nm, plane, direction, kRim);
+        aimBeam(lens, path, wavelength_nm, plane, direction, kRim, 1e-3);
     if (beam && !beam->rim_entries.empty()) {
         Eigen::Vector2d lo = beam->rim_entries.front(), hi = lo;
         for (const Eigen::Vector2d& e : beam->rim_entries) {
