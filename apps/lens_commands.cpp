@@ -1,5 +1,7 @@
 #include "apps/lens_commands.h"
 
+#include <unistd.h>
+
 #include <cmath>
 #include <cstdio>
 #include <iomanip>
@@ -259,7 +261,14 @@ int runGhosts(const std::string& file,
     std::ostringstream table;
     table << "ghost   cross  paraxial x      y   radius |   exact x      y   radius | d_centre "
              "  rel_power  on_sensor\n";
+    // Lenses with many surfaces have thousands of ghosts, each traced several times: say how far
+    // along the command is when a person is watching, so a long run never looks like a hang.
+    const bool show_progress = enumeration->ghosts.size() > 100 && isatty(STDERR_FILENO);
+    size_t done = 0;
     for (const GhostPath& path : enumeration->ghosts) {
+        if (show_progress)
+            err << "\rflarelab: ghost " << ++done << " of " << enumeration->ghosts.size()
+                << std::flush;
         const auto par = paraxialGhost(*lens, path, g.wavelength_nm);
         const auto ex = exactGhost(*lens, path, light, g.wavelength_nm);
         const auto power = ghostIntensity(*lens, path, light, *reference);
@@ -314,6 +323,7 @@ int runGhosts(const std::string& file,
               << power->relative_power << std::defaultfloat << std::setw(11) << std::fixed
               << std::setprecision(3) << power->on_sensor_fraction << std::defaultfloat << "\n";
     }
+    if (show_progress) err << "\r" << std::string(40, ' ') << "\r" << std::flush;
     if (json) {
         Json doc;
         doc["lens"] = lens->name();
