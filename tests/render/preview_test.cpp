@@ -1,0 +1,228 @@
+#include "render/preview.h"
+
+#include <gtest/gtest.h>
+#include <stdlib.h>
+#include <sys/stat.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <limits>
+
+namespace flarelab::render {
+namespace {
+
+namespace fs = std::filesystem;
+
+// A fresh directory per test, removed afterwards.
+class TempDir {
+public:
+    TempDir() {
+        std::string pattern = (fs::temp_directory_path() / "flarelab_preview_XXXXXX").string();
+        FLARELAB_CHECK(::mkdtemp(pattern.data()) != nullptr);
+        path_ = pattern;
+    }
+    ~TempDir() { fs::remove_all(path_); }
+    const fs::path& path() const { return path_; }
+    size_t entries() const {
+        return static_cast<size_t>(std::distance(fs::directory_iterator(path_), {}));
+    }
+
+private:
+    fs::path path_;
+};
+
+ImageRGB gradient(int64_t w, int64_t h) {
+    ImageRGB image(w, h);
+    for (int64_t y = 0; y < h; ++y) {
+        for (int64_t x = 0; x < w; ++x) {
+            float* p = image.at(x, y);
+            p[0] = static_cast<float>(x) / static_cast<float>(w - 1) * 4.0f;
+            p[1] = static_cast<float>(y) / static_cast<float>(h - 1);
+            p[2] = 0.25f;
+        }
+    }
+    return image;
+}
+
+TEST(WritePng, RoundTripsThroughOpenCv) {
+    TempDir dir;
+    const std::string path = (dir.path() / "gradient.png").string();
+    const ImageRGB image = gradient(16, 8);
+    const ToneMapOptions options;
+    ASSERT_TRUE(writePng(image, path, options));
+    // The file is a PNG: it opens with the 8-byte signature.
+    std::ifstream file(path, std::ios::binary);
+    char signature[8] = {};
+    file.read(signature, 8);
+    EXPECT_EQ(std::string(signature, 8), std::string("\x89PNG\r\n\x1a\n", 8));
+    const Result<PreviewImage> read = readPng(path);
+    ASSERT_TRUE(read) << read.error().message;
+    ASSERT_EQ(read->width, 16);
+    ASSERT_EQ(read->height, 8);
+    const Result<PreviewImage> expected = toneMap(image, options);
+    ASSERT_TRUE(expected);
+    EXPECT_EQ(read->pixels, expected->pixels);
+    for (int y = 0; y < 8; ++y) {
+        for (int x = 0; x < 16; ++x) {
+            const uint8_t* rgb = read->pixels.data() + (y * 16 + x) * 3;
+            for (int c = 0; c < 3; ++c)
+                EXPECT_EQ(rgb[c], std::lround(toneCurve(image.at(x, y)[c], options) * 255.0));
+        }
+    }
+    // Left to right the red ramp never gets darker.
+    for (int x = 1; x < 16; ++x) EXPECT_GE(read->pixels[x * 3], read->pixels[(x - 1) * 3]);
+    EXPECT_EQ(dir.entries(), 1u);  // no temporary left beside it
+}
+
+TEST(WritePng, ReplacesAnExistingFileWhole) {
+    TempDir dir;
+    const std::string path = (dir.path() / "out.png").string();
+    ASSERT_TRUE(writePng(gradient(4, 4), path, {}));
+    ASSERT_TRUE(writePng(gradient(9, 3), path, {}));
+    const Result<PreviewImage> read = readPng(path);
+    ASSERT_TRUE(read);
+    EXPECT_EQ(read->width, 9);
+    EXPECT_EQ(read->height, 3);
+    EXPECT_EQ(dir.entries(), 1u);
+}
+
+TEST(WritePng, UnwritablePathIsAnErrorNamingIt) {
+    TempDir dir;
+    const std::string missing = (dir.path() / "no" / "such" / "dir" / "x.png").string();
+    const Status s = writePng(gradient(4, 4), missing, {});
+    ASSERT_FALSE(s);
+    EXPECT_EQ(s.error().code, ErrorCode::IoError);
+    EXPECT_NE(s.error().message.find(missing), std::string::npos) << s.error().message;
+    // A directory where the file should go: the rename fails, the temporary is cleaned up.
+    const fs::path occupied = dir.path() / "occupied.png";
+    fs::create_directory(occupied);
+    fs::create_directory(occupied / "child");
+    const Status t = writePng(gradient(4, 4), occupied.string(), {});
+    ASSERT_FALSE(t);
+    EXPECT_NE(t.error().message.find(occupied.string()), std::string::npos);
+    EXPECT_EQ(dir.entries(), 1u);
+    EXPECT_FALSE(writePng(gradient(4, 4), "", {}));
+}
+
+TEST(WritePng, RejectsNonFinitePixelsWithACount) {
+    TempDir dir;
+    const std::string path = (dir.path() / "bad.png").string();
+    ImageRGB image = gradient(8, 8);
+    image.at(3, 5)[1] = std::numeric_limits<float>::quiet_NaN();
+    image.at(7, 7)[2] = std::numeric_limits<float>::infinity();
+    const Status s = writePng(image, path, {});
+    ASSERT_FALSE(s);
+    EXPECT_EQ(s.error().code, ErrorCode::InvalidArgument);
+    EXPECT_NE(s.error().message.find("2 non-finite"), std::string::npos) << s.error().message;
+    EXPECT_NE(s.error().message.find("x=3 y=5 channel 1"), std::string::npos);
+    EXPECT_NE(s.error().message.find(path), std::string::npos);
+    EXPECT_FALSE(fs::exists(path));
+    EXPECT_EQ(dir.entries(), 0u);
+}
+
+TEST(WritePng, RejectsEmptyImagesAndBadOptions) {
+    TempDir dir;
+    const std::string path = (dir.path() / "x.png").string();
+    EXPECT_FALSE(writePng(ImageRGB(), path, {}));
+    EXPECT_FALSE(writePng(ImageRGB(0, 5), path, {}));
+    ToneMapOptions bad;
+    bad.exposure_stops = std::numeric_limits<double>::quiet_NaN();
+    const Status s = writePng(gradient(2, 2), path, bad);
+    ASSERT_FALSE(s);
+    EXPECT_NE(s.error().message.find("exposure_stops"), std::string::npos);
+    bad = {};
+    bad.log_range_stops = 0.0;
+    EXPECT_FALSE(validateToneMapOptions(bad));
+    EXPECT_EQ(dir.entries(), 0u);
+}
+
+TEST(WritePng, WritesAOneByOneImage) {
+    TempDir dir;
+    const std::string path = (dir.path() / "one.png").string();
+    ImageRGB one(1, 1);
+    one.at(0, 0)[0] = 1.0f;
+    ASSERT_TRUE(writePng(one, path, {}));
+    const Result<PreviewImage> read = readPng(path);
+    ASSERT_TRUE(read);
+    ASSERT_EQ(read->width, 1);
+    EXPECT_EQ(read->pixels[0], std::lround(toneCurve(1.0, {}) * 255.0));
+    EXPECT_EQ(read->pixels[2], 0);
+}
+
+TEST(ReadPng, ReportsMissingAndBrokenFiles) {
+    TempDir dir;
+    const std::string missing = (dir.path() / "missing.png").string();
+    const Result<PreviewImage> a = readPng(missing);
+    ASSERT_FALSE(a);
+    EXPECT_EQ(a.error().code, ErrorCode::NotFound);
+    const std::string broken = (dir.path() / "broken.png").string();
+    std::ofstream(broken) << "not a png";
+    const Result<PreviewImage> b = readPng(broken);
+    ASSERT_FALSE(b);
+    EXPECT_EQ(b.error().code, ErrorCode::ParseError);
+    EXPECT_NE(b.error().message.find(broken), std::string::npos);
+}
+
+TEST(ToneCurve, IsMonotonicAndMapsZeroToZero) {
+    for (const ToneCurve curve : {ToneCurve::Reinhard, ToneCurve::Log}) {
+        for (const double exposure : {-10.0, 0.0, 3.5}) {
+            ToneMapOptions o;
+            o.curve = curve;
+            o.exposure_stops = exposure;
+            EXPECT_EQ(toneCurve(0.0, o), 0.0);
+            EXPECT_EQ(toneCurve(-5.0, o), 0.0);
+            double previous = 0.0;
+            for (double stops = -40.0; stops <= 40.0; stops += 0.01) {
+                const double y = toneCurve(std::exp2(stops), o);
+                ASSERT_GE(y, previous) << stops;
+                ASSERT_LE(y, 1.0);
+                previous = y;
+            }
+        }
+    }
+}
+
+TEST(ToneCurve, ReinhardKeepsMidTonesAndCompressesHighlights) {
+    const ToneMapOptions o;
+    // L / (1 + L) at 1 is 0.5, sRGB-encoded 0.7354.
+    EXPECT_NEAR(toneCurve(1.0, o), 0.7354, 1e-4);
+    EXPECT_LT(toneCurve(1e3, o), 1.0);
+    EXPECT_GT(toneCurve(1e3, o), 0.999);
+    ToneMapOptions brighter;
+    brighter.exposure_stops = 1.0;
+    EXPECT_DOUBLE_EQ(toneCurve(0.5, brighter), toneCurve(1.0, o));
+}
+
+TEST(ToneCurve, LogModeIsLinearInStops) {
+    ToneMapOptions o;
+    o.curve = ToneCurve::Log;
+    o.log_range_stops = 16.0;
+    EXPECT_DOUBLE_EQ(toneCurve(1.0, o), 1.0);
+    EXPECT_DOUBLE_EQ(toneCurve(std::exp2(-8.0), o), 0.5);
+    EXPECT_DOUBLE_EQ(toneCurve(std::exp2(-16.0), o), 0.0);
+    EXPECT_DOUBLE_EQ(toneCurve(std::exp2(-30.0), o), 0.0);
+    EXPECT_DOUBLE_EQ(toneCurve(1e30, o), 1.0);
+}
+
+TEST(ToneMap, HugeValuesSaturateWithoutOverflow) {
+    ImageRGB image(3, 1);
+    for (float& v : image.pixels) v = std::numeric_limits<float>::max();
+    image.at(1, 0)[0] = std::numeric_limits<float>::denorm_min();
+    for (const ToneCurve curve : {ToneCurve::Reinhard, ToneCurve::Log}) {
+        ToneMapOptions o;
+        o.curve = curve;
+        o.exposure_stops = 64.0;
+        const Result<PreviewImage> p = toneMap(image, o);
+        ASSERT_TRUE(p);
+        EXPECT_EQ(p->pixels[0], 255);
+        EXPECT_EQ(p->pixels[8], 255);
+        o.exposure_stops = -64.0;
+        const Result<PreviewImage> dark = toneMap(image, o);
+        ASSERT_TRUE(dark);
+        EXPECT_EQ(dark->pixels[3], 0);
+    }
+}
+
+}  // namespace
+}  // namespace flarelab::render
