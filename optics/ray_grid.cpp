@@ -119,23 +119,31 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
                             TraceOptions{.clip_apertures = options.clip_apertures,
                                          .clip_stop = false,
                                          .fresnel = options.fresnel});
+    const PathTracer unclipped(
+        lens, path, wavelength_nm,
+        TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = false});
+    const auto finite = [](const GridSample& s) {
+        return std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
+               std::isfinite(s.stop_u) && std::isfinite(s.stop_v) && std::isfinite(s.throughput);
+    };
     grid.samples.assign(static_cast<size_t>(n) * static_cast<size_t>(n), GridSample{});
     for (int iy = 0; iy < n; ++iy) {
         for (int ix = 0; ix < n; ++ix) {
             const Ray ray =
                 rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
-            const auto traced = tracer.trace(ray);
-            if (!traced) continue;
             GridSample& s = grid.samples[static_cast<size_t>(iy) * n + ix];
+            auto traced = tracer.trace(ray);
+            const bool cut = !traced;
+            if (cut) traced = unclipped.trace(ray);
+            if (!traced) continue;  // missed a surface or totally reflected: no geometry at all
             s.sensor_x_mm = static_cast<float>(traced->ray.position.x());
             s.sensor_y_mm = static_cast<float>(traced->ray.position.y());
-            s.throughput = static_cast<float>(traced->ray.throughput);
+            s.throughput = cut ? 0.0f : static_cast<float>(traced->ray.throughput);
             s.stop_u = static_cast<float>(traced->stop_u);
             s.stop_v = static_cast<float>(traced->stop_v);
-            s.valid = std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
-                      std::isfinite(s.stop_u) && std::isfinite(s.stop_v) &&
-                      std::isfinite(s.throughput);
-            if (!s.valid) s = GridSample{};
+            s.has_position = finite(s);
+            s.valid = !cut && s.has_position;
+            if (!s.has_position) s = GridSample{};
         }
     }
     return grid;

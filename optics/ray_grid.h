@@ -11,7 +11,10 @@
 // stop-normalized coordinates. The stop does not invalidate rays: the renderer applies the
 // aperture shape to interpolated stop coordinates, so ghost edges come out sharp however coarse
 // the grid. `valid` is false for rays that miss a surface, leave a clear aperture or are totally
-// reflected; their other fields are zero.
+// reflected; they carry no light (throughput 0). Where the geometry still exists (a ray cut by a
+// clear aperture, traced on as if the lens were wider) such a ray keeps its sensor position and
+// stop coordinates (`has_position`), so a quad with some cut corners can fade its light to zero
+// across the cut instead of being dropped (Bodonyi & Kunkli 2023 §3.3).
 #pragma once
 
 #include <Eigen/Core>
@@ -30,7 +33,8 @@ struct GridSample {
     float throughput = 0.0f;
     float stop_u = 0.0f;  // stop crossing / stop semi-aperture; inside when aperture().contains
     float stop_v = 0.0f;
-    bool valid = false;
+    bool valid = false;         // reached the sensor through every clear aperture
+    bool has_position = false;  // position and stop coordinates are meaningful (valid or cut)
 };
 
 struct RayGrid {

@@ -28,6 +28,10 @@ void expectAllFinite(const RayGrid& grid) {
         if (!s.valid) {
             ASSERT_EQ(s.throughput, 0.0f);
         }
+        if (!s.has_position) {
+            ASSERT_FALSE(s.valid);
+            ASSERT_EQ(s.sensor_x_mm, 0.0f);
+        }
     }
     ASSERT_TRUE(std::isfinite(grid.entry_half_width_mm));
     ASSERT_GT(grid.entry_half_width_mm, 0.0);
@@ -89,6 +93,38 @@ TEST(TraceRayGrid, GhostFootprintCentresOnTheExactGhostCentre) {
                     0.05 * exact->radius_mm)
             << pathLabel(path);
     }
+}
+
+TEST(TraceRayGrid, RaysCutByAClearApertureKeepTheirPlaceButCarryNoLight) {
+    // With the stop wide open (the table's f/4) and the light far off axis the front lens cuts
+    // part of the beam: those corners must still have a position, continuous with their valid
+    // neighbours, so a renderer can fade the ghost out.
+    const Lens lens = heliar().withStopSemiAperture(heliar().tableStopSemiAperture_mm());
+    const auto grid = traceRayGrid(lens, GhostPath{}, degToRad(25.0), 0.0, 550.0, 64);
+    ASSERT_TRUE(grid);
+    expectAllFinite(*grid);
+    int cut = 0, valid = 0;
+    for (const GridSample& s : grid->samples) {
+        cut += s.has_position && !s.valid;
+        valid += s.valid;
+    }
+    EXPECT_GT(cut, 0);
+    EXPECT_GT(valid, 0);
+    // Neighbours across the cut stay close on the sensor: the geometry is continuous.
+    double worst_jump = 0.0;
+    int pairs = 0;
+    for (int iy = 0; iy < grid->n; ++iy) {
+        for (int ix = 0; ix + 1 < grid->n; ++ix) {
+            const GridSample& a = grid->at(ix, iy);
+            const GridSample& b = grid->at(ix + 1, iy);
+            if (a.valid == b.valid || !a.has_position || !b.has_position) continue;
+            ++pairs;
+            worst_jump = std::max<double>(worst_jump, std::hypot(a.sensor_x_mm - b.sensor_x_mm,
+                                                                 a.sensor_y_mm - b.sensor_y_mm));
+        }
+    }
+    EXPECT_GT(pairs, 0);
+    EXPECT_LT(worst_jump, 1.0);
 }
 
 TEST(TraceRayGrid, LargeGridStaysFinite) {
