@@ -1,0 +1,151 @@
+// ============================================================================
+//  flarelab hdr: ExrMetadata, ExrWriteOptions, ExrReadOptions, ExrImage,
+//                writeExr, readExr, readExrFromMemory
+// ============================================================================
+//
+// HDR frames on disk (DESIGN.md, "Formats"): single-part scanline OpenEXR files with channels R,
+// G, B in float32 (or half where every value fits half), plus flarelab's own header attributes.
+// The writer refuses NaN and infinity, writes to a temporary file beside the target and renames
+// it into place, so an existing file survives any failure. The reader validates the header
+// before OpenEXR allocates anything for it, and refuses non-finite pixels, so whatever it returns
+// is finite. No OpenEXR exception leaves this module: each becomes an Error naming the file.
+//
+// flarelab's header attributes (format version 1). Every name starts with "flarelab.", and a
+// file that carries any of them must carry "flarelab.version"; a file with none of them (written
+// by another program) reads with empty metadata.
+//
+//   flarelab.version           int     format version, 1
+//   flarelab.angle_deg         double  θ, the angle between the optical axis and the light
+//   flarelab.roll_deg          double  φ, the light's roll around the axis
+//   flarelab.exposure_times_s  string  the bracket's exposure times in seconds, separated by one
+//                                      space, each as the shortest decimal that reads back to the
+//                                      same double ("0.25 1 4"); OpenEXR has no double-vector
+//                                      attribute, and its float vector would round the times
+//   flarelab.gain              double  sensor gain (linear factor)
+//   flarelab.camera            string  camera description
+//   flarelab.lens              string  lens description
+//   flarelab.merge_method      string  how the bracket was merged
+//   flarelab.software_version  string  the program that wrote the file
+//   flarelab.extra.<key>       string  free attributes, ExrMetadata::extra[<key>]
+//
+// An absent optional field, empty string or empty vector is not written. The reader refuses an
+// attribute of the wrong type, a non-finite number, a non-positive exposure time, an unknown
+// "flarelab.*" name and any version other than 1, naming the attribute.
+#pragma once
+
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "common/result.h"
+#include "render/image.h"
+
+namespace flarelab::hdr {
+
+inline constexpr int kExrFormatVersion = 1;
+
+inline constexpr char kExrAttrVersion[] = "flarelab.version";
+inline constexpr char kExrAttrAngle[] = "flarelab.angle_deg";
+inline constexpr char kExrAttrRoll[] = "flarelab.roll_deg";
+inline constexpr char kExrAttrExposureTimes[] = "flarelab.exposure_times_s";
+inline constexpr char kExrAttrGain[] = "flarelab.gain";
+inline constexpr char kExrAttrCamera[] = "flarelab.camera";
+inline constexpr char kExrAttrLens[] = "flarelab.lens";
+inline constexpr char kExrAttrMergeMethod[] = "flarelab.merge_method";
+inline constexpr char kExrAttrSoftwareVersion[] = "flarelab.software_version";
+inline constexpr char kExrAttrExtraPrefix[] = "flarelab.extra.";
+
+// Longest key of ExrMetadata::extra: OpenEXR attribute names hold at most 255 characters.
+inline constexpr size_t kExrMaxExtraKeyLength = 255 - (sizeof(kExrAttrExtraPrefix) - 1);
+
+// Largest finite half, and the smallest positive half that still has full (11-bit) precision;
+// below it, half values are denormal and then zero.
+inline constexpr double kHalfMax = 65504.0;
+inline constexpr double kHalfMinNormal = 6.103515625e-05;  // 2^-14
+
+struct ExrMetadata {
+    std::optional<double> angle_deg;
+    std::optional<double> roll_deg;
+    std::vector<double> exposure_times_s;  // each finite and > 0
+    std::optional<double> gain;
+    std::string camera;
+    std::string lens;
+    std::string merge_method;
+    std::string software_version;
+    // Keys are 1 to kExrMaxExtraKeyLength characters without NUL; values are any bytes.
+    std::map<std::string, std::string> extra;
+    bool operator==(const ExrMetadata&) const = default;
+};
+
+enum class ExrPixelType {
+    Float,          // float32: every value exactly
+    Half,           // half, or an error when a value does not fit half (see ExrWriteOptions)
+    HalfWhereFits,  // half when every value fits half, else float32 and a note saying why
+};
+
+enum class ExrCompression { None, Zip, Piz };
+
+struct ExrWriteOptions {
+    ExrPixelType pixel_type = ExrPixelType::Float;
+    ExrCompression compression = ExrCompression::Zip;
+    // A value fits half when |v| <= kHalfMax and v is 0 or |v| >= half_min_abs. The default keeps
+    // half's full relative precision (2^-11) for every nonzero value; 0 accepts that tiny values
+    // lose precision or become 0.
+    double half_min_abs = kHalfMinNormal;
+};
+
+// What writeExr wrote.
+struct ExrWriteReport {
+    bool half = false;  // the channels are half (else float32)
+    // Why float32 was written although HalfWhereFits asked for half (the first value that does
+    // not fit); empty otherwise.
+    std::string note;
+};
+
+// Limits a reader checks on the header before anything is allocated for the image.
+struct ExrReadOptions {
+    int64_t max_side = int64_t{1} << 15;    // data window width and height, pixels
+    int64_t max_pixels = int64_t{1} << 28;  // width * height; the image takes 12 bytes per pixel
+    int max_channels = 64;                  // channels in the file, read or not
+};
+
+struct ExrImage {
+    // The file's data window, with the data window's top-left pixel at (0, 0). A channel Y alone
+    // is copied to R, G and B; channel A and others are ignored.
+    render::ImageRGB image;
+    ExrMetadata meta;
+    // Where the data window starts in the file's pixel space (OpenEXR lets it start anywhere,
+    // also at negative coordinates); pixel (x, y) of `image` is (origin_x + x, origin_y + y) there.
+    int64_t origin_x = 0;
+    int64_t origin_y = 0;
+};
+
+// Writes `image` (at least 1x1, at most 2^15 pixels per side, every value finite) with `meta` to
+// `path` as a single-part scanline EXR with channels R, G, B and data and display window
+// [0, width - 1] x [0, height - 1]. The file is written to "<path>.tmp-<pid>" in the same
+// directory, flushed to disk and renamed onto `path`; on any failure the temporary file is
+// removed and whatever was at `path` is left as it was. Errors name the path and what failed: the
+// first non-finite pixel (x, y, channel), the first value that does not fit half when Half was
+// asked for, an invalid metadata field, or the operating system's or OpenEXR's complaint.
+Result<ExrWriteReport> writeExr(const std::string& path,
+                                const render::ImageRGB& image,
+                                const ExrMetadata& meta,
+                                const ExrWriteOptions& options = {});
+
+// Reads a single-part scanline EXR whose channels R, G, B (A and others ignored) or Y alone are
+// half or float32. Refused, with an Error naming the file: a missing or unreadable file
+// (NotFound, IoError), anything not an EXR or truncated or corrupt (ParseError), tiled, deep or
+// multi-part files, UINT or subsampled channels, luminance-chroma files, ID manifests and data
+// windows beyond `options` (Unsupported), a missing channel, a NaN or infinite pixel (named by its
+// x, y in the file's pixel space and its channel) and invalid flarelab attributes (ParseError).
+Result<ExrImage> readExr(const std::string& path, const ExrReadOptions& options = {});
+
+// The same reader over bytes in memory; `name` stands for the file in error messages.
+Result<ExrImage> readExrFromMemory(std::span<const uint8_t> bytes,
+                                   const std::string& name = "<memory>",
+                                   const ExrReadOptions& options = {});
+
+}  // namespace flarelab::hdr
