@@ -5,6 +5,7 @@
 #include <iostream>
 
 #include "apps/lens_commands.h"
+#include "apps/simulate_command.h"
 
 int main(int argc, char** argv) {
     try {
@@ -12,6 +13,7 @@ int main(int argc, char** argv) {
         app.require_subcommand(1);
         int exit_code = 0;
         flarelab::apps::addLensCommands(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addSimulateCommand(app, std::cout, std::cerr, exit_code);
         CLI11_PARSE(app, argc, argv);
         return exit_code;
     } catch (const std::exception& e) {

@@ -11,6 +11,7 @@
 #include <sstream>
 #include <string>
 
+#include "apps/camera_flags.h"
 #include "common/units.h"
 #include "optics/ghosts.h"
 #include "optics/paraxial.h"
@@ -21,61 +22,6 @@ namespace {
 
 using Json = nlohmann::ordered_json;
 using namespace flarelab::optics;
-
-struct CameraFlags {
-    double focal_mm = 0.0;
-    double f_number = 0.0;
-    std::string sensor = "36x24";
-    int blades = 0;
-    double blade_rotation_deg = 0.0;
-    bool table_stop = false;
-    bool coat_unspecified = false;
-};
-
-void addCameraFlags(CLI::App* cmd, CameraFlags& flags) {
-    cmd->add_option("--focal-mm", flags.focal_mm,
-                    "focal length the f-number refers to (default: the file's label, else EFL)");
-    cmd->add_option("--f-number", flags.f_number,
-                    "working f-number; scales the stop (default: the file's f_number label)");
-    cmd->add_flag("--table-stop", flags.table_stop,
-                  "keep the stop semi-aperture as the table gives it");
-    cmd->add_option("--sensor-mm", flags.sensor, "sensor size WxH in mm")->capture_default_str();
-    cmd->add_option("--blades", flags.blades, "aperture blades (0: circle)");
-    cmd->add_option("--blade-rotation-deg", flags.blade_rotation_deg, "rotation of the blades");
-    cmd->add_flag("--coat-unspecified", flags.coat_unspecified,
-                  "give surfaces without a coating in the file the default 550 nm coating");
-}
-
-// Loads the lens file and applies the camera flags; on failure writes the error to `err`.
-std::optional<Lens> loadLens(const std::string& path, const CameraFlags& flags, std::ostream& err) {
-    auto prescription = loadPrescription(path);
-    if (!prescription) {
-        err << "flarelab: " << prescription.error().message << "\n";
-        return std::nullopt;
-    }
-    CameraDescription camera;
-    camera.focal_length_mm = flags.focal_mm;
-    camera.f_number = flags.f_number;
-    camera.aperture_blades = flags.blades;
-    camera.aperture_rotation_deg = flags.blade_rotation_deg;
-    camera.coat_unspecified_surfaces = flags.coat_unspecified;
-    double w = 0.0, h = 0.0;
-    char x = 0, extra = 0;
-    if (std::sscanf(flags.sensor.c_str(), "%lf%c%lf%c", &w, &x, &h, &extra) != 3 ||
-        (x != 'x' && x != 'X')) {
-        err << "flarelab: --sensor-mm '" << flags.sensor << "' is not WIDTHxHEIGHT in mm\n";
-        return std::nullopt;
-    }
-    camera.sensor_width_mm = w;
-    camera.sensor_height_mm = h;
-    auto lens = Lens::make(*prescription, camera);
-    if (!lens) {
-        err << "flarelab: " << lens.error().message << "\n";
-        return std::nullopt;
-    }
-    if (flags.table_stop) return lens->withStopSemiAperture(lens->tableStopSemiAperture_mm());
-    return *lens;
-}
 
 // Round for JSON so that documents stay readable and diffs stable (0.1 nm resolution in mm).
 double tidy(double v) { return std::round(v * 1e7) / 1e7 + 0.0; }  // + 0.0 turns -0 into 0

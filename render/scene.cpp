@@ -1,0 +1,168 @@
+#include "render/scene.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "common/units.h"
+#include "optics/aim.h"
+#include "optics/paraxial.h"
+#include "optics/ray_grid.h"
+#include "optics/tracer.h"
+
+namespace flarelab::render {
+namespace {
+
+constexpr double kChannel_nm[3] = {kLambdaRed_nm, kLambdaGreen_nm, kLambdaBlue_nm};
+
+Error invalid(const std::string& what) {
+    return makeError(ErrorCode::InvalidArgument, "scene: " + what);
+}
+
+// Area of the bounding rectangle of a probe grid's valid rays on the sensor (mm^2), 0 if none.
+double footprintArea(const optics::RayGrid& grid) {
+    double lo_x = 1e300, hi_x = -1e300, lo_y = 1e300, hi_y = -1e300;
+    bool any = false;
+    for (const optics::GridSample& s : grid.samples) {
+        if (!s.valid) continue;
+        any = true;
+        lo_x = std::min<double>(lo_x, s.sensor_x_mm);
+        hi_x = std::max<double>(hi_x, s.sensor_x_mm);
+        lo_y = std::min<double>(lo_y, s.sensor_y_mm);
+        hi_y = std::max<double>(hi_y, s.sensor_y_mm);
+    }
+    return any ? (hi_x - lo_x) * (hi_y - lo_y) : 0.0;
+}
+
+// The light's own image: where its chief ray lands, and the power the imaging path carries.
+void addLightImage(ImageRGB& image,
+                   const optics::Lens& lens,
+                   const Light& light,
+                   const SceneOptions& options,
+                   const SensorToImage& mapping,
+                   const ImageRGB& pattern) {
+    const auto paraxial = optics::paraxialProperties(lens, kLambdaGreen_nm);
+    if (!paraxial) return;
+    const Eigen::Vector3d direction =
+        optics::lightDirection(degToRad(light.theta_deg), degToRad(light.phi_deg));
+    const optics::EntryPlane plane = optics::defaultEntryPlane(lens);
+    float power[3] = {0.0f, 0.0f, 0.0f};
+    Eigen::Vector2d centre_mm = Eigen::Vector2d::Zero();
+    bool placed = false;
+    for (int c = 0; c < 3; ++c) {
+        const auto grid =
+            optics::traceRayGrid(lens, optics::GhostPath{}, degToRad(light.theta_deg),
+                                 degToRad(light.phi_deg), kChannel_nm[c], options.probe_grid);
+        if (!grid || grid->n < 2) continue;
+        const double cell = 2.0 * grid->entry_half_width_mm / (grid->n - 1);
+        double through = 0.0;
+        for (const optics::GridSample& s : grid->samples)
+            if (s.valid && lens.aperture().contains(s.stop_u, s.stop_v)) through += s.throughput;
+        power[c] = static_cast<float>(light.rgb[c] * through * cell * cell);
+        if (c == 1) {
+            const optics::PathTracer chief(lens, optics::GhostPath{}, kLambdaGreen_nm);
+            const auto entry =
+                optics::aimAtStop(optics::PathTracer(lens, optics::GhostPath{}, kLambdaGreen_nm,
+                                                     optics::TraceOptions{.clip_apertures = false,
+                                                                          .clip_stop = false,
+                                                                          .fresnel = false}),
+                                  plane, direction, Eigen::Vector2d::Zero(), grid->entry_centre_mm);
+            if (entry) {
+                const auto traced =
+                    chief.trace(optics::rayThroughEntry(plane, *entry, direction, kLambdaGreen_nm));
+                if (traced) {
+                    centre_mm = traced->ray.position.head<2>();
+                    placed = true;
+                }
+            }
+        }
+    }
+    if (!placed) return;
+    // Pattern pixels to image pixels: the pattern's angle per pixel over the image's.
+    const double pupil_diameter_mm = 2.0 * paraxial->entrance_pupil_radius_mm;
+    const double pattern_rad = starburstPixelAngle(options.starburst_options, pupil_diameter_mm);
+    const double image_rad = 1.0 / (mapping.px_per_mm_x * std::abs(paraxial->efl_mm));
+    const double scale = pattern_rad / image_rad;
+    const Eigen::Vector2d centre_px = mapping.toPixels(centre_mm.x(), centre_mm.y());
+    if (!(scale > 0.0) || !std::isfinite(scale) || !centre_px.allFinite()) return;
+    addStarburst(image, pattern, centre_px.x(), centre_px.y(), power, scale);
+}
+
+}  // namespace
+
+Result<ImageRGB> renderScene(const optics::Lens& lens,
+                             std::span<const Light> lights,
+                             const SceneOptions& options,
+                             SceneStats* stats) {
+    if (options.width < 1 || options.height < 1 || options.width > 32768 || options.height > 32768)
+        return invalid("width and height must lie in 1..32768 pixels");
+    if (options.base_grid < 2 || options.base_grid > 2048)
+        return invalid("base_grid must lie in 2..2048");
+    if (options.probe_grid < 2 || options.probe_grid > 256)
+        return invalid("probe_grid must lie in 2..256");
+    if (!(options.grid_sigma > 0.0) || !(options.grid_phi > 0.0) ||
+        !std::isfinite(options.grid_sigma) || !std::isfinite(options.grid_phi))
+        return invalid("grid_sigma and grid_phi must be positive");
+    for (size_t i = 0; i < lights.size(); ++i) {
+        const Light& l = lights[i];
+        const bool finite = std::isfinite(l.theta_deg) && std::isfinite(l.phi_deg) &&
+                            std::all_of(l.rgb.begin(), l.rgb.end(),
+                                        [](float v) { return std::isfinite(v) && v >= 0.0f; });
+        if (!finite || l.theta_deg < 0.0) {
+            std::ostringstream msg;
+            msg << "light " << i + 1
+                << ": theta must be >= 0 and every value finite, with rgb >= 0";
+            return invalid(msg.str());
+        }
+    }
+    if (options.starburst) {
+        if (Status ok = validateStarburstOptions(options.starburst_options); !ok) return ok.error();
+    }
+    auto enumeration = optics::enumerateGhosts(lens, options.ghosts);
+    if (!enumeration) return enumeration.error();
+
+    SceneStats local;
+    SceneStats& st = stats ? *stats : local;
+    st = SceneStats{};
+    ImageRGB image(options.width, options.height);
+    const SensorToImage mapping = sensorToImage(lens.camera(), options.width, options.height);
+    const double sensor_area = lens.camera().sensor_width_mm * lens.camera().sensor_height_mm;
+    std::optional<ImageRGB> pattern;
+    if (options.starburst) {
+        StarburstOptions burst = options.starburst_options;
+        burst.aperture = lens.aperture();
+        auto rendered = renderStarburst(burst);
+        if (!rendered) return rendered.error();
+        pattern = std::move(*rendered);
+    }
+    for (const Light& light : lights) {
+        if (light.theta_deg >= 90.0) {
+            ++st.lights_behind;
+            continue;
+        }
+        const double theta = degToRad(light.theta_deg), phi = degToRad(light.phi_deg);
+        for (const optics::GhostPath& path : enumeration->ghosts) {
+            for (int c = 0; c < 3; ++c) {
+                if (!(light.rgb[c] > 0.0f)) continue;
+                const auto probe = optics::traceRayGrid(lens, path, theta, phi, kChannel_nm[c],
+                                                        options.probe_grid);
+                if (!probe) return probe.error();
+                if (probe->validCount() == 0) continue;
+                const int n = adaptiveGridSize(options.base_grid, footprintArea(*probe),
+                                               sensor_area, options.grid_sigma, options.grid_phi);
+                const auto grid = optics::traceRayGrid(lens, path, theta, phi, kChannel_nm[c], n);
+                if (!grid) return grid.error();
+                const GhostQuads quads = quadsFromGrid(*grid, mapping);
+                if (quads.quads.empty()) continue;
+                rasterizeReference(image, quads, c, light.rgb[c], lens.aperture(), options.raster);
+                ++st.ghosts_drawn;
+                st.quads += static_cast<int64_t>(quads.quads.size());
+                st.rays += static_cast<int64_t>(n) * n;
+            }
+        }
+        if (pattern) addLightImage(image, lens, light, options, mapping, *pattern);
+    }
+    return image;
+}
+
+}  // namespace flarelab::render

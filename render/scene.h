@@ -1,0 +1,64 @@
+// ============================================================================
+//  flarelab render: Light, SceneOptions, renderScene
+// ============================================================================
+//
+// A whole flare image of one lens under point lights at infinity, drawn with the reference
+// rasterizer (ghost after ghost, ghost_quads.h) plus each light's own image as the Fraunhofer
+// starburst of the aperture (starburst.h). Per light, ghost and colour channel a ray grid is
+// traced at that channel's wavelength, its size chosen by eq. 13 of Bodonyi & Kunkli 2023 from a
+// coarse first trace.
+//
+// Units. A light's rgb is its irradiance at the lens (power per mm^2 perpendicular to the axis,
+// any unit). A pixel holds the power that lands on it, in that unit times mm^2: the starburst
+// carries the light that passes the entrance pupil on the imaging path, each ghost what its path
+// delivers. Summed over an image that holds them, the values are power, so ghost and light
+// compare directly.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <span>
+
+#include "common/result.h"
+#include "optics/ghosts.h"
+#include "optics/lens.h"
+#include "render/ghost_quads.h"
+#include "render/image.h"
+#include "render/starburst.h"
+
+namespace flarelab::render {
+
+struct Light {
+    double theta_deg = 0.0;  // from the optical axis; 90 and beyond: behind the camera, not drawn
+    double phi_deg = 0.0;    // roll around the axis
+    std::array<float, 3> rgb = {1.0f, 1.0f, 1.0f};  // irradiance at the lens, >= 0
+};
+
+struct SceneOptions {
+    int64_t width = 1920;
+    int64_t height = 1080;
+    int base_grid = 256;      // eq. 13's base size, 2..2048
+    double grid_sigma = 1.0;  // eq. 13's sigma and phi
+    double grid_phi = 0.5;
+    int probe_grid = 16;  // the coarse trace that measures a ghost for eq. 13
+    optics::EnumerationOptions ghosts;
+    bool starburst = true;
+    StarburstOptions starburst_options;
+    RasterOptions raster;
+};
+
+struct SceneStats {
+    int64_t ghosts_drawn = 0;  // ghost x light x channel grids that put light in the image
+    int64_t quads = 0;
+    int64_t rays = 0;
+    int lights_behind = 0;  // lights at 90 degrees or more, skipped
+};
+
+// InvalidArgument (naming the field) for options out of range or a light with a non-finite or
+// negative value; a light behind the camera is counted in stats and skipped, not an error.
+Result<ImageRGB> renderScene(const optics::Lens& lens,
+                             std::span<const Light> lights,
+                             const SceneOptions& options,
+                             SceneStats* stats = nullptr);
+
+}  // namespace flarelab::render

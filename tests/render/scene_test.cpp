@@ -1,0 +1,91 @@
+#include "render/scene.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "tests/test_paths.h"
+
+namespace flarelab::render {
+namespace {
+
+optics::Lens heliar() {
+    return *optics::Lens::make(
+        *optics::loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv")),
+        optics::CameraDescription{});
+}
+
+SceneOptions small() {
+    SceneOptions o;
+    o.width = 96;
+    o.height = 64;
+    o.base_grid = 24;
+    o.probe_grid = 6;
+    o.starburst_options.mask_size = 32;
+    o.starburst_options.fft_size = 128;
+    return o;
+}
+
+double sum(const ImageRGB& image) {
+    double total = 0.0;
+    for (float v : image.pixels) {
+        EXPECT_TRUE(std::isfinite(v));
+        EXPECT_GE(v, 0.0f);
+        total += v;
+    }
+    return total;
+}
+
+TEST(RenderScene, NoLightsGiveABlackImage) {
+    const auto image = renderScene(heliar(), {}, small());
+    ASSERT_TRUE(image);
+    EXPECT_EQ(sum(*image), 0.0);
+}
+
+TEST(RenderScene, OnAxisAndOffAxisLightsGiveFiniteFlare) {
+    for (double theta : {0.0, 3.0, 30.0}) {
+        const Light light{theta, 15.0, {1.0f, 0.5f, 0.25f}};
+        SceneStats stats;
+        const auto image = renderScene(heliar(), std::span(&light, 1), small(), &stats);
+        ASSERT_TRUE(image) << theta;
+        EXPECT_GT(sum(*image), 0.0) << theta;
+        EXPECT_GT(stats.ghosts_drawn, 0) << theta;
+    }
+}
+
+TEST(RenderScene, LightBehindTheCameraIsSkippedNotAnError) {
+    const Light lights[] = {{90.0, 0.0, {1, 1, 1}}, {135.0, 40.0, {1, 1, 1}}};
+    SceneStats stats;
+    const auto image = renderScene(heliar(), lights, small(), &stats);
+    ASSERT_TRUE(image);
+    EXPECT_EQ(stats.lights_behind, 2);
+    EXPECT_EQ(sum(*image), 0.0);
+}
+
+TEST(RenderScene, OnePixelImageStaysFinite) {
+    SceneOptions o = small();
+    o.width = 1;
+    o.height = 1;
+    const Light light{0.0, 0.0, {1, 1, 1}};
+    const auto image = renderScene(heliar(), std::span(&light, 1), o);
+    ASSERT_TRUE(image);
+    EXPECT_GT(sum(*image), 0.0);  // the light's own image lands on the only pixel
+}
+
+TEST(RenderScene, RejectsBadLightsAndOptionsNamingThem) {
+    const Light nan_light{std::nan(""), 0.0, {1, 1, 1}};
+    const auto a = renderScene(heliar(), std::span(&nan_light, 1), small());
+    ASSERT_FALSE(a);
+    EXPECT_NE(a.error().message.find("light 1"), std::string::npos);
+    const Light negative{5.0, 0.0, {1, -1, 1}};
+    EXPECT_FALSE(renderScene(heliar(), std::span(&negative, 1), small()));
+    SceneOptions o = small();
+    o.width = 0;
+    EXPECT_FALSE(renderScene(heliar(), {}, o));
+    o = small();
+    o.base_grid = 1;
+    EXPECT_FALSE(renderScene(heliar(), {}, o));
+}
+
+}  // namespace
+}  // namespace flarelab::render
