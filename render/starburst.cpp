@@ -286,6 +286,20 @@ Result<ImageRGB> renderStarburst(const StarburstOptions& options) {
                         band[static_cast<size_t>(y) * m + x] = sampleBilinear(
                             *power, m, m / 2 + (x - m / 2) * shrink, m / 2 + (y - m / 2) * shrink);
             });
+            // The spectrum's domain is a square, but a lens's starburst has no corners: fade the
+            // pattern to zero between 70 % and 100 % of the inscribed circle (a raised cosine),
+            // so its edge never shows however bright the light. The tail cut off holds about 1 %
+            // of the power of a round stop; normalization below gives it back to the rest.
+            const double edge = 0.5 * m, fade_start = 0.7 * edge;
+            for (int y = 0; y < m; ++y) {
+                for (int x = 0; x < m; ++x) {
+                    const double r = std::hypot(x - m / 2, y - m / 2);
+                    if (r <= fade_start) continue;
+                    const double t = std::min(1.0, (r - fade_start) / (edge - fade_start));
+                    band[static_cast<size_t>(y) * m + x] *=
+                        static_cast<float>(0.5 * (1.0 + std::cos(kPi * t)));
+                }
+            }
             double total = 0.0;
             for (float x : band) total += x;
             if (!(total > 0.0) || !std::isfinite(total))

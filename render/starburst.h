@@ -16,8 +16,9 @@
 //     lambda_ref / (fft_size / mask_size * D)   radians (D: aperture diameter),
 // and a longer wavelength lambda reads bin r * lambda_ref / lambda at pattern radius r, so its
 // rings lie lambda / lambda_ref times further out. The pattern is fft_size x fft_size with the
-// zero angle at the centre of pixel (fft_size / 2, fft_size / 2); each channel sums to 1, so the
-// caller scales it by the light's intensity.
+// zero angle at the centre of pixel (fft_size / 2, fft_size / 2), faded to zero towards the
+// edge of its inscribed circle so that the square domain never shows; each channel sums to 1, so
+// the caller scales it by the light's intensity.
 #pragma once
 
 #include <array>
