@@ -76,6 +76,80 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid, const SensorToImage& mappi
     return out;
 }
 
+std::optional<Primitive> preparePrimitive(const Quad& quad,
+                                          double cell_area_mm2,
+                                          int channel,
+                                          float irradiance,
+                                          int64_t width,
+                                          int64_t height,
+                                          const RasterOptions& options) {
+    FLARELAB_CHECK(channel >= 0 && channel < 3);
+    if (width < 1 || height < 1 || !(irradiance > 0.0f) || !std::isfinite(irradiance))
+        return std::nullopt;
+    double lo_x = quad.corners[0].position_px.x(), hi_x = lo_x;
+    double lo_y = quad.corners[0].position_px.y(), hi_y = lo_y;
+    for (const QuadCorner& c : quad.corners) {
+        if (!std::isfinite(c.position_px.x()) || !std::isfinite(c.position_px.y()))
+            return std::nullopt;
+        lo_x = std::min(lo_x, c.position_px.x());
+        hi_x = std::max(hi_x, c.position_px.x());
+        lo_y = std::min(lo_y, c.position_px.y());
+        hi_y = std::max(hi_y, c.position_px.y());
+    }
+    Primitive p;
+    p.quad = quad;
+    p.channel = channel;
+    const double min_area = std::max(options.min_quad_area_px, 1e-12);
+    const double area = quadArea(quad);
+    if (area < min_area) {
+        // Smaller than a pixel: it may hold no pixel centre at all, and point sampling would
+        // lose its light. It goes whole to the pixel under its centre, masked there.
+        const Eigen::Vector2d centre =
+            0.25 * (quad.corners[0].position_px + quad.corners[1].position_px +
+                    quad.corners[2].position_px + quad.corners[3].position_px);
+        if (!(centre.x() >= 0.0 && centre.x() < static_cast<double>(width) && centre.y() >= 0.0 &&
+              centre.y() < static_cast<double>(height)))
+            return std::nullopt;
+        p.splat = true;
+        p.x0 = p.x1 = static_cast<int64_t>(centre.x());
+        p.y0 = p.y1 = static_cast<int64_t>(centre.y());
+        p.scale = irradiance * cell_area_mm2;
+    } else {
+        // Pixel centres x + 0.5 inside [lo, hi], clamped to the image in double before any
+        // conversion, so quads far outside cost nothing and cannot overflow an index.
+        const double x0 = std::max(0.0, std::ceil(lo_x - 0.5));
+        const double x1 = std::min(static_cast<double>(width) - 1.0, std::floor(hi_x - 0.5));
+        const double y0 = std::max(0.0, std::ceil(lo_y - 0.5));
+        const double y1 = std::min(static_cast<double>(height) - 1.0, std::floor(hi_y - 0.5));
+        if (x0 > x1 || y0 > y1) return std::nullopt;
+        p.x0 = static_cast<int64_t>(x0);
+        p.x1 = static_cast<int64_t>(x1);
+        p.y0 = static_cast<int64_t>(y0);
+        p.y1 = static_cast<int64_t>(y1);
+        p.scale = irradiance * cell_area_mm2 / area;
+    }
+    if (!std::isfinite(p.scale)) return std::nullopt;
+    return p;
+}
+
+double primitiveValueAt(const Primitive& primitive,
+                        int64_t x,
+                        int64_t y,
+                        const optics::ApertureShape& aperture) {
+    QuadSample sample;
+    if (primitive.splat) {
+        sample = interpolateQuad(primitive.quad, {0.25, 0.25, 0.25, 0.25});
+    } else {
+        const Eigen::Vector2d p(static_cast<double>(x) + 0.5, static_cast<double>(y) + 0.5);
+        const auto weights = quadBarycentrics(primitive.quad, p);
+        if (!weights) return 0.0;
+        sample = interpolateQuad(primitive.quad, *weights);
+    }
+    if (!(sample.throughput > 0.0f) || !aperture.contains(sample.stop_u, sample.stop_v)) return 0.0;
+    const double value = primitive.scale * sample.throughput;
+    return std::isfinite(value) ? value : 0.0;
+}
+
 void rasterizeReference(ImageRGB& image,
                         const GhostQuads& ghost,
                         int channel,
@@ -83,58 +157,14 @@ void rasterizeReference(ImageRGB& image,
                         const optics::ApertureShape& aperture,
                         const RasterOptions& options) {
     FLARELAB_CHECK(channel >= 0 && channel < 3);
-    if (image.empty() || !(irradiance > 0.0f) || !std::isfinite(irradiance)) return;
-    const double min_area = std::max(options.min_quad_area_px, 1e-12);  // also the density floor
     for (const Quad& q : ghost.quads) {
-        double lo_x = q.corners[0].position_px.x(), hi_x = lo_x;
-        double lo_y = q.corners[0].position_px.y(), hi_y = lo_y;
-        bool finite = true;
-        for (const QuadCorner& c : q.corners) {
-            finite = finite && std::isfinite(c.position_px.x()) && std::isfinite(c.position_px.y());
-            lo_x = std::min(lo_x, c.position_px.x());
-            hi_x = std::max(hi_x, c.position_px.x());
-            lo_y = std::min(lo_y, c.position_px.y());
-            hi_y = std::max(hi_y, c.position_px.y());
-        }
-        if (!finite) continue;
-        const double area = quadArea(q);
-        if (area < min_area) {
-            // Smaller than a pixel: it may hold no pixel centre at all, and point sampling would
-            // lose its light. It goes whole to the pixel under its centre, masked there.
-            const Eigen::Vector2d centre =
-                0.25 * (q.corners[0].position_px + q.corners[1].position_px +
-                        q.corners[2].position_px + q.corners[3].position_px);
-            if (!(centre.x() >= 0.0 && centre.x() < static_cast<double>(image.width) &&
-                  centre.y() >= 0.0 && centre.y() < static_cast<double>(image.height)))
-                continue;
-            const QuadSample mean = interpolateQuad(q, {0.25, 0.25, 0.25, 0.25});
-            if (!(mean.throughput > 0.0f) || !aperture.contains(mean.stop_u, mean.stop_v)) continue;
-            const double value = irradiance * mean.throughput * ghost.cell_area_mm2;
-            if (std::isfinite(value))
-                image.at(static_cast<int64_t>(centre.x()),
-                         static_cast<int64_t>(centre.y()))[channel] += static_cast<float>(value);
-            continue;
-        }
-        // Pixel centres x + 0.5 inside [lo, hi], clamped to the image in double before any
-        // conversion, so quads far outside cost nothing and cannot overflow an index.
-        const double x0 = std::max(0.0, std::ceil(lo_x - 0.5));
-        const double x1 = std::min(static_cast<double>(image.width) - 1.0, std::floor(hi_x - 0.5));
-        const double y0 = std::max(0.0, std::ceil(lo_y - 0.5));
-        const double y1 = std::min(static_cast<double>(image.height) - 1.0, std::floor(hi_y - 0.5));
-        if (x0 > x1 || y0 > y1) continue;
-        const double density = ghost.cell_area_mm2 / std::max(area, min_area);
-        for (int64_t y = static_cast<int64_t>(y0); y <= static_cast<int64_t>(y1); ++y) {
-            for (int64_t x = static_cast<int64_t>(x0); x <= static_cast<int64_t>(x1); ++x) {
-                const Eigen::Vector2d p(static_cast<double>(x) + 0.5, static_cast<double>(y) + 0.5);
-                const auto weights = quadBarycentrics(q, p);
-                if (!weights) continue;
-                const QuadSample sample = interpolateQuad(q, *weights);
-                if (!(sample.throughput > 0.0f) || !aperture.contains(sample.stop_u, sample.stop_v))
-                    continue;
-                const double value = irradiance * sample.throughput * density;
-                if (std::isfinite(value)) image.at(x, y)[channel] += static_cast<float>(value);
-            }
-        }
+        const auto primitive = preparePrimitive(q, ghost.cell_area_mm2, channel, irradiance,
+                                                image.width, image.height, options);
+        if (!primitive) continue;
+        for (int64_t y = primitive->y0; y <= primitive->y1; ++y)
+            for (int64_t x = primitive->x0; x <= primitive->x1; ++x)
+                image.at(x, y)[channel] +=
+                    static_cast<float>(primitiveValueAt(*primitive, x, y, aperture));
     }
 }
 

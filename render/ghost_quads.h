@@ -19,6 +19,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <vector>
 
@@ -66,6 +67,32 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid, const SensorToImage& mappi
 struct RasterOptions {
     double min_quad_area_px = 1.0;  // quads below this area (px^2) are added whole at their centre
 };
+
+// A quad ready to draw into one channel of a width x height image: the range of pixels it can
+// touch and its light per unit of interpolated throughput. Both renderers draw the same
+// primitives with primitiveValueAt, so they agree pixel for pixel.
+struct Primitive {
+    Quad quad;
+    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;  // inclusive pixel range (a splat: one pixel)
+    double scale = 0.0;  // irradiance x cell area / quad area; for a splat irradiance x cell area
+    int channel = 0;
+    bool splat = false;  // below min_quad_area_px: drawn whole at the pixel under its centre
+};
+
+// nullopt when the quad cannot put light in the image (outside it, non-finite, no irradiance).
+std::optional<Primitive> preparePrimitive(const Quad& quad,
+                                          double cell_area_mm2,
+                                          int channel,
+                                          float irradiance,
+                                          int64_t width,
+                                          int64_t height,
+                                          const RasterOptions& options = {});
+
+// What the primitive adds at pixel (x, y) of its range: 0 outside the quad or the stop shape.
+double primitiveValueAt(const Primitive& primitive,
+                        int64_t x,
+                        int64_t y,
+                        const optics::ApertureShape& aperture);
 
 // Adds one ghost's quads to `channel` (0 red, 1 green, 2 blue) of `image`, scaled by the light's
 // irradiance in that channel, the stop shape applied to the interpolated stop coordinates. Pixels
