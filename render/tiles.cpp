@@ -1,0 +1,122 @@
+#include "render/tiles.h"
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include <chrono>
+#include <cstdint>
+#include <vector>
+
+namespace flarelab::render {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double millisecondsSince(Clock::time_point start) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+int64_t ceilDiv(int64_t a, int64_t b) { return (a + b - 1) / b; }
+
+}  // namespace
+
+Status renderTiled(ImageRGB& image,
+                   std::span<const Primitive> primitives,
+                   const optics::ApertureShape& aperture,
+                   const TileOptions& options,
+                   TileStats* stats) {
+    const int dense = options.dense_tile_px, coarse = options.coarse_tile_px;
+    if (dense < 1 || dense > 256)
+        return makeError(ErrorCode::InvalidArgument, "tiles: dense_tile_px must lie in 1..256");
+    if (coarse < dense || coarse > 4096 || coarse % dense != 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "tiles: coarse_tile_px must be a multiple of dense_tile_px, at most 4096");
+    for (size_t i = 0; i < primitives.size(); ++i) {
+        const Primitive& p = primitives[i];
+        if (p.x0 < 0 || p.y0 < 0 || p.x1 >= image.width || p.y1 >= image.height || p.x0 > p.x1 ||
+            p.y0 > p.y1 || p.channel < 0 || p.channel > 2)
+            return makeError(ErrorCode::InvalidArgument,
+                             "tiles: primitive " + std::to_string(i) +
+                                 " has a pixel range or channel outside the image");
+    }
+    TileStats local;
+    TileStats& st = stats ? *stats : local;
+    st = TileStats{};
+    st.primitives = static_cast<int64_t>(primitives.size());
+    if (image.empty() || primitives.empty()) return Ok{};
+
+    const auto build_start = Clock::now();
+    const int64_t dense_x = ceilDiv(image.width, dense), dense_y = ceilDiv(image.height, dense);
+    std::vector<std::vector<uint32_t>> dense_lists(static_cast<size_t>(dense_x * dense_y));
+    const auto add_to_dense = [&](uint32_t index, int64_t tx0, int64_t ty0, int64_t tx1,
+                                  int64_t ty1) {
+        const Primitive& p = primitives[index];
+        const int64_t ax = std::max(tx0, p.x0 / dense), bx = std::min(tx1, p.x1 / dense);
+        const int64_t ay = std::max(ty0, p.y0 / dense), by = std::min(ty1, p.y1 / dense);
+        for (int64_t ty = ay; ty <= by; ++ty)
+            for (int64_t tx = ax; tx <= bx; ++tx)
+                dense_lists[static_cast<size_t>(ty * dense_x + tx)].push_back(index);
+    };
+    if (options.coarse_level) {
+        const int64_t coarse_x = ceilDiv(image.width, coarse);
+        const int64_t coarse_y = ceilDiv(image.height, coarse);
+        std::vector<std::vector<uint32_t>> coarse_lists(static_cast<size_t>(coarse_x * coarse_y));
+        for (uint32_t i = 0; i < primitives.size(); ++i) {
+            const Primitive& p = primitives[i];
+            for (int64_t ty = p.y0 / coarse; ty <= p.y1 / coarse; ++ty)
+                for (int64_t tx = p.x0 / coarse; tx <= p.x1 / coarse; ++tx)
+                    coarse_lists[static_cast<size_t>(ty * coarse_x + tx)].push_back(i);
+        }
+        const int64_t per = coarse / dense;  // dense tiles per coarse tile side
+        tbb::parallel_for(int64_t{0}, coarse_x * coarse_y, [&](int64_t c) {
+            const int64_t cx = c % coarse_x, cy = c / coarse_x;
+            const int64_t tx0 = cx * per, ty0 = cy * per;
+            const int64_t tx1 = std::min(dense_x - 1, tx0 + per - 1);
+            const int64_t ty1 = std::min(dense_y - 1, ty0 + per - 1);
+            for (const uint32_t index : coarse_lists[static_cast<size_t>(c)])
+                add_to_dense(index, tx0, ty0, tx1, ty1);
+        });
+        for (const auto& list : coarse_lists) {
+            st.coarse_entries += static_cast<int64_t>(list.size());
+            st.memory_bytes +=
+                static_cast<int64_t>(list.capacity() * sizeof(uint32_t) + sizeof(list));
+        }
+    } else {
+        for (uint32_t i = 0; i < primitives.size(); ++i)
+            add_to_dense(i, 0, 0, dense_x - 1, dense_y - 1);
+    }
+    for (const auto& list : dense_lists) {
+        st.dense_entries += static_cast<int64_t>(list.size());
+        st.memory_bytes += static_cast<int64_t>(list.capacity() * sizeof(uint32_t) + sizeof(list));
+    }
+    st.memory_bytes += static_cast<int64_t>(primitives.size() * sizeof(Primitive));
+    st.build_ms = millisecondsSince(build_start);
+
+    const auto traverse_start = Clock::now();
+    tbb::parallel_for(int64_t{0}, dense_x * dense_y, [&](int64_t t) {
+        const std::vector<uint32_t>& list = dense_lists[static_cast<size_t>(t)];
+        if (list.empty()) return;
+        const int64_t x0 = (t % dense_x) * dense, y0 = (t / dense_x) * dense;
+        const int64_t x1 = std::min(image.width, x0 + dense);
+        const int64_t y1 = std::min(image.height, y0 + dense);
+        for (int64_t y = y0; y < y1; ++y) {
+            for (int64_t x = x0; x < x1; ++x) {
+                float sum[3] = {0.0f, 0.0f, 0.0f};
+                bool touched = false;
+                for (const uint32_t index : list) {
+                    const Primitive& p = primitives[index];
+                    if (x < p.x0 || x > p.x1 || y < p.y0 || y > p.y1) continue;
+                    sum[p.channel] += static_cast<float>(primitiveValueAt(p, x, y, aperture));
+                    touched = true;
+                }
+                if (!touched) continue;
+                float* pixel = image.at(x, y);
+                for (int c = 0; c < 3; ++c) pixel[c] += sum[c];
+            }
+        }
+    });
+    st.traverse_ms = millisecondsSince(traverse_start);
+    return Ok{};
+}
+
+}  // namespace flarelab::render
