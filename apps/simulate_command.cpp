@@ -26,6 +26,7 @@ struct SimulateState {
     int grid = 256;
     bool no_starburst = false;
     bool all_paths = false;
+    bool reference = false;
     std::string exr_path;
     std::string png_path;
     double exposure_stops = 0.0;
@@ -73,6 +74,7 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
     options.base_grid = s.grid;
     options.starburst = !s.no_starburst;
     options.ghosts.skip_double_stop_crossing = !s.all_paths;
+    options.tiled = !s.reference;
     render::SceneStats stats;
     const auto start = std::chrono::steady_clock::now();
     auto image = render::renderScene(*lens, lights, options, &stats);
@@ -89,7 +91,8 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
     }
     meta.lens = lens->name();
     meta.camera = "simulated, f/" + std::to_string(lens->camera().f_number);
-    meta.software_version = "flarelab simulate (reference rasterizer)";
+    meta.software_version =
+        std::string("flarelab simulate (") + (s.reference ? "reference" : "tiled") + ")";
     if (auto written = hdr::writeExr(s.exr_path, *image, meta); !written) {
         err << "flarelab: " << written.error().message << "\n";
         return 1;
@@ -104,8 +107,10 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
     }
     out << "simulate: " << lens->name() << ", " << lights.size() << " light(s)"
         << (stats.lights_behind ? " (" + std::to_string(stats.lights_behind) + " behind)" : "")
-        << ", " << stats.ghosts_drawn << " ghost grids, " << stats.quads << " quads, " << seconds
-        << " s -> " << s.exr_path << (s.png_path.empty() ? "" : ", " + s.png_path) << "\n";
+        << ", " << stats.ghosts_drawn << " ghost grids, " << stats.quads << " quads, "
+        << (s.reference ? "reference" : "tiled") << ": trace " << stats.trace_ms << " ms, draw "
+        << stats.draw_ms << " ms, total " << seconds << " s -> " << s.exr_path
+        << (s.png_path.empty() ? "" : ", " + s.png_path) << "\n";
     return 0;
 }
 
@@ -123,6 +128,8 @@ void addSimulateCommand(CLI::App& app, std::ostream& out, std::ostream& err, int
     cmd->add_option("--grid", state->grid, "base ray-grid size (eq. 13)")->capture_default_str();
     cmd->add_flag("--no-starburst", state->no_starburst, "ghosts only");
     cmd->add_flag("--all", state->all_paths, "also paths that cross the stop three times");
+    cmd->add_flag("--reference", state->reference,
+                  "draw ghost by ghost (the baseline) instead of with tiles");
     cmd->add_option("-o,--output", state->exr_path, "output OpenEXR file")->required();
     cmd->add_option("--png", state->png_path, "also a tone-mapped PNG preview");
     cmd->add_option("--exposure-stops", state->exposure_stops, "PNG exposure in stops");

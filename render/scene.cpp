@@ -1,6 +1,7 @@
 #include "render/scene.h"
 
 #include <algorithm>
+#include <chrono>
 #include <cmath>
 #include <sstream>
 
@@ -14,6 +15,12 @@ namespace flarelab::render {
 namespace {
 
 constexpr double kChannel_nm[3] = {kLambdaRed_nm, kLambdaGreen_nm, kLambdaBlue_nm};
+
+using Clock = std::chrono::steady_clock;
+
+double millisecondsSince(Clock::time_point start) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
 
 Error invalid(const std::string& what) {
     return makeError(ErrorCode::InvalidArgument, "scene: " + what);
@@ -135,6 +142,9 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         if (!rendered) return rendered.error();
         pattern = std::move(*rendered);
     }
+    std::vector<Primitive> primitives;
+    double draw_ms = 0.0;
+    const auto start = Clock::now();
     for (const Light& light : lights) {
         if (light.theta_deg >= 90.0) {
             ++st.lights_behind;
@@ -154,7 +164,19 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                 if (!grid) return grid.error();
                 const GhostQuads quads = quadsFromGrid(*grid, mapping);
                 if (quads.quads.empty()) continue;
-                rasterizeReference(image, quads, c, light.rgb[c], lens.aperture(), options.raster);
+                if (options.tiled) {
+                    for (const Quad& q : quads.quads) {
+                        if (auto p =
+                                preparePrimitive(q, quads.cell_area_mm2, c, light.rgb[c],
+                                                 options.width, options.height, options.raster))
+                            primitives.push_back(*p);
+                    }
+                } else {
+                    const auto draw_start = Clock::now();
+                    rasterizeReference(image, quads, c, light.rgb[c], lens.aperture(),
+                                       options.raster);
+                    draw_ms += millisecondsSince(draw_start);
+                }
                 ++st.ghosts_drawn;
                 st.quads += static_cast<int64_t>(quads.quads.size());
                 st.rays += static_cast<int64_t>(n) * n;
@@ -162,6 +184,15 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         }
         if (pattern) addLightImage(image, lens, light, options, mapping, *pattern);
     }
+    st.trace_ms = millisecondsSince(start) - draw_ms;
+    if (options.tiled) {
+        if (Status drawn =
+                renderTiled(image, primitives, lens.aperture(), options.tiles, &st.tiles);
+            !drawn)
+            return drawn.error();
+        draw_ms = st.tiles.build_ms + st.tiles.traverse_ms;
+    }
+    st.draw_ms = draw_ms;
     return image;
 }
 

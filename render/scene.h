@@ -2,9 +2,10 @@
 //  flarelab render: Light, SceneOptions, renderScene
 // ============================================================================
 //
-// A whole flare image of one lens under point lights at infinity, drawn with the reference
-// rasterizer (ghost after ghost, ghost_quads.h) plus each light's own image as the Fraunhofer
-// starburst of the aperture (starburst.h). Per light, ghost and colour channel a ray grid is
+// A whole flare image of one lens under point lights at infinity: every ghost (ghost_quads.h)
+// plus each light's own image as the Fraunhofer
+// starburst of the aperture (starburst.h), with the tiled renderer (tiles.h) or the reference
+// rasterizer. Per light, ghost and colour channel a ray grid is
 // traced at that channel's wavelength, its size chosen by eq. 13 of Bodonyi & Kunkli 2023 from a
 // coarse first trace.
 //
@@ -25,6 +26,7 @@
 #include "render/ghost_quads.h"
 #include "render/image.h"
 #include "render/starburst.h"
+#include "render/tiles.h"
 
 namespace flarelab::render {
 
@@ -45,6 +47,10 @@ struct SceneOptions {
     bool starburst = true;
     StarburstOptions starburst_options;
     RasterOptions raster;
+    // true: collect every ghost's primitives and draw them with the tiled renderer (tiles.h);
+    // false: draw ghost after ghost with the reference rasterizer. Both give the same image.
+    bool tiled = true;
+    TileOptions tiles;
 };
 
 struct SceneStats {
@@ -52,6 +58,9 @@ struct SceneStats {
     int64_t quads = 0;
     int64_t rays = 0;
     int lights_behind = 0;  // lights at 90 degrees or more, skipped
+    double trace_ms = 0.0;  // ray grids and quads
+    double draw_ms = 0.0;   // rasterization (tiles: building and traversal)
+    TileStats tiles;        // when tiled
 };
 
 // InvalidArgument (naming the field) for options out of range or a light with a non-finite or
