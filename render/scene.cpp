@@ -105,6 +105,8 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return invalid("width and height must lie in 1..32768 pixels");
     if (options.base_grid < 2 || options.base_grid > 2048)
         return invalid("base_grid must lie in 2..2048");
+    if (options.max_pending_primitives < 1)
+        return invalid("max_pending_primitives must be at least 1");
     if (options.probe_grid < 2 || options.probe_grid > 256)
         return invalid("probe_grid must lie in 2..256");
     if (!(options.grid_sigma > 0.0) || !(options.grid_phi > 0.0) ||
@@ -144,6 +146,21 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     }
     std::vector<Primitive> primitives;
     double draw_ms = 0.0;
+    const auto flush = [&]() -> Status {
+        TileStats batch;
+        if (Status drawn = renderTiled(image, primitives, lens.aperture(), options.tiles, &batch);
+            !drawn)
+            return drawn;
+        st.tiles.primitives += batch.primitives;
+        st.tiles.coarse_entries += batch.coarse_entries;
+        st.tiles.dense_entries += batch.dense_entries;
+        st.tiles.memory_bytes = std::max(st.tiles.memory_bytes, batch.memory_bytes);
+        st.tiles.build_ms += batch.build_ms;
+        st.tiles.traverse_ms += batch.traverse_ms;
+        draw_ms += batch.build_ms + batch.traverse_ms;
+        primitives.clear();
+        return Ok{};
+    };
     const auto start = Clock::now();
     for (const Light& light : lights) {
         if (light.theta_deg >= 90.0) {
@@ -171,6 +188,9 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                                                  options.width, options.height, options.raster))
                             primitives.push_back(*p);
                     }
+                    if (static_cast<int64_t>(primitives.size()) >= options.max_pending_primitives) {
+                        if (Status drawn = flush(); !drawn) return drawn.error();
+                    }
                 } else {
                     const auto draw_start = Clock::now();
                     rasterizeReference(image, quads, c, light.rgb[c], lens.aperture(),
@@ -184,14 +204,10 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         }
         if (pattern) addLightImage(image, lens, light, options, mapping, *pattern);
     }
-    st.trace_ms = millisecondsSince(start) - draw_ms;
-    if (options.tiled) {
-        if (Status drawn =
-                renderTiled(image, primitives, lens.aperture(), options.tiles, &st.tiles);
-            !drawn)
-            return drawn.error();
-        draw_ms = st.tiles.build_ms + st.tiles.traverse_ms;
+    if (options.tiled && !primitives.empty()) {
+        if (Status drawn = flush(); !drawn) return drawn.error();
     }
+    st.trace_ms = millisecondsSince(start) - draw_ms;
     st.draw_ms = draw_ms;
     return image;
 }

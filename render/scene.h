@@ -51,6 +51,9 @@ struct SceneOptions {
     // false: draw ghost after ghost with the reference rasterizer. Both give the same image.
     bool tiled = true;
     TileOptions tiles;
+    // The tiled renderer draws whenever this many primitives are waiting (about 150 bytes each),
+    // so memory stays bounded for any lens, grid and number of lights.
+    int64_t max_pending_primitives = 4'000'000;
 };
 
 struct SceneStats {

@@ -53,6 +53,24 @@ TEST(RenderScene, OnAxisAndOffAxisLightsGiveFiniteFlare) {
     }
 }
 
+TEST(RenderScene, TiledAndReferenceAgreeAlsoWhenDrawingInBatches) {
+    const Light lights[] = {{4.0, 30.0, {1.0f, 0.8f, 0.6f}}, {12.0, -100.0, {0.5f, 0.5f, 1.0f}}};
+    SceneOptions o = small();
+    o.starburst = false;
+    o.tiled = false;
+    const auto reference = renderScene(heliar(), lights, o);
+    o.tiled = true;
+    o.max_pending_primitives = 500;  // many batches
+    SceneStats stats;
+    const auto batched = renderScene(heliar(), lights, o, &stats);
+    ASSERT_TRUE(reference && batched);
+    EXPECT_GT(stats.tiles.primitives, 5000);
+    for (size_t i = 0; i < reference->pixels.size(); ++i)
+        ASSERT_NEAR(batched->pixels[i], reference->pixels[i],
+                    1e-5f * std::abs(reference->pixels[i]) + 1e-30f)
+            << i;
+}
+
 TEST(RenderScene, LightBehindTheCameraIsSkippedNotAnError) {
     const Light lights[] = {{90.0, 0.0, {1, 1, 1}}, {135.0, 40.0, {1, 1, 1}}};
     SceneStats stats;
