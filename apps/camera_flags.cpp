@@ -28,6 +28,12 @@ std::optional<Lens> loadLens(const std::string& path, const CameraFlags& flags, 
         err << "flarelab: " << prescription.error().message << "\n";
         return std::nullopt;
     }
+    return makeLens(*prescription, flags, err);
+}
+
+std::optional<Lens> makeLens(const Prescription& prescription,
+                             const CameraFlags& flags,
+                             std::ostream& err) {
     CameraDescription camera;
     camera.focal_length_mm = flags.focal_mm;
     camera.f_number = flags.f_number;
@@ -43,7 +49,7 @@ std::optional<Lens> loadLens(const std::string& path, const CameraFlags& flags, 
     }
     camera.sensor_width_mm = w;
     camera.sensor_height_mm = h;
-    auto lens = Lens::make(*prescription, camera);
+    auto lens = Lens::make(prescription, camera);
     if (!lens) {
         err << "flarelab: " << lens.error().message << "\n";
         return std::nullopt;

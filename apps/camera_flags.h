@@ -12,6 +12,7 @@
 #include <string>
 
 #include "optics/lens.h"
+#include "optics/prescription.h"
 
 namespace flarelab::apps {
 
@@ -28,6 +29,11 @@ struct CameraFlags {
 void addCameraFlags(CLI::App* cmd, CameraFlags& flags);
 
 // Loads the lens file and applies the camera flags; on failure writes the error to `err`.
+// The same for a prescription already loaded.
+std::optional<optics::Lens> makeLens(const optics::Prescription& prescription,
+                                     const CameraFlags& flags,
+                                     std::ostream& err);
+
 std::optional<optics::Lens> loadLens(const std::string& path,
                                      const CameraFlags& flags,
                                      std::ostream& err);

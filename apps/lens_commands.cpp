@@ -37,14 +37,19 @@ int runShow(const std::string& file,
             bool json,
             std::ostream& out,
             std::ostream& err) {
-    const auto lens = loadLens(file, flags, err);
+    // Loaded once: the lens for the optics, the prescription for the table as written.
+    const auto prescription = loadPrescription(file);
+    if (!prescription) {
+        err << "flarelab: " << prescription.error().message << "\n";
+        return 1;
+    }
+    const auto lens = makeLens(*prescription, flags, err);
     if (!lens) return 1;
     const auto p = paraxialProperties(*lens, kLambdaD_nm);
     if (!p) {
         err << "flarelab: " << file << ": afocal lens, no focal length\n";
         return 1;
     }
-    auto prescription = loadPrescription(file);
     const auto enumeration = enumerateGhosts(*lens);
     if (!enumeration) {
         err << "flarelab: " << enumeration.error().message << "\n";

@@ -171,9 +171,9 @@ std::optional<AimedBeam> aimBeam(const Lens& lens,
                                  const Eigen::Vector3d& direction,
                                  int rim_points,
                                  double rim_tolerance) {
-    const auto ghost = paraxialGhost(lens, path, wavelength_nm);
-    if (!ghost) return std::nullopt;
     const PathTransfer transfer = pathTransfer(lens, path, wavelength_nm);
+    const auto ghost = paraxialGhost(transfer);
+    if (!ghost) return std::nullopt;
     const PathCrossing& lim = transfer.crossings[ghost->limiting_crossing];
     AimedBeam beam;
     beam.crossing = ghost->limiting_crossing;

@@ -141,7 +141,10 @@ PathTransfer pathTransfer(const Lens& lens, const GhostPath& path, double wavele
 std::optional<ParaxialGhost> paraxialGhost(const Lens& lens,
                                            const GhostPath& path,
                                            double wavelength_nm) {
-    const PathTransfer transfer = pathTransfer(lens, path, wavelength_nm);
+    return paraxialGhost(pathTransfer(lens, path, wavelength_nm));
+}
+
+std::optional<ParaxialGhost> paraxialGhost(const PathTransfer& transfer) {
     ParaxialGhost ghost;
     double narrowest = std::numeric_limits<double>::infinity();
     for (size_t i = 0; i < transfer.crossings.size(); ++i) {

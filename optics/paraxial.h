@@ -91,5 +91,7 @@ struct ParaxialGhost {
 std::optional<ParaxialGhost> paraxialGhost(const Lens& lens,
                                            const GhostPath& path,
                                            double wavelength_nm);
+// The same from a path's transfer already computed.
+std::optional<ParaxialGhost> paraxialGhost(const PathTransfer& transfer);
 
 }  // namespace flarelab::optics
