@@ -110,18 +110,22 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
     grid.plane = defaultEntryPlane(lens);
     const Eigen::Vector3d direction = lightDirection(theta_rad, phi_rad);
 
+    if (options.square && !(options.square->half_width_mm > 0.0 &&
+                            std::isfinite(options.square->half_width_mm) &&
+                            options.square->centre_mm.allFinite()))
+        return invalid("a given entry square must have a positive, finite size");
     const Square square =
-        pupilSquare(lens, path, wavelength_nm, grid.plane, direction, options.margin);
+        options.square
+            ? Square{options.square->centre_mm, options.square->half_width_mm}
+            : pupilSquare(lens, path, wavelength_nm, grid.plane, direction, options.margin);
     grid.entry_centre_mm = square.centre;
     grid.entry_half_width_mm = square.half_width;
 
-    const PathTracer tracer(lens, path, wavelength_nm,
-                            TraceOptions{.clip_apertures = options.clip_apertures,
-                                         .clip_stop = false,
-                                         .fresnel = options.fresnel});
-    const PathTracer unclipped(
+    // One trace per ray: clear apertures are not clipped but recorded, so a cut ray keeps the
+    // geometry it would have had in a wider lens and carries no light.
+    const PathTracer tracer(
         lens, path, wavelength_nm,
-        TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = false});
+        TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = options.fresnel});
     const auto finite = [](const GridSample& s) {
         return std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
                std::isfinite(s.stop_u) && std::isfinite(s.stop_v) && std::isfinite(s.throughput);
@@ -132,10 +136,9 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
             const Ray ray =
                 rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
             GridSample& s = grid.samples[static_cast<size_t>(iy) * n + ix];
-            auto traced = tracer.trace(ray);
-            const bool cut = !traced;
-            if (cut) traced = unclipped.trace(ray);
+            const auto traced = tracer.trace(ray);
             if (!traced) continue;  // missed a surface or totally reflected: no geometry at all
+            const bool cut = options.clip_apertures && traced->cut;
             s.sensor_x_mm = static_cast<float>(traced->ray.position.x());
             s.sensor_y_mm = static_cast<float>(traced->ray.position.y());
             s.throughput = cut ? 0.0f : static_cast<float>(traced->ray.throughput);

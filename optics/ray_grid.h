@@ -19,6 +19,7 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 #include "common/result.h"
@@ -35,6 +36,12 @@ struct GridSample {
     float stop_v = 0.0f;
     bool valid = false;         // reached the sensor through every clear aperture
     bool has_position = false;  // position and stop coordinates are meaningful (valid or cut)
+};
+
+// The square of the entry plane a grid covers.
+struct EntrySquare {
+    Eigen::Vector2d centre_mm = Eigen::Vector2d::Zero();
+    double half_width_mm = 0.0;
 };
 
 struct RayGrid {
@@ -55,12 +62,17 @@ struct RayGrid {
     // for n = 1.
     Eigen::Vector2d entryPoint(int ix, int iy) const;
     int64_t validCount() const;
+    EntrySquare square() const { return {entry_centre_mm, entry_half_width_mm}; }
 };
 
 struct RayGridOptions {
     double margin = 0.1;  // the square's half-width beyond the aimed pupil, as a fraction
     bool fresnel = true;
     bool clip_apertures = true;
+    // The square to cover, taken from an earlier grid of the same light, path and wavelength
+    // (RayGrid::square()) instead of aiming the path's beam again; it must have a positive,
+    // finite half-width.
+    std::optional<EntrySquare> square;
 };
 
 // theta in [0, pi/2), n in 1..8192, wavelength in 200..3000 nm, a valid path of `lens`;

@@ -142,7 +142,10 @@ std::optional<TracedRay> PathTracer::trace(const Ray& input) const {
             }
             continue;
         }
-        if (options_.clip_apertures && r2 > step.semi_aperture2) return std::nullopt;
+        if (r2 > step.semi_aperture2) {
+            if (options_.clip_apertures) return std::nullopt;
+            out.cut = true;
+        }
         double cos_i = 1.0;
         if (!bend(step, p, d, cos_i)) return std::nullopt;  // total internal reflection
         if (options_.fresnel) {

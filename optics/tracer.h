@@ -44,6 +44,9 @@ struct TracedRay {
     double stop_u = 0.0;  // first stop crossing, normalized by the stop semi-aperture
     double stop_v = 0.0;
     bool inside_stop = true;  // whether (stop_u, stop_v) lies in the aperture shape
+    // With clip_apertures off: whether the ray passed outside some clear aperture (it would have
+    // been dropped with clipping on). Always false with clipping on.
+    bool cut = false;
 };
 
 class PathTracer {
