@@ -18,6 +18,9 @@
 // denser than the image.
 #pragma once
 
+#include <algorithm>
+#include <array>
+#include <cmath>
 #include <cstdint>
 #include <optional>
 #include <span>
@@ -54,32 +57,98 @@ int adaptiveGridSize(int base_size,
                      double sigma = 1.0,
                      double phi = 0.5);
 
+// Primitive merge (Bodonyi & Kunkli 2023 §4.2): where a ghost's grid maps to the sensor almost
+// affinely, 2 x 2 blocks of quads become one quad with the block's outer corners, `steps` times
+// over (a block of 2^k x 2^k cells after k steps; only blocks of the same level merge). A block
+// merges when all its cells are fully lit (four valid rays) and convex, the merged quad is convex,
+// and each of the six lines through the block (its four sides and two midlines, two quad edges
+// each) keeps its direction: the two edges e_A, e_B of a line satisfy
+//     e_A . e_B > 0  and  |e_A x e_B| <= gamma |e_A| |e_B|,
+// gamma being the sine of the largest angle allowed between them. The paper's printed test,
+// (x1 - x2) + (y1 - y2) < gamma, is a signed sum: differences of opposite signs cancel, so two
+// edges at right angles can pass it; the sine cannot cancel, does not depend on the edges'
+// lengths, and is exact for edges of any size. Merged quads interpolate their attributes from
+// the block's corner rays; energy is kept (a merged quad stands for 4^k cells).
+struct MergeOptions {
+    int steps = 0;         // 0: no merge; the paper's light and heavy merges use 4
+    double gamma = 0.001;  // sine of the largest angle between edges of a line (0.001 ~ 0.06 deg)
+};
+
+// The paper's settings, as the benchmark names them.
+inline constexpr MergeOptions kNoMerge{0, 0.0};
+inline constexpr MergeOptions kLightMerge{4, 0.001};
+inline constexpr MergeOptions kHeavyMerge{4, 0.1};
+
 // The quads of one traced grid, in pixels. A quad is kept when at least one of its corners is a
 // valid ray and all four have a position (a corner cut by a clear aperture carries throughput 0,
 // so the light fades out across the cut); quads with a corner that has no geometry at all (a ray
 // that missed a surface or was totally reflected) are dropped.
 struct GhostQuads {
     std::vector<Quad> quads;
-    double cell_area_mm2 = 0.0;  // entry-plane area one ray stands for
+    std::vector<uint16_t> cells;  // grid cells each quad stands for (4^k); empty: all 1
+    double cell_area_mm2 = 0.0;   // entry-plane area one ray stands for
+    double cellArea(size_t i) const {
+        return cells.empty() ? cell_area_mm2 : cell_area_mm2 * static_cast<double>(cells[i]);
+    }
 };
-GhostQuads quadsFromGrid(const optics::RayGrid& grid, const SensorToImage& mapping);
+GhostQuads quadsFromGrid(const optics::RayGrid& grid,
+                         const SensorToImage& mapping,
+                         const MergeOptions& merge = {});
 
 struct RasterOptions {
     double min_quad_area_px = 1.0;  // quads below this area (px^2) are added whole at their centre
 };
 
+// The stop shape as the renderers look it up, many millions of times per image: the circle, or
+// the blades' edge normals computed once. Same shape as optics::ApertureShape::contains, without
+// trigonometry per lookup.
+class StopMask {
+public:
+    explicit StopMask(const optics::ApertureShape& shape);
+    bool contains(double u, double v) const {
+        if (blades_ == 0) return u * u + v * v <= 1.0;
+        double ratio = -1.0;
+        for (int k = 0; k < blades_; ++k) ratio = std::max(ratio, u * normal_u_[k] + v * normal_v_[k]);
+        return ratio <= 1.0;
+    }
+
+private:
+    int blades_ = 0;  // 0: circle
+    std::vector<double> normal_u_, normal_v_;  // edge normals over the apothem
+};
+
+// One edge of a convex quad as a line function. The two quads that share an edge compute it from
+// the same endpoints in the same (canonical) order, so their values are exact negatives; a pixel
+// centre exactly on the edge belongs to the quad for which `closed` is true, so it is counted
+// once (a fill rule), never twice and never not at all.
+struct EdgeFunction {
+    double ax = 0.0, ay = 0.0, dx = 0.0, dy = 0.0;  // canonical start point and direction
+    double sign = 1.0;                              // +1 or -1: the quad's inside is positive
+    bool closed = true;
+    double at(double px, double py) const { return sign * (dx * (py - ay) - dy * (px - ax)); }
+};
+
 // A quad ready to draw into one channel of a width x height image: the range of pixels it can
-// touch and its light per unit of interpolated throughput. Both renderers draw the same
-// primitives with primitiveValueAt, so they agree pixel for pixel.
+// touch, its light per unit of interpolated throughput, and, for a strictly convex quad (every
+// cell of a smooth ghost away from its caustics), its evaluation set up once. Both renderers draw
+// the same primitives with primitiveValueAt, so they agree bit for bit.
 struct Primitive {
     Quad quad;
     int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;  // inclusive pixel range (a splat: one pixel)
     double scale = 0.0;  // irradiance x cell area / quad area; for a splat irradiance x cell area
     int channel = 0;
-    bool splat = false;  // below min_quad_area_px: drawn whole at the pixel under its centre
+    bool splat = false;   // below min_quad_area_px: drawn whole at the pixel under its centre
+    bool convex = false;  // edge and corner_area hold the set-up below
+    // Convex quads: edge i runs from corner i to i+1. With A_i(p) = edge[i].at(p) and C_i the
+    // area of the corner triangle (i-1, i, i+1), the Wachspress weight of corner i (eq. 8-9 of
+    // Bodonyi & Kunkli 2023) is C_i / (A_{i-1} A_i); multiplied through by the product of all
+    // four A it is C_i A_{i+1} A_{i+2}, free of division, and one division normalizes the four.
+    std::array<EdgeFunction, 4> edge;
+    std::array<double, 4> corner_area{};
 };
 
 // nullopt when the quad cannot put light in the image (outside it, non-finite, no irradiance).
+// cell_area_mm2 is the entry-plane area the quad stands for (GhostQuads::cellArea).
 std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           double cell_area_mm2,
                                           int channel,
@@ -89,10 +158,32 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           const RasterOptions& options = {});
 
 // What the primitive adds at pixel (x, y) of its range: 0 outside the quad or the stop shape.
+// Convex quads take the set-up path, the others quadBarycentrics (whose boundary belongs to
+// every quad that has it).
+inline double convexValueAt(const Primitive& p, double px, double py, const StopMask& stop) {
+    double a[4];
+    for (int i = 0; i < 4; ++i) {
+        a[i] = p.edge[i].at(px, py);
+        if (!(a[i] > 0.0 || (a[i] == 0.0 && p.edge[i].closed))) return 0.0;
+    }
+    const double w[4] = {p.corner_area[0] * a[1] * a[2], p.corner_area[1] * a[2] * a[3],
+                         p.corner_area[2] * a[3] * a[0], p.corner_area[3] * a[0] * a[1]};
+    const double total = w[0] + w[1] + w[2] + w[3];
+    if (!(total > 0.0)) return 0.0;
+    double t = 0.0, u = 0.0, v = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        t += w[i] * p.quad.corners[i].throughput;
+        u += w[i] * p.quad.corners[i].stop_u;
+        v += w[i] * p.quad.corners[i].stop_v;
+    }
+    if (!(t > 0.0) || !stop.contains(u / total, v / total)) return 0.0;
+    const double value = p.scale * (t / total);
+    return std::isfinite(value) ? value : 0.0;
+}
 double primitiveValueAt(const Primitive& primitive,
                         int64_t x,
                         int64_t y,
-                        const optics::ApertureShape& aperture);
+                        const StopMask& stop);
 
 // Adds one ghost's quads to `channel` (0 red, 1 green, 2 blue) of `image`, scaled by the light's
 // irradiance in that channel, the stop shape applied to the interpolated stop coordinates. Pixels

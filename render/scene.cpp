@@ -5,6 +5,9 @@
 #include <cmath>
 #include <sstream>
 
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
 #include "common/units.h"
 #include "optics/aim.h"
 #include "optics/paraxial.h"
@@ -107,6 +110,10 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return invalid("base_grid must lie in 2..2048");
     if (options.max_pending_primitives < 1)
         return invalid("max_pending_primitives must be at least 1");
+    if (options.merge.steps < 0 || options.merge.steps > 7)
+        return invalid("merge steps must lie in 0..7");
+    if (!(options.merge.gamma >= 0.0) || !std::isfinite(options.merge.gamma))
+        return invalid("merge gamma must be finite and >= 0");
     if (options.probe_grid < 2 || options.probe_grid > 256)
         return invalid("probe_grid must lie in 2..256");
     if (!(options.grid_sigma > 0.0) || !(options.grid_phi > 0.0) ||
@@ -161,53 +168,109 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         primitives.clear();
         return Ok{};
     };
-    const auto start = Clock::now();
+    // One grid per light, ghost and channel, with its eq. 13 size from a probe grid whose entry
+    // square the full grid reuses.
+    struct Task {
+        const Light* light;
+        const optics::GhostPath* path;
+        int channel;
+    };
+    struct Traced {
+        GhostQuads quads;
+        int64_t rays = 0;
+        Status status = Ok{};
+    };
+    const auto traceTask = [&](const Task& task) {
+        Traced out;
+        const double theta = degToRad(task.light->theta_deg), phi = degToRad(task.light->phi_deg);
+        const double lambda = kChannel_nm[task.channel];
+        const auto probe =
+            optics::traceRayGrid(lens, *task.path, theta, phi, lambda, options.probe_grid);
+        if (!probe) {
+            out.status = probe.error();
+            return out;
+        }
+        if (probe->validCount() == 0) return out;
+        const int n = adaptiveGridSize(options.base_grid, footprintArea(*probe), sensor_area,
+                                       options.grid_sigma, options.grid_phi);
+        optics::RayGridOptions grid_options;
+        grid_options.square = probe->square();
+        const auto grid = optics::traceRayGrid(lens, *task.path, theta, phi, lambda, n, grid_options);
+        if (!grid) {
+            out.status = grid.error();
+            return out;
+        }
+        out.quads = quadsFromGrid(*grid, mapping, options.merge);
+        out.rays = static_cast<int64_t>(n) * n;
+        return out;
+    };
+    std::vector<Task> tasks;
     for (const Light& light : lights) {
         if (light.theta_deg >= 90.0) {
             ++st.lights_behind;
             continue;
         }
-        const double theta = degToRad(light.theta_deg), phi = degToRad(light.phi_deg);
-        for (const optics::GhostPath& path : enumeration->ghosts) {
-            for (int c = 0; c < 3; ++c) {
-                if (!(light.rgb[c] > 0.0f)) continue;
-                const auto probe = optics::traceRayGrid(lens, path, theta, phi, kChannel_nm[c],
-                                                        options.probe_grid);
-                if (!probe) return probe.error();
-                if (probe->validCount() == 0) continue;
-                const int n = adaptiveGridSize(options.base_grid, footprintArea(*probe),
-                                               sensor_area, options.grid_sigma, options.grid_phi);
-                const auto grid = optics::traceRayGrid(lens, path, theta, phi, kChannel_nm[c], n);
-                if (!grid) return grid.error();
-                const GhostQuads quads = quadsFromGrid(*grid, mapping);
-                if (quads.quads.empty()) continue;
-                if (options.tiled) {
-                    for (const Quad& q : quads.quads) {
-                        if (auto p =
-                                preparePrimitive(q, quads.cell_area_mm2, c, light.rgb[c],
-                                                 options.width, options.height, options.raster))
-                            primitives.push_back(*p);
-                    }
-                    if (static_cast<int64_t>(primitives.size()) >= options.max_pending_primitives) {
-                        if (Status drawn = flush(); !drawn) return drawn.error();
-                    }
-                } else {
-                    const auto draw_start = Clock::now();
-                    rasterizeReference(image, quads, c, light.rgb[c], lens.aperture(),
-                                       options.raster);
-                    draw_ms += millisecondsSince(draw_start);
+        for (const optics::GhostPath& path : enumeration->ghosts)
+            for (int c = 0; c < 3; ++c)
+                if (light.rgb[c] > 0.0f) tasks.push_back({&light, &path, c});
+    }
+    const auto count = [&](const Traced& t) {
+        ++st.ghosts_drawn;
+        st.quads += static_cast<int64_t>(t.quads.quads.size());
+        st.rays += t.rays;
+    };
+    const auto start = Clock::now();
+    if (options.tiled) {
+        // Tasks in blocks, each block traced in parallel and its primitives appended in task
+        // order; a block is a few tasks per core, so memory stays bounded.
+        const size_t block = 8 * static_cast<size_t>(std::max(1, tbb::this_task_arena::max_concurrency()));
+        std::vector<Traced> traced;
+        std::vector<std::vector<Primitive>> prepared;
+        for (size_t first = 0; first < tasks.size(); first += block) {
+            const size_t last = std::min(tasks.size(), first + block);
+            traced.assign(last - first, Traced{});
+            prepared.assign(last - first, {});
+            tbb::parallel_for(size_t{0}, last - first, [&](size_t i) {
+                const Task& task = tasks[first + i];
+                traced[i] = traceTask(task);
+                const GhostQuads& quads = traced[i].quads;
+                for (size_t q = 0; q < quads.quads.size(); ++q)
+                    if (auto p = preparePrimitive(quads.quads[q], quads.cellArea(q), task.channel,
+                                                  task.light->rgb[task.channel], options.width,
+                                                  options.height, options.raster))
+                        prepared[i].push_back(*p);
+            });
+            for (size_t i = 0; i < traced.size(); ++i) {
+                if (!traced[i].status) return traced[i].status.error();
+                if (traced[i].quads.quads.empty()) continue;
+                count(traced[i]);
+                primitives.insert(primitives.end(), prepared[i].begin(), prepared[i].end());
+                if (static_cast<int64_t>(primitives.size()) >= options.max_pending_primitives) {
+                    if (Status drawn = flush(); !drawn) return drawn.error();
                 }
-                ++st.ghosts_drawn;
-                st.quads += static_cast<int64_t>(quads.quads.size());
-                st.rays += static_cast<int64_t>(n) * n;
             }
         }
-        if (pattern) addLightImage(image, lens, light, options, mapping, *pattern);
+        if (!primitives.empty()) {
+            if (Status drawn = flush(); !drawn) return drawn.error();
+        }
+    } else {
+        for (const Task& task : tasks) {
+            const Traced t = traceTask(task);
+            if (!t.status) return t.status.error();
+            if (t.quads.quads.empty()) continue;
+            const auto draw_start = Clock::now();
+            rasterizeReference(image, t.quads, task.channel, task.light->rgb[task.channel],
+                               lens.aperture(), options.raster);
+            draw_ms += millisecondsSince(draw_start);
+            count(t);
+        }
     }
-    if (options.tiled && !primitives.empty()) {
-        if (Status drawn = flush(); !drawn) return drawn.error();
-    }
-    st.trace_ms = millisecondsSince(start) - draw_ms;
+    const auto lights_start = Clock::now();
+    if (pattern)
+        for (const Light& light : lights)
+            if (light.theta_deg < 90.0) addLightImage(image, lens, light, options, mapping, *pattern);
+    st.light_ms = millisecondsSince(lights_start);
+    st.trace_ms = millisecondsSince(start) - draw_ms - st.light_ms;
     st.draw_ms = draw_ms;
     return image;
 }

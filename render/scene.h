@@ -9,6 +9,11 @@
 // traced at that channel's wavelength, its size chosen by eq. 13 of Bodonyi & Kunkli 2023 from a
 // coarse first trace.
 //
+// The tiled pipeline traces the grids of many ghosts at once on every core (oneTBB) and collects
+// their primitives in a fixed order, so its image does not depend on the number of threads. The
+// reference pipeline is the previous method as it runs: one ghost after another, traced and
+// drawn into the frame buffer on one thread.
+//
 // Units. A light's rgb is its irradiance at the lens (power per mm^2 perpendicular to the axis,
 // any unit). A pixel holds the power that lands on it, in that unit times mm^2: the starburst
 // carries the light that passes the entrance pupil on the imaging path, each ghost what its path
@@ -51,9 +56,10 @@ struct SceneOptions {
     // false: draw ghost after ghost with the reference rasterizer. Both give the same image.
     bool tiled = true;
     TileOptions tiles;
-    // The tiled renderer draws whenever this many primitives are waiting (about 150 bytes each),
-    // so memory stays bounded for any lens, grid and number of lights.
-    int64_t max_pending_primitives = 4'000'000;
+    MergeOptions merge;  // primitive merge (ghost_quads.h); the reference draws merged quads too
+    // The tiled renderer draws whenever this many primitives are waiting (sizeof(Primitive),
+    // about 330 bytes, each), so memory stays bounded for any lens, grid and number of lights.
+    int64_t max_pending_primitives = 2'000'000;
 };
 
 struct SceneStats {
@@ -61,8 +67,9 @@ struct SceneStats {
     int64_t quads = 0;
     int64_t rays = 0;
     int lights_behind = 0;  // lights at 90 degrees or more, skipped
-    double trace_ms = 0.0;  // ray grids and quads
+    double trace_ms = 0.0;  // ray grids, quads and primitives (tiled: on every core)
     double draw_ms = 0.0;   // rasterization (tiles: building and traversal)
+    double light_ms = 0.0;  // the lights' own images (starbursts)
     TileStats tiles;        // when tiled
 };
 

@@ -3,9 +3,12 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <vector>
+
 
 namespace flarelab::render {
 namespace {
@@ -93,26 +96,37 @@ Status renderTiled(ImageRGB& image,
     st.build_ms = millisecondsSince(build_start);
 
     const auto traverse_start = Clock::now();
+    const StopMask stop(aperture);
     tbb::parallel_for(int64_t{0}, dense_x * dense_y, [&](int64_t t) {
         const std::vector<uint32_t>& list = dense_lists[static_cast<size_t>(t)];
         if (list.empty()) return;
-        const int64_t x0 = (t % dense_x) * dense, y0 = (t / dense_x) * dense;
-        const int64_t x1 = std::min(image.width, x0 + dense);
-        const int64_t y1 = std::min(image.height, y0 + dense);
-        for (int64_t y = y0; y < y1; ++y) {
-            for (int64_t x = x0; x < x1; ++x) {
-                float sum[3] = {0.0f, 0.0f, 0.0f};
-                bool touched = false;
-                for (const uint32_t index : list) {
-                    const Primitive& p = primitives[index];
-                    if (x < p.x0 || x > p.x1 || y < p.y0 || y > p.y1) continue;
-                    sum[p.channel] += static_cast<float>(primitiveValueAt(p, x, y, aperture));
-                    touched = true;
+        const int64_t tx = (t % dense_x) * dense, ty = (t / dense_x) * dense;
+        const int64_t tx1 = std::min(image.width, tx + dense) - 1;
+        const int64_t ty1 = std::min(image.height, ty + dense) - 1;
+        // The tile's pixels are summed here, each in the order of the list, and written once.
+        thread_local std::vector<float> accumulator;
+        accumulator.assign(static_cast<size_t>(dense) * dense * 3, 0.0f);
+        for (const uint32_t index : list) {
+            const Primitive& p = primitives[index];
+            const int64_t x0 = std::max(tx, p.x0), x1 = std::min(tx1, p.x1);
+            const int64_t y0 = std::max(ty, p.y0), y1 = std::min(ty1, p.y1);
+            for (int64_t y = y0; y <= y1; ++y) {
+                float* row = accumulator.data() + ((y - ty) * dense - tx) * 3 + p.channel;
+                if (p.convex) {
+                    const double py = static_cast<double>(y) + 0.5;
+                    for (int64_t x = x0; x <= x1; ++x)
+                        row[x * 3] += static_cast<float>(
+                            convexValueAt(p, static_cast<double>(x) + 0.5, py, stop));
+                } else {
+                    for (int64_t x = x0; x <= x1; ++x)
+                        row[x * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
                 }
-                if (!touched) continue;
-                float* pixel = image.at(x, y);
-                for (int c = 0; c < 3; ++c) pixel[c] += sum[c];
             }
+        }
+        for (int64_t y = ty; y <= ty1; ++y) {
+            float* pixel = image.at(tx, y);
+            const float* sum = accumulator.data() + (y - ty) * dense * 3;
+            for (int64_t k = 0; k < (tx1 - tx + 1) * 3; ++k) pixel[k] += sum[k];
         }
     });
     st.traverse_ms = millisecondsSince(traverse_start);

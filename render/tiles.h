@@ -13,8 +13,9 @@
 // tiles it touches. Dense tiles hold indices into the one primitive array. The traversal gives
 // each dense tile to one thread (oneTBB), so no pixel is ever written by two threads.
 //
-// Every pixel sums its primitives in the order of the input array, with the same arithmetic as
-// rasterizeReference (primitiveValueAt), so the two renderers agree bit for bit.
+// Every pixel sums its primitives in the order of the input array, in a per-tile accumulator that
+// is written to the image once, with the arithmetic of rasterizeReference (primitiveValueAt): the
+// two renderers agree bit for bit on an empty image.
 #pragma once
 
 #include <cstdint>
