@@ -4,6 +4,7 @@
 #include <exception>
 #include <iostream>
 
+#include "apps/bench_command.h"
 #include "apps/lens_commands.h"
 #include "apps/simulate_command.h"
 
@@ -14,6 +15,7 @@ int main(int argc, char** argv) {
         int exit_code = 0;
         flarelab::apps::addLensCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addSimulateCommand(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addBenchCommands(app, std::cout, std::cerr, exit_code);
         CLI11_PARSE(app, argc, argv);
         return exit_code;
     } catch (const std::exception& e) {

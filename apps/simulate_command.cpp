@@ -27,6 +27,9 @@ struct SimulateState {
     bool no_starburst = false;
     bool all_paths = false;
     bool reference = false;
+    std::string merge = "none";
+    int merge_steps = -1;
+    double merge_gamma = std::nan("");
     std::string exr_path;
     std::string png_path;
     double exposure_stops = 0.0;
@@ -75,6 +78,11 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
     options.starburst = !s.no_starburst;
     options.ghosts.skip_double_stop_crossing = !s.all_paths;
     options.tiled = !s.reference;
+    options.merge = s.merge == "light"   ? render::kLightMerge
+                    : s.merge == "heavy" ? render::kHeavyMerge
+                                         : render::kNoMerge;
+    if (s.merge_steps >= 0) options.merge.steps = s.merge_steps;
+    if (!std::isnan(s.merge_gamma)) options.merge.gamma = s.merge_gamma;
     render::SceneStats stats;
     const auto start = std::chrono::steady_clock::now();
     auto image = render::renderScene(*lens, lights, options, &stats);
@@ -130,6 +138,15 @@ void addSimulateCommand(CLI::App& app, std::ostream& out, std::ostream& err, int
     cmd->add_flag("--all", state->all_paths, "also paths that cross the stop three times");
     cmd->add_flag("--reference", state->reference,
                   "draw ghost by ghost (the baseline) instead of with tiles");
+    cmd->add_option("--merge", state->merge,
+                    "primitive merge: none, light (4 steps, gamma 0.001) or heavy (4, 0.1)")
+        ->check(CLI::IsMember({"none", "light", "heavy"}))
+        ->capture_default_str();
+    cmd->add_option("--merge-steps", state->merge_steps, "merge steps (0..7), overrides --merge")
+        ->check(CLI::Range(0, 7));
+    cmd->add_option("--merge-gamma", state->merge_gamma,
+                    "sine of the largest angle between merged edges, overrides --merge")
+        ->check(CLI::NonNegativeNumber);
     cmd->add_option("-o,--output", state->exr_path, "output OpenEXR file")->required();
     cmd->add_option("--png", state->png_path, "also a tone-mapped PNG preview");
     cmd->add_option("--exposure-stops", state->exposure_stops, "PNG exposure in stops");

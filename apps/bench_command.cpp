@@ -1,0 +1,58 @@
+#include "apps/bench_command.h"
+
+#include <fstream>
+#include <memory>
+#include <ostream>
+
+#include "bench/render_bench.h"
+
+namespace flarelab::apps {
+
+void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {
+    CLI::App* bench = app.add_subcommand("bench", "measure speed and accuracy");
+    bench->require_subcommand(1);
+    auto options = std::make_shared<bench::RenderBenchOptions>();
+    auto json_path = std::make_shared<std::string>();
+    auto lights = std::make_shared<int>(0);
+    CLI::App* render = bench->add_subcommand(
+        "render", "the tiled renderer against the reference rasterizer (paper Tables 2-7)");
+    render->add_option("--lens", options->lens_files,
+                       "lens files (default: the paper's five in --lens-dir)");
+    render->add_option("--lens-dir", options->lens_dir, "where the paper's lenses are")
+        ->capture_default_str();
+    render->add_option("--lights", *lights, "only this many lights (default: 1 and 2)")
+        ->check(CLI::Range(1, 64));
+    render->add_flag("--quick", options->quick,
+                     "smoke test: two small lenses at 640x360, grid 64, one run (under a minute)");
+    render->add_option("--repeat", options->repeat, "runs per figure; the best is kept")
+        ->check(CLI::Range(1, 100))
+        ->capture_default_str();
+    render->add_option("--width", options->width, "image width")->check(CLI::Range(1, 16384));
+    render->add_option("--height", options->height, "image height")->check(CLI::Range(1, 16384));
+    render->add_option("--grid", options->base_grid, "base ray-grid size")
+        ->check(CLI::Range(2, 2048));
+    render->add_flag("!--no-trade", options->trade, "skip the grid-size x merge trade table");
+    render->add_flag("!--no-scaling", options->scaling, "skip the lights and image-size tables");
+    render->add_option("--json", *json_path, "also write the results as JSON here");
+    render->callback([options, json_path, lights, &out, &err, &exit_code] {
+        if (*lights > 0) options->light_counts = {*lights};
+        auto doc = bench::runRenderBench(*options, out, err);
+        if (!doc) {
+            err << "flarelab: " << doc.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        if (!json_path->empty()) {
+            std::ofstream file(*json_path);
+            file << doc->dump(2) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+}
+
+}  // namespace flarelab::apps
