@@ -62,33 +62,37 @@ FresnelResult fresnelUncoated(double n1, double n2, double cos_i) {
 FresnelResult fresnelCoated(
     double n1, double n_coat, double d_coat_nm, double n2, double cos_i, double wavelength_nm) {
     cos_i = std::clamp(cos_i, 0.0, 1.0);
-    const double sin_i = std::sqrt(std::max(0.0, 1.0 - cos_i * cos_i));
-    if (n1 * sin_i >= n2) return {1.0, 0.0};  // no propagating wave in n2: all is reflected
+    const double sin_i2 = std::max(0.0, 1.0 - cos_i * cos_i);
+    const double ratio_2 = n1 / n2;
+    const double sin_22 = ratio_2 * ratio_2 * sin_i2;  // sin^2 of the angle in n2
+    if (sin_22 >= 1.0) return {1.0, 0.0};  // no propagating wave in n2: all is reflected
     if (cos_i == 0.0) return {1.0, 0.0};
-    const double sin_c2 = (n1 / n_coat) * (n1 / n_coat) * sin_i * sin_i;
+    const double ratio_c = n1 / n_coat;
+    const double sin_c2 = ratio_c * ratio_c * sin_i2;
     if (sin_c2 < 1.0) {
         // The wave propagates in the layer: every amplitude coefficient is real and the Airy sums
-        // reduce to real formulas (no complex division, about ten times faster).
+        // reduce to real formulas (no complex division, about ten times faster). Each pair of
+        // coefficients shares one reciprocal of its denominator.
         const double cos_c = std::sqrt(1.0 - sin_c2);
-        const double sin_2 = n1 / n2 * sin_i;
-        const double cos_2 = std::sqrt(std::max(0.0, 1.0 - sin_2 * sin_2));
+        const double cos_2 = std::sqrt(1.0 - sin_22);
         const double phase = 4.0 * kPi * n_coat * d_coat_nm * cos_c / wavelength_nm;  // 2 delta
         const double cos_phase = std::cos(phase);
         const auto airy = [&](double r12, double r23, double t12, double t23, double& r2,
                               double& t2) {
             const double cross = 2.0 * r12 * r23 * cos_phase;
-            const double denominator = 1.0 + r12 * r12 * r23 * r23 + cross;
-            r2 = (r12 * r12 + r23 * r23 + cross) / denominator;
-            t2 = (t12 * t12 * t23 * t23) / denominator;
+            const double inverse = 1.0 / (1.0 + r12 * r12 * r23 * r23 + cross);
+            r2 = (r12 * r12 + r23 * r23 + cross) * inverse;
+            t2 = (t12 * t12 * t23 * t23) * inverse;
         };
-        const double s12 = n1 * cos_i + n_coat * cos_c, s23 = n_coat * cos_c + n2 * cos_2;
-        const double p12 = n_coat * cos_i + n1 * cos_c, p23 = n2 * cos_c + n_coat * cos_2;
+        const double a1 = n1 * cos_i, ac = n_coat * cos_c, a2 = n2 * cos_2;  // s admittances
+        const double b1 = n_coat * cos_i, bc = n1 * cos_c;                   // p, first interface
+        const double b2 = n2 * cos_c, bc2 = n_coat * cos_2;                  // p, second
+        const double s12 = 1.0 / (a1 + ac), s23 = 1.0 / (ac + a2);
+        const double p12 = 1.0 / (b1 + bc), p23 = 1.0 / (b2 + bc2);
         double rs2, ts2, rp2, tp2;
-        airy((n1 * cos_i - n_coat * cos_c) / s12, (n_coat * cos_c - n2 * cos_2) / s23,
-             2.0 * n1 * cos_i / s12, 2.0 * n_coat * cos_c / s23, rs2, ts2);
-        airy((n_coat * cos_i - n1 * cos_c) / p12, (n2 * cos_c - n_coat * cos_2) / p23,
-             2.0 * n1 * cos_i / p12, 2.0 * n_coat * cos_c / p23, rp2, tp2);
-        const double factor = (n2 * cos_2) / (n1 * cos_i);
+        airy((a1 - ac) * s12, (ac - a2) * s23, 2.0 * a1 * s12, 2.0 * ac * s23, rs2, ts2);
+        airy((b1 - bc) * p12, (b2 - bc2) * p23, 2.0 * a1 * p12, 2.0 * ac * p23, rp2, tp2);
+        const double factor = a2 / a1;
         return {0.5 * (rs2 + rp2), 0.5 * factor * (ts2 + tp2)};
     }
     // Evanescent in the layer (frustrated total reflection): the general complex form.

@@ -131,19 +131,22 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
                std::isfinite(s.stop_u) && std::isfinite(s.stop_v) && std::isfinite(s.throughput);
     };
     grid.samples.assign(static_cast<size_t>(n) * static_cast<size_t>(n), GridSample{});
+    // A row at a time through traceBatch: the same results as ray by ray, several times faster.
+    std::vector<Ray> rays(static_cast<size_t>(n));
+    std::vector<std::optional<TracedRay>> traced(static_cast<size_t>(n));
     for (int iy = 0; iy < n; ++iy) {
+        for (int ix = 0; ix < n; ++ix)
+            rays[ix] = rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
+        tracer.traceBatch(rays, traced);
         for (int ix = 0; ix < n; ++ix) {
-            const Ray ray =
-                rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
+            if (!traced[ix]) continue;  // missed a surface or totally reflected: no geometry at all
+            const bool cut = options.clip_apertures && traced[ix]->cut;
             GridSample& s = grid.samples[static_cast<size_t>(iy) * n + ix];
-            const auto traced = tracer.trace(ray);
-            if (!traced) continue;  // missed a surface or totally reflected: no geometry at all
-            const bool cut = options.clip_apertures && traced->cut;
-            s.sensor_x_mm = static_cast<float>(traced->ray.position.x());
-            s.sensor_y_mm = static_cast<float>(traced->ray.position.y());
-            s.throughput = cut ? 0.0f : static_cast<float>(traced->ray.throughput);
-            s.stop_u = static_cast<float>(traced->stop_u);
-            s.stop_v = static_cast<float>(traced->stop_v);
+            s.sensor_x_mm = static_cast<float>(traced[ix]->ray.position.x());
+            s.sensor_y_mm = static_cast<float>(traced[ix]->ray.position.y());
+            s.throughput = cut ? 0.0f : static_cast<float>(traced[ix]->ray.throughput);
+            s.stop_u = static_cast<float>(traced[ix]->stop_u);
+            s.stop_v = static_cast<float>(traced[ix]->stop_v);
             s.has_position = finite(s);
             s.valid = !cut && s.has_position;
             if (!s.has_position) s = GridSample{};

@@ -1,6 +1,8 @@
 #include "optics/tracer.h"
 
 #include <cmath>
+#include <cstdint>
+#include <vector>
 
 #include "common/check.h"
 #include "optics/fresnel.h"
@@ -116,53 +118,132 @@ PathTracer::PathTracer(const Lens& lens,
     steps_.push_back(image);
 }
 
+// Records the first stop crossing; false when the stop clips the ray.
+bool PathTracer::stopCrossing(const Step& step, RayState& r) const {
+    if (step.first_stop_crossing) {
+        r.out.stop_u = r.p.x() / stop_semi_aperture_mm_;
+        r.out.stop_v = r.p.y() / stop_semi_aperture_mm_;
+        r.out.inside_stop = aperture_.contains(r.out.stop_u, r.out.stop_v);
+        if (options_.clip_stop && !r.out.inside_stop) return false;
+    } else if (options_.clip_stop) {
+        const double u = r.p.x() / stop_semi_aperture_mm_;
+        const double v = r.p.y() / stop_semi_aperture_mm_;
+        if (!aperture_.contains(u, v)) return false;
+    }
+    return true;
+}
+
+// One step of one ray: what trace() does for `step`, on the ray's running state. false when the
+// ray ends there (missed the surface, clipped, totally reflected).
+bool PathTracer::advance(const Step& step, RayState& r) const {
+    const std::optional<double> t = intersectSurface(r.p, r.d, step.z_mm, step.curvature);
+    if (!t) return false;
+    r.p += *t * r.d;
+    if (step.kind == StepKind::Image) return true;
+    const double r2 = r.p.x() * r.p.x() + r.p.y() * r.p.y();
+    if (step.kind == StepKind::Stop) return stopCrossing(step, r);
+    if (r2 > step.semi_aperture2) {
+        if (options_.clip_apertures) return false;
+        r.out.cut = true;
+    }
+    double cos_i = 1.0;
+    if (!bend(step, r.p, r.d, cos_i)) return false;  // total internal reflection
+    if (options_.fresnel) {
+        const FresnelResult f =
+            step.coated ? fresnelCoated(step.n1, step.coat_index, step.coat_thickness_nm, step.n2,
+                                        cos_i, wavelength_nm_)
+                        : fresnelUncoated(step.n1, step.n2, cos_i);
+        r.throughput *= step.kind == StepKind::Reflect ? f.reflectance : f.transmittance;
+    }
+    return true;
+}
+
+std::optional<TracedRay> PathTracer::finish(RayState& r) const {
+    r.out.ray.position = r.p;
+    r.out.ray.direction = r.d;
+    r.out.ray.wavelength_nm = wavelength_nm_;
+    r.out.ray.throughput = r.throughput;
+    r.out.ray.valid =
+        std::isfinite(r.p.x()) && std::isfinite(r.p.y()) && std::isfinite(r.throughput);
+    if (!r.out.ray.valid) return std::nullopt;
+    return r.out;
+}
+
 std::optional<TracedRay> PathTracer::trace(const Ray& input) const {
     FLARELAB_DCHECK(input.wavelength_nm == wavelength_nm_);
     if (!input.valid) return std::nullopt;
-    TracedRay out;
-    Eigen::Vector3d p = input.position;
-    Eigen::Vector3d d = input.direction;
-    double throughput = input.throughput;
+    RayState r{input.position, input.direction, input.throughput, {}};
+    for (const Step& step : steps_)
+        if (!advance(step, r)) return std::nullopt;
+    return finish(r);
+}
+
+void PathTracer::traceBatch(std::span<const Ray> rays,
+                            std::span<std::optional<TracedRay>> out) const {
+    FLARELAB_CHECK_EQ(rays.size(), out.size());
+    std::vector<RayState> state(rays.size());
+    std::vector<uint32_t> alive;
+    alive.reserve(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) {
+        FLARELAB_DCHECK(rays[i].wavelength_nm == wavelength_nm_);
+        out[i].reset();
+        if (!rays[i].valid) continue;
+        state[i] = RayState{rays[i].position, rays[i].direction, rays[i].throughput, {}};
+        alive.push_back(static_cast<uint32_t>(i));
+    }
+    // Each step in phases over all live rays (intersect, clip, bend, Fresnel): short loops of
+    // independent iterations that the processor overlaps; per ray the operations are trace()'s.
+    std::vector<double> cos_i(rays.size());
     for (const Step& step : steps_) {
-        const std::optional<double> t = intersectSurface(p, d, step.z_mm, step.curvature);
-        if (!t) return std::nullopt;
-        p += *t * d;
+        size_t kept = 0;
+        for (const uint32_t i : alive) {
+            RayState& r = state[i];
+            const std::optional<double> t = intersectSurface(r.p, r.d, step.z_mm, step.curvature);
+            if (!t) continue;
+            r.p += *t * r.d;
+            alive[kept++] = i;
+        }
+        alive.resize(kept);
         if (step.kind == StepKind::Image) break;
-        const double r2 = p.x() * p.x() + p.y() * p.y();
         if (step.kind == StepKind::Stop) {
-            if (step.first_stop_crossing) {
-                out.stop_u = p.x() / stop_semi_aperture_mm_;
-                out.stop_v = p.y() / stop_semi_aperture_mm_;
-                out.inside_stop = aperture_.contains(out.stop_u, out.stop_v);
-                if (options_.clip_stop && !out.inside_stop) return std::nullopt;
-            } else if (options_.clip_stop) {
-                const double u = p.x() / stop_semi_aperture_mm_;
-                const double v = p.y() / stop_semi_aperture_mm_;
-                if (!aperture_.contains(u, v)) return std::nullopt;
-            }
+            kept = 0;
+            for (const uint32_t i : alive)
+                if (stopCrossing(step, state[i])) alive[kept++] = i;
+            alive.resize(kept);
             continue;
         }
-        if (r2 > step.semi_aperture2) {
-            if (options_.clip_apertures) return std::nullopt;
-            out.cut = true;
+        kept = 0;
+        for (const uint32_t i : alive) {
+            RayState& r = state[i];
+            const double r2 = r.p.x() * r.p.x() + r.p.y() * r.p.y();
+            if (r2 > step.semi_aperture2) {
+                if (options_.clip_apertures) continue;
+                r.out.cut = true;
+            }
+            double c = 1.0;
+            if (!bend(step, r.p, r.d, c)) continue;  // total internal reflection
+            cos_i[i] = c;
+            alive[kept++] = i;
         }
-        double cos_i = 1.0;
-        if (!bend(step, p, d, cos_i)) return std::nullopt;  // total internal reflection
-        if (options_.fresnel) {
-            const FresnelResult f =
-                step.coated ? fresnelCoated(step.n1, step.coat_index, step.coat_thickness_nm,
-                                            step.n2, cos_i, wavelength_nm_)
-                            : fresnelUncoated(step.n1, step.n2, cos_i);
-            throughput *= step.kind == StepKind::Reflect ? f.reflectance : f.transmittance;
+        alive.resize(kept);
+        if (!options_.fresnel) continue;
+        if (step.coated) {
+            for (const uint32_t i : alive) {
+                const FresnelResult f = fresnelCoated(step.n1, step.coat_index,
+                                                      step.coat_thickness_nm, step.n2, cos_i[i],
+                                                      wavelength_nm_);
+                state[i].throughput *=
+                    step.kind == StepKind::Reflect ? f.reflectance : f.transmittance;
+            }
+        } else {
+            for (const uint32_t i : alive) {
+                const FresnelResult f = fresnelUncoated(step.n1, step.n2, cos_i[i]);
+                state[i].throughput *=
+                    step.kind == StepKind::Reflect ? f.reflectance : f.transmittance;
+            }
         }
     }
-    out.ray.position = p;
-    out.ray.direction = d;
-    out.ray.wavelength_nm = wavelength_nm_;
-    out.ray.throughput = throughput;
-    out.ray.valid = std::isfinite(p.x()) && std::isfinite(p.y()) && std::isfinite(throughput);
-    if (!out.ray.valid) return std::nullopt;
-    return out;
+    for (const uint32_t i : alive) out[i] = finish(state[i]);
 }
 
 bool PathTracer::bend(const Step& step,

@@ -19,6 +19,7 @@
 
 #include <Eigen/Core>
 #include <optional>
+#include <span>
 #include <vector>
 
 #include "optics/lens.h"
@@ -62,6 +63,13 @@ public:
     // surface to the image plane.
     std::optional<TracedRay> trace(const Ray& ray) const;
 
+    // Traces many rays, each exactly as trace() would (the same operations in the same order,
+    // so the same bits), but step by step over all of them: one ray's steps form a chain of
+    // dependent square roots and divisions, while different rays at the same step are
+    // independent, so the processor overlaps them. out[i] is trace(rays[i]); the spans must
+    // have the same size.
+    void traceBatch(std::span<const Ray> rays, std::span<std::optional<TracedRay>> out) const;
+
     // Traces only up to crossing `crossing` of the path (the k-th surface the light meets, as
     // numbered by pathTransfer), without any clipping or Fresnel terms, and returns the x, y
     // where the ray meets that surface (mm). For aiming rays at points of an aperture.
@@ -94,6 +102,15 @@ private:
         double coat_thickness_nm = 0.0;
         bool first_stop_crossing = false;
     };
+    struct RayState {
+        Eigen::Vector3d p = Eigen::Vector3d::Zero();
+        Eigen::Vector3d d = Eigen::Vector3d::UnitZ();
+        double throughput = 1.0;
+        TracedRay out;
+    };
+    bool advance(const Step& step, RayState& r) const;
+    bool stopCrossing(const Step& step, RayState& r) const;
+    std::optional<TracedRay> finish(RayState& r) const;
     // Bends direction d at the surface of `step` hit at p; false on total internal reflection.
     // Writes the incidence cosine for the Fresnel terms.
     static bool bend(const Step& step, const Eigen::Vector3d& p, Eigen::Vector3d& d, double& cos_i);

@@ -2,7 +2,11 @@
 
 #include <gtest/gtest.h>
 
+#include <tbb/global_control.h>
+
 #include <cmath>
+
+#include "render/metrics.h"
 
 #include "tests/test_paths.h"
 
@@ -69,6 +73,51 @@ TEST(RenderScene, TiledAndReferenceAgreeAlsoWhenDrawingInBatches) {
         ASSERT_NEAR(batched->pixels[i], reference->pixels[i],
                     1e-5f * std::abs(reference->pixels[i]) + 1e-30f)
             << i;
+}
+
+TEST(RenderScene, TheTiledImageDoesNotDependOnTheNumberOfThreads) {
+    const Light light{7.0, 20.0, {1.0f, 1.0f, 1.0f}};
+    SceneOptions o = small();
+    o.merge = kLightMerge;
+    const auto many = renderScene(heliar(), std::span(&light, 1), o);
+    ImageRGB one_thread;
+    {
+        tbb::global_control one(tbb::global_control::max_allowed_parallelism, 1);
+        auto image = renderScene(heliar(), std::span(&light, 1), o);
+        ASSERT_TRUE(image);
+        one_thread = std::move(*image);
+    }
+    ASSERT_TRUE(many);
+    EXPECT_EQ(many->pixels, one_thread.pixels);
+}
+
+TEST(RenderScene, MergedPrimitivesStayCloseToTheReferenceAndKeepTheEnergy) {
+    const Light light{5.0, 30.0, {1.0f, 1.0f, 1.0f}};
+    SceneOptions o = small();
+    o.width = 240;
+    o.height = 160;
+    o.base_grid = 64;
+    o.starburst = false;
+    o.tiled = false;
+    const auto reference = renderScene(heliar(), std::span(&light, 1), o);
+    ASSERT_TRUE(reference);
+    o.tiled = true;
+    for (const MergeOptions merge : {kLightMerge, kHeavyMerge}) {
+        o.merge = merge;
+        SceneStats merged_stats;
+        const auto merged = renderScene(heliar(), std::span(&light, 1), o, &merged_stats);
+        ASSERT_TRUE(merged);
+        const auto quality = psnr(*merged, *reference);
+        ASSERT_TRUE(quality);
+        EXPECT_GT(*quality, merge.gamma < 0.01 ? 55.0 : 40.0) << merge.gamma;
+        EXPECT_NEAR(imageSum(*merged), imageSum(*reference), 0.01 * imageSum(*reference));
+    }
+    o.merge = kLightMerge;
+    o.merge.steps = 8;
+    EXPECT_FALSE(renderScene(heliar(), std::span(&light, 1), o));
+    o.merge.steps = 2;
+    o.merge.gamma = std::nan("");
+    EXPECT_FALSE(renderScene(heliar(), std::span(&light, 1), o));
 }
 
 TEST(RenderScene, LightBehindTheCameraIsSkippedNotAnError) {
