@@ -306,6 +306,30 @@ void tracePath(benchmark::State& state,
     state.SetLabel(path.isImaging() ? "imaging" : "ghost " + pathLabel(path));
 }
 
+// The same rays through traceBatch, 256 at a time (a grid row of the default base size).
+void tracePathBatched(benchmark::State& state,
+                      const LensCase& c,
+                      const GhostPath& path,
+                      const TraceOptions& options) {
+    const PathTracer tracer(c.lens, path, kWavelength_nm, options);
+    constexpr size_t kBatch = 256;
+    std::vector<std::optional<TracedRay>> out(kBatch);
+    for (auto _ : state) {
+        for (size_t first = 0; first < c.rays.size(); first += kBatch) {
+            const size_t count = std::min(kBatch, c.rays.size() - first);
+            tracer.traceBatch(std::span(c.rays).subspan(first, count),
+                              std::span(out).first(count));
+            benchmark::DoNotOptimize(out.data());
+        }
+    }
+    const int64_t rays = static_cast<int64_t>(c.rays.size());
+    state.SetItemsProcessed(state.iterations() * rays * tracer.intersectionsPerRay());
+    state.counters["rays_per_s"] = benchmark::Counter(
+        static_cast<double>(state.iterations() * rays), benchmark::Counter::kIsRate);
+    state.counters["per_ray"] = tracer.intersectionsPerRay();
+    state.SetLabel("ghost " + pathLabel(path) + ", batches of 256");
+}
+
 constexpr TraceOptions kUnclipped{.clip_apertures = false, .clip_stop = false, .fresnel = true};
 constexpr TraceOptions kUnclippedGeometry{
     .clip_apertures = false, .clip_stop = false, .fresnel = false};
@@ -326,6 +350,12 @@ void BM_TraceGhostPathGeometry(benchmark::State& state, const std::string& file)
     const LensCase* c = lensCase(file);
     if (!c) return state.SkipWithError("lens unusable, see stderr");
     tracePath(state, *c, c->ghost, kUnclippedGeometry);
+}
+
+void BM_TraceGhostPathBatched(benchmark::State& state, const std::string& file) {
+    const LensCase* c = lensCase(file);
+    if (!c) return state.SkipWithError("lens unusable, see stderr");
+    tracePathBatched(state, *c, c->ghost, kUnclipped);
 }
 
 std::vector<std::filesystem::path> shippedLenses() {
@@ -352,6 +382,7 @@ void registerBenchmarks() {
     add("BM_TraceImagingPath", BM_TraceImagingPath);
     add("BM_TraceGhostPath", BM_TraceGhostPath);
     add("BM_TraceGhostPathGeometry", BM_TraceGhostPathGeometry);
+    add("BM_TraceGhostPathBatched", BM_TraceGhostPathBatched);
 }
 
 }  // namespace
