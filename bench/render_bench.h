@@ -15,10 +15,9 @@
 #pragma once
 
 #include <iosfwd>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
-
-#include <nlohmann/json.hpp>
 
 #include "common/result.h"
 
@@ -33,6 +32,7 @@ struct RenderBenchOptions {
     int64_t width = 1920;
     int64_t height = 1080;
     int base_grid = 256;
+    bool lenses = true;   // the per-lens tables (Tables 2-7)
     bool trade = true;    // grid size x merge against a dense-grid reference
     bool scaling = true;  // lights 1..8, image 480p..4K
 };

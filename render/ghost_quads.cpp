@@ -24,7 +24,8 @@ double quadArea(const Quad& q) {
 // The set-up of a strictly convex quad (see Primitive).
 void setUpConvex(Primitive& p) {
     const auto& c = p.quad.corners;
-    // +1 when the corners turn clockwise on screen (y down); all four turns agree for a convex quad.
+    // +1 when the corners turn clockwise on screen (y down); all four turns agree for a convex
+    // quad.
     const int turn = orientation(c[0].position_px, c[1].position_px, c[2].position_px);
     for (int i = 0; i < 4; ++i) {
         const Eigen::Vector2d& a = c[i].position_px;
@@ -104,11 +105,7 @@ bool sameDirection(const Eigen::Vector2d& a0,
     return dot > 0.0 && std::isfinite(lengths) && std::abs(cross) <= gamma * lengths;
 }
 
-Quad quadFrom(const optics::RayGrid& grid,
-              const SensorToImage& mapping,
-              int ix,
-              int iy,
-              int size) {
+Quad quadFrom(const optics::RayGrid& grid, const SensorToImage& mapping, int ix, int iy, int size) {
     const optics::GridSample* s[4] = {&grid.at(ix, iy), &grid.at(ix + size, iy),
                                       &grid.at(ix + size, iy + size), &grid.at(ix, iy + size)};
     Quad q;
@@ -155,8 +152,8 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
             for (int by = 0; by < side; ++by)
                 for (int bx = 0; bx < side; ++bx) {
                     const auto child = [&](int dx, int dy) {
-                        return whole[k - 1][static_cast<size_t>(2 * by + dy) * child_side +
-                                            2 * bx + dx] != 0;
+                        return whole[k - 1][static_cast<size_t>(2 * by + dy) * child_side + 2 * bx +
+                                            dx] != 0;
                     };
                     if (!(child(0, 0) && child(1, 0) && child(0, 1) && child(1, 1))) continue;
                     const int x0 = bx * size, y0 = by * size;
@@ -164,12 +161,11 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                     bool straight = true;
                     for (int line = 0; line < 3 && straight; ++line) {
                         const int x = x0 + line * half, y = y0 + line * half;
-                        straight = sameDirection(pixel(x0, y), pixel(x0 + half, y),
-                                                 pixel(x0 + half, y), pixel(x0 + size, y),
-                                                 merge.gamma) &&
-                                   sameDirection(pixel(x, y0), pixel(x, y0 + half),
-                                                 pixel(x, y0 + half), pixel(x, y0 + size),
-                                                 merge.gamma);
+                        straight =
+                            sameDirection(pixel(x0, y), pixel(x0 + half, y), pixel(x0 + half, y),
+                                          pixel(x0 + size, y), merge.gamma) &&
+                            sameDirection(pixel(x, y0), pixel(x, y0 + half), pixel(x, y0 + half),
+                                          pixel(x, y0 + size), merge.gamma);
                     }
                     if (straight && quadIsConvex(quadFrom(grid, mapping, x0, y0, size)))
                         whole[k][static_cast<size_t>(by) * side + bx] = 1;
@@ -182,8 +178,7 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
         for (int k = levels - 1; k >= 1; --k) {
             const int side = cells >> k;
             const int bx = ix >> k, by = iy >> k;
-            if (bx < side && by < side && whole[k][static_cast<size_t>(by) * side + bx])
-                return k;
+            if (bx < side && by < side && whole[k][static_cast<size_t>(by) * side + bx]) return k;
         }
         return levels > 0 && whole[0][static_cast<size_t>(iy) * cells + ix] ? 0 : -1;
     };
@@ -273,10 +268,7 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
     return p;
 }
 
-double primitiveValueAt(const Primitive& primitive,
-                        int64_t x,
-                        int64_t y,
-                        const StopMask& stop) {
+double primitiveValueAt(const Primitive& primitive, int64_t x, int64_t y, const StopMask& stop) {
     const double px = static_cast<double>(x) + 0.5, py = static_cast<double>(y) + 0.5;
     if (primitive.convex) return convexValueAt(primitive, px, py, stop);
     QuadSample sample;
@@ -301,8 +293,8 @@ void rasterizeReference(ImageRGB& image,
     FLARELAB_CHECK(channel >= 0 && channel < 3);
     const StopMask stop(aperture);
     for (size_t i = 0; i < ghost.quads.size(); ++i) {
-        const auto primitive = preparePrimitive(ghost.quads[i], ghost.cellArea(i), channel, irradiance,
-                                                image.width, image.height, options);
+        const auto primitive = preparePrimitive(ghost.quads[i], ghost.cellArea(i), channel,
+                                                irradiance, image.width, image.height, options);
         if (!primitive) continue;
         for (int64_t y = primitive->y0; y <= primitive->y1; ++y)
             for (int64_t x = primitive->x0; x <= primitive->x1; ++x)

@@ -108,12 +108,13 @@ public:
     bool contains(double u, double v) const {
         if (blades_ == 0) return u * u + v * v <= 1.0;
         double ratio = -1.0;
-        for (int k = 0; k < blades_; ++k) ratio = std::max(ratio, u * normal_u_[k] + v * normal_v_[k]);
+        for (int k = 0; k < blades_; ++k)
+            ratio = std::max(ratio, u * normal_u_[k] + v * normal_v_[k]);
         return ratio <= 1.0;
     }
 
 private:
-    int blades_ = 0;  // 0: circle
+    int blades_ = 0;                           // 0: circle
     std::vector<double> normal_u_, normal_v_;  // edge normals over the apothem
 };
 
@@ -180,10 +181,7 @@ inline double convexValueAt(const Primitive& p, double px, double py, const Stop
     const double value = p.scale * (t / total);
     return std::isfinite(value) ? value : 0.0;
 }
-double primitiveValueAt(const Primitive& primitive,
-                        int64_t x,
-                        int64_t y,
-                        const StopMask& stop);
+double primitiveValueAt(const Primitive& primitive, int64_t x, int64_t y, const StopMask& stop);
 
 // Adds one ghost's quads to `channel` (0 red, 1 green, 2 blue) of `image`, scaled by the light's
 // irradiance in that channel, the stop shape applied to the interpolated stop coordinates. Pixels

@@ -16,7 +16,8 @@ Result<double> psnr(const ImageRGB& test, const ImageRGB& reference) {
     double peak = 0.0, squared = 0.0;
     for (size_t i = 0; i < reference.pixels.size(); ++i) {
         const double r = reference.pixels[i], t = test.pixels[i];
-        if (!std::isfinite(r) || !std::isfinite(t)) return invalid("an image holds a non-finite value");
+        if (!std::isfinite(r) || !std::isfinite(t))
+            return invalid("an image holds a non-finite value");
         peak = std::max(peak, r);
         squared += (t - r) * (t - r);
     }

@@ -1,12 +1,12 @@
 #include "render/scene.h"
 
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <sstream>
-
-#include <tbb/parallel_for.h>
-#include <tbb/task_arena.h>
 
 #include "common/units.h"
 #include "optics/aim.h"
@@ -177,6 +177,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     };
     struct Traced {
         GhostQuads quads;
+        int64_t quad_count = 0;
         int64_t rays = 0;
         Status status = Ok{};
     };
@@ -195,12 +196,14 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                                        options.grid_sigma, options.grid_phi);
         optics::RayGridOptions grid_options;
         grid_options.square = probe->square();
-        const auto grid = optics::traceRayGrid(lens, *task.path, theta, phi, lambda, n, grid_options);
+        const auto grid =
+            optics::traceRayGrid(lens, *task.path, theta, phi, lambda, n, grid_options);
         if (!grid) {
             out.status = grid.error();
             return out;
         }
         out.quads = quadsFromGrid(*grid, mapping, options.merge);
+        out.quad_count = static_cast<int64_t>(out.quads.quads.size());
         out.rays = static_cast<int64_t>(n) * n;
         return out;
     };
@@ -216,14 +219,15 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     }
     const auto count = [&](const Traced& t) {
         ++st.ghosts_drawn;
-        st.quads += static_cast<int64_t>(t.quads.quads.size());
+        st.quads += t.quad_count;
         st.rays += t.rays;
     };
     const auto start = Clock::now();
     if (options.tiled) {
         // Tasks in blocks, each block traced in parallel and its primitives appended in task
         // order; a block is a few tasks per core, so memory stays bounded.
-        const size_t block = 8 * static_cast<size_t>(std::max(1, tbb::this_task_arena::max_concurrency()));
+        const size_t block =
+            8 * static_cast<size_t>(std::max(1, tbb::this_task_arena::max_concurrency()));
         std::vector<Traced> traced;
         std::vector<std::vector<Primitive>> prepared;
         for (size_t first = 0; first < tasks.size(); first += block) {
@@ -239,10 +243,11 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                                                   task.light->rgb[task.channel], options.width,
                                                   options.height, options.raster))
                         prepared[i].push_back(*p);
+                traced[i].quads = GhostQuads{};  // the primitives hold what is needed now
             });
             for (size_t i = 0; i < traced.size(); ++i) {
                 if (!traced[i].status) return traced[i].status.error();
-                if (traced[i].quads.quads.empty()) continue;
+                if (traced[i].quad_count == 0) continue;
                 count(traced[i]);
                 primitives.insert(primitives.end(), prepared[i].begin(), prepared[i].end());
                 if (static_cast<int64_t>(primitives.size()) >= options.max_pending_primitives) {
@@ -268,7 +273,8 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     const auto lights_start = Clock::now();
     if (pattern)
         for (const Light& light : lights)
-            if (light.theta_deg < 90.0) addLightImage(image, lens, light, options, mapping, *pattern);
+            if (light.theta_deg < 90.0)
+                addLightImage(image, lens, light, options, mapping, *pattern);
     st.light_ms = millisecondsSince(lights_start);
     st.trace_ms = millisecondsSince(start) - draw_ms - st.light_ms;
     st.draw_ms = draw_ms;

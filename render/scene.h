@@ -58,8 +58,8 @@ struct SceneOptions {
     TileOptions tiles;
     MergeOptions merge;  // primitive merge (ghost_quads.h); the reference draws merged quads too
     // The tiled renderer draws whenever this many primitives are waiting (sizeof(Primitive),
-    // about 330 bytes, each), so memory stays bounded for any lens, grid and number of lights.
-    int64_t max_pending_primitives = 2'000'000;
+    // 400 bytes, each), so memory stays bounded for any lens, grid and number of lights.
+    int64_t max_pending_primitives = 1'000'000;
 };
 
 struct SceneStats {

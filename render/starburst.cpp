@@ -344,6 +344,39 @@ void addStarburst(ImageRGB& image,
         return std::array<int64_t, 2>{static_cast<int64_t>(std::clamp(lo, 0.0, last)),
                                       static_cast<int64_t>(std::clamp(hi, -1.0, last))};
     };
+    if (scale < 1.0) {
+        // Pattern pixels smaller than image pixels: sampling the pattern at pixel centres would
+        // skip most of its samples (and the energy they hold), so each pattern sample is spread
+        // instead over the four image pixels around its position, with bilinear weights that sum
+        // to 1: the energy added is exactly the pattern's inside the image.
+        for (int64_t j = 0; j < pattern.height; ++j) {
+            const double v = centre_y_px + (static_cast<double>(j) + 0.5 - pcy) * scale - 0.5;
+            const double fy = std::floor(v);
+            const double ty = v - fy;
+            if (fy + 1.0 < 0.0 || fy > static_cast<double>(image.height - 1)) continue;
+            for (int64_t i = 0; i < pattern.width; ++i) {
+                const double u = centre_x_px + (static_cast<double>(i) + 0.5 - pcx) * scale - 0.5;
+                const double fx = std::floor(u);
+                const double tx = u - fx;
+                if (fx + 1.0 < 0.0 || fx > static_cast<double>(image.width - 1)) continue;
+                const float* p = pattern.at(i, j);
+                for (int dy = 0; dy < 2; ++dy) {
+                    const double yi = fy + dy;
+                    if (yi < 0.0 || yi > static_cast<double>(image.height - 1)) continue;
+                    for (int dx = 0; dx < 2; ++dx) {
+                        const double xi = fx + dx;
+                        if (xi < 0.0 || xi > static_cast<double>(image.width - 1)) continue;
+                        const double w = (dx ? tx : 1.0 - tx) * (dy ? ty : 1.0 - ty);
+                        float* out =
+                            image.at(static_cast<int64_t>(xi), static_cast<int64_t>(yi));
+                        for (int c = 0; c < 3; ++c)
+                            out[c] += static_cast<float>(w * p[c] * rgb_intensity[c]);
+                    }
+                }
+            }
+        }
+        return;
+    }
     const auto xs = range(centre_x_px, pcx, pattern.width, image.width);
     const auto ys = range(centre_y_px, pcy, pattern.height, image.height);
     const double area = 1.0 / (scale * scale);

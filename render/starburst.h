@@ -69,8 +69,11 @@ Result<ImageRGB> renderStarburst(const StarburstOptions& options);
 
 // Adds pattern * rgb_intensity to `image`, centred at (centre_x_px, centre_y_px) in image space
 // (pixel centres at half-integers; the centre may lie outside the image), magnified by `scale`
-// image pixels per pattern pixel. The pattern is sampled bilinearly and divided by scale^2, so the
-// energy added per channel equals the intensity times the part of the pattern inside the image.
+// image pixels per pattern pixel. Magnified (scale >= 1) the pattern is sampled bilinearly at
+// pixel centres and divided by scale^2; reduced (scale < 1), each pattern sample is spread over the
+// four image pixels around it with bilinear weights. Either way the energy added per channel
+// equals the intensity times the part of the pattern inside the image (reduced: exactly;
+// magnified: to the accuracy of bilinear sampling).
 // Contract: scale > 0 and all values finite (checked); intensities >= 0.
 void addStarburst(ImageRGB& image,
                   const ImageRGB& pattern,

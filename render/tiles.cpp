@@ -9,7 +9,6 @@
 #include <cstdint>
 #include <vector>
 
-
 namespace flarelab::render {
 namespace {
 

@@ -83,9 +83,8 @@ TEST(PrimitiveMerge, TheThresholdIsTheSineOfTheAngleBetweenEdges) {
 }
 
 TEST(PrimitiveMerge, CellsWithACutOrMissingRayAreNeverMerged) {
-    auto grid = syntheticGrid(17, [](int ix, int iy) {
-        return Eigen::Vector2d(5.0 + 2.0 * ix, 5.0 + 2.0 * iy);
-    });
+    auto grid = syntheticGrid(
+        17, [](int ix, int iy) { return Eigen::Vector2d(5.0 + 2.0 * ix, 5.0 + 2.0 * iy); });
     grid.samples[static_cast<size_t>(5) * 17 + 6].valid = false;  // cut: position kept
     grid.samples[static_cast<size_t>(5) * 17 + 6].throughput = 0.0f;
     const GhostQuads merged = quadsFromGrid(grid, kIdentity, kHeavyMerge);
@@ -103,9 +102,8 @@ TEST(PrimitiveMerge, CellsWithACutOrMissingRayAreNeverMerged) {
 TEST(FillRule, APixelCentreOnASharedEdgeIsCountedOnce) {
     // Two unit-throughput squares side by side sharing the line x = 4.5, which holds the centres
     // of pixel column 4; and four squares meeting at the pixel centre (4.5, 4.5).
-    const auto grid = syntheticGrid(3, [](int ix, int iy) {
-        return Eigen::Vector2d(0.5 + 4.0 * ix, 0.5 + 4.0 * iy);
-    });
+    const auto grid = syntheticGrid(
+        3, [](int ix, int iy) { return Eigen::Vector2d(0.5 + 4.0 * ix, 0.5 + 4.0 * iy); });
     GhostQuads quads = quadsFromGrid(grid, kIdentity);
     ASSERT_EQ(quads.quads.size(), 4u);
     for (Quad& q : quads.quads)

@@ -1,13 +1,11 @@
 #include "render/scene.h"
 
 #include <gtest/gtest.h>
-
 #include <tbb/global_control.h>
 
 #include <cmath>
 
 #include "render/metrics.h"
-
 #include "tests/test_paths.h"
 
 namespace flarelab::render {

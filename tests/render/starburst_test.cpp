@@ -246,6 +246,28 @@ TEST(AddStarburst, ConservesEnergyAndCentresOnTheLight) {
     for (int c = 0; c < 3; ++c) EXPECT_NEAR(channelSum(big, c), intensity[c], 0.02 * intensity[c]);
 }
 
+TEST(AddStarburst, KeepsItsEnergyWhenThePatternIsFinerThanThePixels) {
+    // A 64 x 64 pattern of unit total reduced to a few pixels: sampling pixel centres would pick
+    // a handful of its samples and the energy would jump with the sub-pixel position.
+    ImageRGB pattern(64, 64);
+    for (int64_t j = 0; j < 64; ++j)
+        for (int64_t i = 0; i < 64; ++i)
+            for (int c = 0; c < 3; ++c)
+                pattern.at(i, j)[c] = static_cast<float>((1 + (i * 7 + j * 13) % 5) / 192.0 / 64.0);
+    double total[3] = {0, 0, 0};
+    for (int64_t k = 0; k < 64 * 64; ++k)
+        for (int c = 0; c < 3; ++c) total[c] += pattern.pixels[k * 3 + c];
+    const float intensity[3] = {1.0f, 2.0f, 4.0f};
+    for (const double scale : {0.06, 0.3, 0.99})
+        for (const double offset : {0.0, 0.25, 0.5}) {
+            ImageRGB image(100, 80);  // holds the whole pattern at every scale here
+            addStarburst(image, pattern, 50.0 + offset, 40.0 - offset, intensity, scale);
+            for (int c = 0; c < 3; ++c)
+                EXPECT_NEAR(channelSum(image, c), total[c] * intensity[c], 1e-5 * intensity[c])
+                    << scale << " " << offset;
+        }
+}
+
 TEST(AddStarburst, ClipsAtTheBorderWithTheCentreOutside) {
     const ImageRGB pattern = tinyPattern();
     const float intensity[3] = {1.0f, 1.0f, 1.0f};
