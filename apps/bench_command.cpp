@@ -4,6 +4,7 @@
 #include <memory>
 #include <ostream>
 
+#include "bench/merge_bench.h"
 #include "bench/render_bench.h"
 
 namespace flarelab::apps {
@@ -31,6 +32,7 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     render->add_option("--height", options->height, "image height")->check(CLI::Range(1, 16384));
     render->add_option("--grid", options->base_grid, "base ray-grid size")
         ->check(CLI::Range(2, 2048));
+    render->add_flag("!--no-lenses", options->lenses, "skip the per-lens tables (Tables 2-7)");
     render->add_flag("!--no-trade", options->trade, "skip the grid-size x merge trade table");
     render->add_flag("!--no-scaling", options->scaling, "skip the lights and image-size tables");
     render->add_option("--json", *json_path, "also write the results as JSON here");
@@ -47,6 +49,50 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             file << doc->dump(2) << "\n";
             if (!file) {
                 err << "flarelab: cannot write " << *json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+
+    auto merge_options = std::make_shared<bench::MergeBenchOptions>();
+    auto merge_json_path = std::make_shared<std::string>();
+    CLI::App* merge = bench->add_subcommand(
+        "merge", "the HDR bracket merge against OpenCV's MergeDebevec and MergeRobertson");
+    merge->add_flag("--quick", merge_options->quick,
+                    "smoke test: 1200x800, at most two runs (seconds)");
+    merge->add_option("--repeat", merge_options->repeat, "runs per figure; the best is kept")
+        ->check(CLI::Range(1, 100))
+        ->capture_default_str();
+    merge->add_option("--width", merge_options->width, "image width, pixels")
+        ->check(CLI::Range(8, 32768))
+        ->capture_default_str();
+    merge->add_option("--height", merge_options->height, "image height, pixels")
+        ->check(CLI::Range(8, 32768))
+        ->capture_default_str();
+    merge->add_option("--bit-depth", merge_options->bit_depth, "bits of the simulated converter")
+        ->check(CLI::Range(10, 16))
+        ->capture_default_str();
+    merge
+        ->add_option("--exposure-s", merge_options->exposure_times_s,
+                     "the bracket's exposure times, seconds")
+        ->capture_default_str();
+    merge->add_option("--seed", merge_options->seed, "noise seed")->capture_default_str();
+    merge->add_flag("!--no-opencv", merge_options->opencv, "skip OpenCV's merges");
+    merge->add_option("--json", *merge_json_path, "also write the results as JSON here");
+    merge->callback([merge_options, merge_json_path, &out, &err, &exit_code] {
+        auto doc = bench::runMergeBench(*merge_options, out, err);
+        if (!doc) {
+            err << "flarelab: " << doc.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        if (!merge_json_path->empty()) {
+            std::ofstream file(*merge_json_path);
+            file << doc->dump(2) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *merge_json_path << "\n";
                 exit_code = 1;
                 return;
             }

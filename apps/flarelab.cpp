@@ -5,8 +5,11 @@
 #include <iostream>
 
 #include "apps/bench_command.h"
+#include "apps/capture_command.h"
 #include "apps/lens_commands.h"
+#include "apps/merge_command.h"
 #include "apps/simulate_command.h"
+#include "apps/sweep_command.h"
 
 int main(int argc, char** argv) {
     try {
@@ -15,6 +18,9 @@ int main(int argc, char** argv) {
         int exit_code = 0;
         flarelab::apps::addLensCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addSimulateCommand(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addMergeCommand(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addCaptureCommand(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addSweepCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addBenchCommands(app, std::cout, std::cerr, exit_code);
         CLI11_PARSE(app, argc, argv);
         return exit_code;

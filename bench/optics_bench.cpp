@@ -317,8 +317,7 @@ void tracePathBatched(benchmark::State& state,
     for (auto _ : state) {
         for (size_t first = 0; first < c.rays.size(); first += kBatch) {
             const size_t count = std::min(kBatch, c.rays.size() - first);
-            tracer.traceBatch(std::span(c.rays).subspan(first, count),
-                              std::span(out).first(count));
+            tracer.traceBatch(std::span(c.rays).subspan(first, count), std::span(out).first(count));
             benchmark::DoNotOptimize(out.data());
         }
     }

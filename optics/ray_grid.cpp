@@ -110,9 +110,9 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
     grid.plane = defaultEntryPlane(lens);
     const Eigen::Vector3d direction = lightDirection(theta_rad, phi_rad);
 
-    if (options.square && !(options.square->half_width_mm > 0.0 &&
-                            std::isfinite(options.square->half_width_mm) &&
-                            options.square->centre_mm.allFinite()))
+    if (options.square &&
+        !(options.square->half_width_mm > 0.0 && std::isfinite(options.square->half_width_mm) &&
+          options.square->centre_mm.allFinite()))
         return invalid("a given entry square must have a positive, finite size");
     const Square square =
         options.square
@@ -136,7 +136,8 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
     std::vector<std::optional<TracedRay>> traced(static_cast<size_t>(n));
     for (int iy = 0; iy < n; ++iy) {
         for (int ix = 0; ix < n; ++ix)
-            rays[ix] = rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
+            rays[ix] =
+                rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
         tracer.traceBatch(rays, traced);
         for (int ix = 0; ix < n; ++ix) {
             if (!traced[ix]) continue;  // missed a surface or totally reflected: no geometry at all

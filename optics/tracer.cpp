@@ -229,9 +229,9 @@ void PathTracer::traceBatch(std::span<const Ray> rays,
         if (!options_.fresnel) continue;
         if (step.coated) {
             for (const uint32_t i : alive) {
-                const FresnelResult f = fresnelCoated(step.n1, step.coat_index,
-                                                      step.coat_thickness_nm, step.n2, cos_i[i],
-                                                      wavelength_nm_);
+                const FresnelResult f =
+                    fresnelCoated(step.n1, step.coat_index, step.coat_thickness_nm, step.n2,
+                                  cos_i[i], wavelength_nm_);
                 state[i].throughput *=
                     step.kind == StepKind::Reflect ? f.reflectance : f.transmittance;
             }

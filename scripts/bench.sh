@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# The optics benchmarks and the paraxial-versus-exact ghost report, written under out/bench/.
+# The optics benchmarks, the paraxial-versus-exact ghost report and the renderer benchmark
+# (flarelab bench render), written under out/bench/.
 #   scripts/bench.sh BUILD_DIR [--quick]
+# The renderer benchmark takes about an hour on 2 cores; --quick runs its smoke version.
 # optics_bench runs every benchmark five times and the summary keeps the fastest repetition of
 # each: on a shared machine noise only ever slows a run down, so the best one is the closest to
 # what the code costs. Ratios are to the textbook sphere intersection of the same run.
@@ -20,9 +22,9 @@ fi
 cd "$(dirname "$0")/.."
 out=${FLARELAB_OUT:-out}/bench
 mkdir -p "$out"
-for tool in optics_bench ghost_divergence; do
-    if [[ ! -x $build/bench/$tool ]]; then
-        echo "bench: $build/bench/$tool is missing (a sanitizer build has no benchmarks)" >&2
+for tool in bench/optics_bench bench/ghost_divergence apps/flarelab; do
+    if [[ ! -x $build/$tool ]]; then
+        echo "bench: $build/$tool is missing (a sanitizer build has no benchmarks)" >&2
         exit 1
     fi
 done
@@ -83,3 +85,14 @@ sed -n '/^## Acceptance/,/^\(PASS\|FAIL\)/p' "$out/ghost_divergence.md"
 
 scripts/plot_divergence.sh "$out/ghost_divergence.csv" "$out/ghost_divergence.png"
 echo "bench: wrote $out/optics_bench.{json,md} and $out/ghost_divergence.{md,csv,json,png}"
+
+echo
+echo "bench: flarelab bench render${2:+ $2} (progress on stderr)"
+"$build/apps/flarelab" bench render ${2:+"$2"} --json "$out/render.json.tmp" >"$out/render.md.tmp"
+mv "$out/render.json.tmp" "$out/render.json"
+mv "$out/render.md.tmp" "$out/render.md"
+cat "$out/render.md"
+if [[ ${2:-} != --quick ]]; then
+    scripts/plot_render_trade.sh "$out/render.json" "$out/render_trade.png"
+fi
+echo "bench: wrote $out/render.{md,json}"

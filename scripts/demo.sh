@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # The main job on the built-in simulated rig, as far as the project has come: for every shipped
-# lens, its first-order report and its ghosts at a few light angles (out/lenses/), and flare
-# images of two lenses drawn by the reference renderer (out/images/, OpenEXR and PNG).
+# lens, its first-order report and its ghosts at a few light angles (out/lenses/), flare images of
+# two lenses (out/images/, OpenEXR and PNG), and a sweep of the simulated rig: the Heliar from 0
+# to 30 degrees in 0.2 degree steps, three brackets per step merged to HDR (out/sweeps/heliar/,
+# with a PNG preview of every frame).
 set -euo pipefail
 build=${1:-build/release}
 out=${FLARELAB_OUT:-out}
@@ -25,4 +27,9 @@ for shot in heliar-tronnier:5:20 itoh-wide-zoom:8:-30; do
         --width 960 --height 640 --grid 128 --exposure-stops 14 \
         -o "$out/images/$name-$angle.exr" --png "$out/images/$name-$angle.png"
 done
+rm -rf "$out/sweeps/heliar" "$out/sweeps/heliar-previews"
+"$build/apps/flarelab" capture --sim --fast --lens data/lenses/heliar-tronnier.csv \
+    --from 0 --to 30 --step 0.2 --brackets 0.25,1,4 --width 640 --height 427 \
+    --previews "$out/sweeps/heliar-previews" --preview-stops -12 -o "$out/sweeps/heliar"
+"$build/apps/flarelab" sweep info "$out/sweeps/heliar"
 cat "$out/lenses/heliar-tronnier.txt"

@@ -23,10 +23,10 @@ TEST(BenchRender, WritesTheTablesAndAJsonDocumentWithEveryLens) {
     const auto json_path =
         (std::filesystem::temp_directory_path() / "flarelab_bench_render_test.json").string();
     std::filesystem::remove(json_path);
-    const CommandRun run = bench(
-        {"render", "--quick", "--lens", flarelab::testing::lensPath("lensbaby-toy.csv"), "--lens",
-         flarelab::testing::lensPath("heliar-tronnier.csv"), "--lights", "1", "--width", "96",
-         "--height", "64", "--grid", "16", "--json", json_path});
+    const CommandRun run =
+        bench({"render", "--quick", "--lens", flarelab::testing::lensPath("lensbaby-toy.csv"),
+               "--lens", flarelab::testing::lensPath("heliar-tronnier.csv"), "--lights", "1",
+               "--width", "96", "--height", "64", "--grid", "16", "--json", json_path});
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_NE(run.out.find("| lensbaby-toy | 1 |"), std::string::npos) << run.out;
     EXPECT_NE(run.out.find("Tables 5-7"), std::string::npos);

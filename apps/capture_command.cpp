@@ -1,0 +1,280 @@
+#include "apps/capture_command.h"
+
+#include <unistd.h>
+
+#include <chrono>
+#include <cmath>
+#include <filesystem>
+#include <iomanip>
+#include <memory>
+#include <ostream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "apps/camera_flags.h"
+#include "drivers/sim_camera.h"
+#include "drivers/sim_head.h"
+#include "hdr/merge.h"
+#include "hdr/raw_io.h"
+#include "hdr/sweep.h"
+#include "render/preview.h"
+
+namespace flarelab::apps {
+namespace {
+
+struct CaptureState {
+    bool sim = false;
+    std::string lens_file;
+    CameraFlags camera;
+    double from_deg = 0.0;
+    double to_deg = 30.0;
+    double step_deg = 0.2;
+    std::string brackets = "0.25,1,4";
+    int64_t width = 640;
+    int64_t height = 427;
+    bool fast = false;
+    uint64_t seed = 1;
+    bool keep_raw = false;
+    bool resume = false;
+    std::string previews;  // directory for PNG previews, empty for none
+    double preview_stops = 0.0;
+    std::string output;
+};
+
+Result<std::vector<double>> parseBrackets(const std::string& text) {
+    std::vector<double> times;
+    std::stringstream in(text);
+    std::string part;
+    while (std::getline(in, part, ',')) {
+        size_t used = 0;
+        double t = 0.0;
+        try {
+            t = std::stod(part, &used);
+        } catch (const std::exception&) {
+            used = 0;
+        }
+        if (used == 0 || used != part.size() || !(t > 0.0) || !std::isfinite(t))
+            return makeError(
+                ErrorCode::InvalidArgument,
+                "--brackets: '" + part + "' is not a positive exposure time in seconds");
+        times.push_back(t);
+    }
+    if (times.empty())
+        return makeError(ErrorCode::InvalidArgument, "--brackets: give at least one exposure time");
+    return times;
+}
+
+std::string seconds(double s) {
+    std::ostringstream o;
+    o << std::fixed << std::setprecision(s < 10 ? 1 : 0) << s << " s";
+    return o.str();
+}
+
+// One line of progress: a bar, frames done, elapsed time and the estimate of what is left.
+void progress(std::ostream& err, bool terminal, size_t done, size_t total, double elapsed_s) {
+    constexpr int kWidth = 30;
+    const int filled = static_cast<int>(kWidth * done / std::max<size_t>(total, 1));
+    const double eta = done > 0 ? elapsed_s / done * (total - done) : 0.0;
+    err << (terminal ? "\r" : "") << "capture: [" << std::string(filled, '#')
+        << std::string(kWidth - filled, ' ') << "] " << done << "/" << total << " frames, "
+        << seconds(elapsed_s) << " elapsed, ETA " << seconds(eta) << (terminal ? "" : "\n")
+        << std::flush;
+}
+
+int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
+    if (!s.sim) {
+        err << "flarelab: capture needs a rig: only --sim (the simulated rig) is available in this "
+               "build; hardware backends come with the daemon\n";
+        return 1;
+    }
+    const auto times = parseBrackets(s.brackets);
+    if (!times) {
+        err << "flarelab: " << times.error().message << "\n";
+        return 1;
+    }
+    if (!(s.step_deg > 0.0) || !std::isfinite(s.from_deg) || !std::isfinite(s.to_deg) ||
+        s.to_deg < s.from_deg) {
+        err << "flarelab: capture needs --from <= --to and --step > 0\n";
+        return 1;
+    }
+    const double span = s.to_deg - s.from_deg;
+    const size_t frames = static_cast<size_t>(std::floor(span / s.step_deg + 1e-9)) + 1;
+    if (frames > 100000) {
+        err << "flarelab: capture: " << frames << " frames is more than 100000\n";
+        return 1;
+    }
+    const auto lens = loadLens(s.lens_file, s.camera, err);
+    if (!lens) return 1;
+
+    const auto clock = std::make_shared<drivers::SimClock>(s.fast ? drivers::SimTime::Fast
+                                                                  : drivers::SimTime::RealTime);
+    drivers::SimHeadOptions head_options;
+    head_options.seed = s.seed;
+    auto head_made = drivers::SimHead::make(head_options, clock);
+    if (!head_made) {
+        err << "flarelab: " << head_made.error().message << "\n";
+        return 1;
+    }
+    std::shared_ptr<drivers::SimHead> head = std::move(*head_made);
+    drivers::SimCameraOptions camera_options;
+    camera_options.width_px = s.width;
+    camera_options.height_px = s.height;
+    camera_options.seed = s.seed;
+    auto camera_made = drivers::SimCamera::make(*lens, camera_options, head);
+    if (!camera_made) {
+        err << "flarelab: " << camera_made.error().message << "\n";
+        return 1;
+    }
+    drivers::SimCamera& camera = **camera_made;
+    constexpr double kTimeout_s = 600.0;
+    if (Status homed = head->home(kTimeout_s); !homed) {
+        err << "flarelab: " << homed.error().message << "\n";
+        return 1;
+    }
+
+    hdr::SweepHeader header;
+    header.software_version = "flarelab capture (simulated rig)";
+    header.lens.description = lens->name();
+    header.camera.description = camera.identity().model;
+    header.camera.serial = camera.identity().serial;
+    header.camera.bit_depth = camera.capabilities().bit_depth;
+    header.capture.from_deg = s.from_deg;
+    header.capture.to_deg = s.to_deg;
+    header.capture.step_deg = s.step_deg;
+    header.capture.exposure_times_s = *times;
+    header.capture.gain = camera.gain();
+    header.capture.width_px = s.width;
+    header.capture.height_px = s.height;
+    hdr::SweepWriteOptions write_options;
+    write_options.resume = s.resume;
+    auto writer = hdr::SweepWriter::create(s.output, header, write_options);
+    if (!writer) {
+        err << "flarelab: " << writer.error().message << "\n";
+        return 1;
+    }
+    const bool terminal = ::isatty(STDERR_FILENO) != 0;
+    const auto start = std::chrono::steady_clock::now();
+    const auto elapsed = [&] {
+        return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    };
+    size_t written = 0, skipped = 0;
+    const double last_angle = writer->sweep().frames.empty()
+                                  ? -std::numeric_limits<double>::infinity()
+                                  : writer->sweep().frames.back().angle_deg;
+    for (size_t i = 0; i < frames; ++i) {
+        // from + i step, rounded to a nanodegree so that 0 + 2 x 0.2 is 0.4 and not
+        // 0.4000000000000001 in the manifest.
+        const double angle = std::min(
+            s.to_deg, std::round((s.from_deg + static_cast<double>(i) * s.step_deg) * 1e9) / 1e9);
+        if (angle <= last_angle) {  // resumed: already on disk
+            ++skipped;
+            continue;
+        }
+        const auto at = head->moveTo(angle, kTimeout_s);
+        if (!at) {
+            err << "\nflarelab: " << at.error().message << "\n";
+            return 1;
+        }
+        std::vector<hdr::RawFrame> bracket;
+        hdr::SweepFrame frame;
+        for (size_t k = 0; k < times->size(); ++k) {
+            const double t = (*times)[k];
+            auto captured = [&]() -> Result<hdr::RawFrame> {
+                if (Status set = camera.setExposure(t); !set) return set.error();
+                return camera.capture(kTimeout_s);
+            }();
+            if (!captured) {
+                err << "\nflarelab: frame " << i << " at " << angle << " deg, exposure " << t
+                    << " s: " << captured.error().message << "\n";
+                return 1;
+            }
+            if (s.keep_raw) {
+                std::ostringstream name;
+                name << "raw/frame_" << std::setw(5) << std::setfill('0') << i << "_" << k
+                     << ".pgm";
+                std::filesystem::create_directories(s.output + "/raw");
+                if (Status ok = hdr::writeRaw(s.output + "/" + name.str(), *captured); !ok) {
+                    err << "\nflarelab: " << ok.error().message << "\n";
+                    return 1;
+                }
+                frame.raw_files.push_back(name.str());
+            }
+            bracket.push_back(std::move(*captured));
+        }
+        auto merged = hdr::mergeBrackets(bracket);
+        if (!merged) {
+            err << "\nflarelab: frame " << i << ": " << merged.error().message << "\n";
+            return 1;
+        }
+        auto image = hdr::toImage(*merged);
+        if (!image) {
+            err << "\nflarelab: frame " << i << ": " << image.error().message << "\n";
+            return 1;
+        }
+        // Where the head reported it stood, to a nanodegree (its arithmetic may add an ulp).
+        frame.angle_deg = std::round(*at * 1e9) / 1e9;
+        // The manifest lists the bracket in the order it was taken, with its raw files.
+        frame.exposure_times_s = *times;
+        frame.merge_method = merged->method;
+        auto added = writer->addFrame(*image, frame);
+        if (!added) {
+            err << "\nflarelab: frame " << i << ": " << added.error().message << "\n";
+            return 1;
+        }
+        if (!s.previews.empty()) {
+            std::filesystem::create_directories(s.previews);
+            render::ToneMapOptions tone;
+            tone.exposure_stops = s.preview_stops;
+            const std::string png =
+                s.previews + "/" + std::filesystem::path(added->exr_file).stem().string() + ".png";
+            if (Status ok = render::writePng(*image, png, tone); !ok) {
+                err << "\nflarelab: " << ok.error().message << "\n";
+                return 1;
+            }
+        }
+        ++written;
+        if (terminal || written % std::max<size_t>(1, frames / 10) == 0 || i + 1 == frames)
+            progress(err, terminal, i + 1, frames, elapsed());
+    }
+    if (terminal) err << "\n";
+    out << "capture: " << written << " frames"
+        << (skipped ? " (" + std::to_string(skipped) + " already there)" : "") << " of "
+        << lens->name() << ", " << s.from_deg << " to " << s.to_deg << " deg in steps of "
+        << s.step_deg << ", brackets " << s.brackets << " s, " << s.width << "x" << s.height << ", "
+        << seconds(elapsed()) << (s.fast ? " (fast)" : "") << " -> " << s.output << "\n";
+    return 0;
+}
+
+}  // namespace
+
+void addCaptureCommand(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {
+    auto state = std::make_shared<CaptureState>();
+    CLI::App* cmd = app.add_subcommand("capture", "take a sweep of bracketed frames on a rig");
+    cmd->add_flag("--sim", state->sim, "use the simulated rig (camera and head)");
+    cmd->add_option("--lens", state->lens_file, "the simulated camera's lens (CSV, format v1)")
+        ->required();
+    cmd->add_option("--from", state->from_deg, "first angle (deg)")->capture_default_str();
+    cmd->add_option("--to", state->to_deg, "last angle (deg)")->capture_default_str();
+    cmd->add_option("--step", state->step_deg, "angle step (deg)")->capture_default_str();
+    cmd->add_option("--brackets", state->brackets, "exposure times in seconds, comma separated")
+        ->capture_default_str();
+    cmd->add_option("--width", state->width, "frame width")
+        ->check(CLI::Range(int64_t{1}, int64_t{32768}))
+        ->capture_default_str();
+    cmd->add_option("--height", state->height, "frame height")
+        ->check(CLI::Range(int64_t{1}, int64_t{32768}))
+        ->capture_default_str();
+    cmd->add_flag("--fast", state->fast, "simulated time: do not wait for exposures and moves");
+    cmd->add_option("--seed", state->seed, "noise seed")->capture_default_str();
+    cmd->add_flag("--keep-raw", state->keep_raw, "also keep every raw bracket (raw/*.pgm)");
+    cmd->add_flag("--resume", state->resume, "continue an interrupted sweep in the directory");
+    cmd->add_option("--previews", state->previews, "also write a PNG preview of every frame here");
+    cmd->add_option("--preview-stops", state->preview_stops, "exposure of the previews in stops")
+        ->capture_default_str();
+    cmd->add_option("-o,--output", state->output, "sweep directory")->required();
+    addCameraFlags(cmd, state->camera);
+    cmd->callback([state, &out, &err, &exit_code] { exit_code = run(*state, out, err); });
+}
+
+}  // namespace flarelab::apps

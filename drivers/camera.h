@@ -1,0 +1,74 @@
+// ============================================================================
+//  flarelab drivers: Camera, CameraCapabilities, CameraRegistry
+// ============================================================================
+//
+// The interface every camera backend implements: the simulated camera (sim_camera.h) now,
+// V4L2, libcamera and GigE Vision (Aravis) later. A camera has one exposure time and one gain
+// at a time; capture() takes one raw frame with them and returns it with everything the bracket
+// merge needs (hdr/raw_frame.h): exposure, gain, black and white level, bit depth, read noise
+// and conversion gain when the camera knows them, timestamp and sequence number.
+//
+// Errors are device errors (device.h): a setting outside the camera's range is [out-of-range]
+// naming the field (exposure_s, gain, format); a frame that does not arrive within the timeout
+// is [timeout]; a camera that is gone is [disconnected]. A failed call leaves the settings as
+// they were. Cameras are not copied; a Camera object is used from one thread at a time.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "common/result.h"
+#include "drivers/device.h"
+#include "hdr/raw_frame.h"
+
+namespace flarelab::drivers {
+
+struct CameraCapabilities {
+    int64_t width_px = 0;  // of the frames capture() returns
+    int64_t height_px = 0;
+    std::vector<hdr::RawFormat> formats;  // setFormat accepts these
+    int bit_depth = 16;                   // of the converter: samples lie in 0 .. 2^bit_depth - 1
+    double min_exposure_s = 0.0;
+    double max_exposure_s = 0.0;
+    double min_gain = 1.0;  // linear; 1 is the sensor's unity setting
+    double max_gain = 1.0;
+    double black_level_dn = 0.0;
+    double white_level_dn = 65535.0;  // the largest unclipped value
+    // At gain 1; 0 where the camera does not say. Per frame, RawFrame carries them at its gain.
+    double read_noise_e = 0.0;
+    double electrons_per_dn = 0.0;
+};
+
+class Camera {
+public:
+    Camera() = default;
+    Camera(const Camera&) = delete;
+    Camera& operator=(const Camera&) = delete;
+    virtual ~Camera() = default;
+
+    virtual DeviceIdentity identity() const = 0;
+    virtual CameraCapabilities capabilities() const = 0;
+
+    // [out-of-range] naming exposure_s outside [min_exposure_s, max_exposure_s] or not finite.
+    virtual Status setExposure(double exposure_s) = 0;
+    virtual double exposure_s() const = 0;
+    // [out-of-range] naming gain outside [min_gain, max_gain] or not finite.
+    virtual Status setGain(double gain) = 0;
+    virtual double gain() const = 0;
+    // [out-of-range] naming format when it is not in capabilities().formats.
+    virtual Status setFormat(hdr::RawFormat format) = 0;
+    virtual hdr::RawFormat format() const = 0;
+
+    // Takes one frame with the current settings, waiting at most timeout_s (> 0) for it:
+    // [timeout] when it does not come, [disconnected] when the camera is gone,
+    // [out-of-range] naming timeout_s when it is not a positive finite number.
+    virtual Result<hdr::RawFrame> capture(double timeout_s) = 0;
+};
+
+// Cameras by URI: "sim:?lens=data/lenses/heliar-tronnier.csv" (sim_camera.h), later
+// "v4l2:/dev/video0" and friends.
+using CameraRegistry = DeviceRegistry<Camera>;
+
+}  // namespace flarelab::drivers

@@ -1,0 +1,208 @@
+// ============================================================================
+//  flarelab drivers: SimCamera, SimCameraOptions, simRenderDefaults, addSimCameraBackend
+// ============================================================================
+//
+// The virtual camera of the simulated rig. It looks at a point light from the angle of a head:
+// for a head angle a the light stands at theta = |a| from the optical axis, on the horizontal
+// (phi = 0 for a >= 0, 180 for a < 0). The optics: render::renderScene of the configured lens
+// draws every ghost of a point light of irradiance light_rgb; the light's own image (the
+// aperture's starburst) is added here; a dim uniform background lies under both. The result is
+// cached per angle, so the exposures of a bracket render once.
+//
+// The light's own image. renderScene's starburst samples the pattern at pixel centres, which
+// loses or invents energy where a pattern pixel is much smaller than an image pixel (the Heliar
+// at f/16 on 640 px: 0.06 px), so the light's power in the frame jumped between 1.2 and 51
+// (scene units) from 0 to 2 deg. Here the pattern is rendered once per camera and every pattern
+// sample is splatted bilinearly onto the pixel centres around it (magnified patterns, 1 image
+// pixel or less per pattern pixel, go through render::addStarburst), centred where the real
+// chief ray lands, scaled by the power a 32 x 32 imaging ray grid carries through the stop.
+// render.starburst = false leaves the light's image out.
+//
+// Colour to one channel. Mono sensors (RawFormat::Mono) take, by default, the green channel
+// (550 nm): a monochrome sensor behind a green filter. Only the green ghost grids are traced
+// then, a third of the work. MonoResponse::Luminance takes Rec. 709 luminance,
+// 0.2126 R + 0.7152 G + 0.0722 B, and traces all three. BayerRGGB gives each pixel its filter's
+// channel (red at (0, 0)).
+//
+// The sensor, per pixel, for exposure t and gain g (DN: digital numbers; E: the pixel's
+// image-plane irradiance, its rendered power over its area in mm^2):
+//   rate_e_s = quantum_scale * E + background_e_s
+//   mean_e   = (rate_e_s + dark_current_e_s + hot pixel extra) * t
+//   e        ~ Poisson(mean_e)                   photon shot and dark current noise
+//   read_dn  = read_noise_e * g / electrons_per_dn
+//   DN       = e * g / electrons_per_dn + black_level_dn + N(0, read_dn^2)
+//   sample   = round(DN) clipped to [0, white],  white = 2^bit_depth - 1
+// Poisson draws are exact (Hoermann's PTRS) up to 1e7 electrons, far beyond any white level. The
+// frame's metadata says electrons_per_dn / g and read_noise_e * g / electrons_per_dn,
+// so the merge can weight samples. Hot pixels (a fixed pattern drawn once from `seed`) carry an
+// extra dark current. Noise of frame n is drawn from (seed, n, row): the same options and the same
+// sequence of calls give the same frames, on any number of threads.
+//
+// Default calibration. With the Heliar (data/lenses/heliar-tronnier.csv, f/16) at 640 x 427,
+// quantum_scale 5e7 puts the broad ghosts near 1000 e/s, a quarter of white in 1 s at gain 1
+// (4 e/DN, 12 bits), while the light's core saturates every exposure of a 0.25 / 1 / 4 s bracket,
+// as on the rig. The default render settings (simRenderDefaults) trade accuracy for speed: a
+// 0..30 deg sweep at 0.2 deg (151 angles x 3 exposures) at 640 x 427 takes about 20 s on two
+// shared cores in fast mode (SimCameraTiming.DISABLED_SweepTiming measures it).
+//
+// Time runs on the head's SimClock (sim_clock.h): a capture takes exposure_s + readout_s of
+// rig time; real-time mode sleeps that long, fast mode does not. The frame's timestamp is the
+// start of its exposure.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <deque>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "drivers/camera.h"
+#include "drivers/head.h"
+#include "drivers/sim_clock.h"
+#include "drivers/sim_head.h"
+#include "optics/lens.h"
+#include "render/scene.h"
+
+namespace flarelab::drivers {
+
+enum class MonoResponse { Green, Luminance };
+
+// Base grid 64, probe grid 8, the paper's light primitive merge; starburst mask 256 / FFT 512
+// (a pattern 33 px wide at 640 px with the Heliar at f/16, rendered once per camera).
+render::SceneOptions simRenderDefaults();
+
+struct SimCameraFaults {
+    int time_out_captures = 0;  // the next n captures wait out their timeout: [timeout]
+    bool disconnected = false;  // every call answers [disconnected]
+};
+
+struct SimCameraOptions {
+    std::string serial = "SIMCAM-0";
+    int64_t width_px = 640;  // 1..32768
+    int64_t height_px = 427;
+    hdr::RawFormat format = hdr::RawFormat::Mono;  // Mono or BayerRGGB
+    MonoResponse mono = MonoResponse::Green;
+    int bit_depth = 12;                  // 8..16
+    double black_level_dn = 64.0;        // >= 0, below white
+    double electrons_per_dn = 4.0;       // > 0, at gain 1
+    double read_noise_e = 3.0;           // >= 0
+    double dark_current_e_s = 1.0;       // >= 0
+    double hot_pixel_fraction = 0.0;     // in [0, 1]
+    double hot_pixel_dark_e_s = 2000.0;  // extra dark current of a hot pixel, >= 0
+    double quantum_scale = 5e7;          // e/s per unit of image-plane irradiance, >= 0
+    std::array<float, 3> light_rgb = {1.0f, 1.0f, 1.0f};  // irradiance at the lens, >= 0
+    double background_e_s = 20.0;                         // >= 0
+    double min_exposure_s = 1e-5;
+    double max_exposure_s = 60.0;
+    double min_gain = 1.0;
+    double max_gain = 16.0;
+    double exposure_s = 1.0;  // initial settings
+    double gain = 1.0;
+    double readout_s = 0.03;       // >= 0, rig time per frame after the exposure
+    double fixed_angle_deg = 0.0;  // the light's angle when no head is attached
+    int cache_angles = 4;          // rendered angles kept, >= 1
+    uint64_t seed = 1;
+    render::SceneOptions render = simRenderDefaults();  // width and height are taken from above
+    SimCameraFaults faults;
+
+    // InvalidArgument naming the first field out of range.
+    Status validate() const;
+};
+
+class SimCamera final : public Camera {
+public:
+    // Bound to a simulated head: renders at its true angle (backlash, noise and lost steps show
+    // in the image) and stamps frames with the angle it reports. Shares its clock.
+    static Result<std::unique_ptr<SimCamera>> make(optics::Lens lens,
+                                                   const SimCameraOptions& options,
+                                                   std::shared_ptr<SimHead> head);
+    // Bound to any head: renders at and stamps with the angle it reports; clock: a fast one when
+    // null.
+    static Result<std::unique_ptr<SimCamera>> make(optics::Lens lens,
+                                                   const SimCameraOptions& options,
+                                                   std::shared_ptr<Head> head,
+                                                   std::shared_ptr<SimClock> clock);
+    // No head: the light stays at options.fixed_angle_deg; a fast clock when null.
+    static Result<std::unique_ptr<SimCamera>> make(optics::Lens lens,
+                                                   const SimCameraOptions& options,
+                                                   std::shared_ptr<SimClock> clock = nullptr);
+
+    DeviceIdentity identity() const override;
+    CameraCapabilities capabilities() const override;
+    Status setExposure(double exposure_s) override;
+    double exposure_s() const override { return exposure_s_; }
+    Status setGain(double gain) override;
+    double gain() const override { return gain_; }
+    Status setFormat(hdr::RawFormat format) override;
+    hdr::RawFormat format() const override { return format_; }
+    // A head that cannot report its angle fails the capture with the head's error as context.
+    Result<hdr::RawFrame> capture(double timeout_s) override;
+
+    void setFaults(const SimCameraFaults& faults) { faults_ = faults; }
+    // The noise-free electron rate (e/s) of every pixel, dark current excluded, for the light at
+    // head angle angle_deg: what the sensor integrates (cached like captures).
+    Result<std::vector<float>> meanRate_e_s(double angle_deg);
+    int64_t renders() const { return renders_; }  // renderScene calls so far (cache misses)
+    double lastRender_ms() const { return last_render_ms_; }
+    const std::shared_ptr<SimClock>& clock() const { return clock_; }
+
+private:
+    struct Key {
+        explicit Key() = default;
+    };
+
+public:
+    // The light's starburst, rendered once, and the image pixels one pattern pixel spans.
+    struct LightImage {
+        render::ImageRGB pattern;
+        double scale_x = 0.0;
+        double scale_y = 0.0;
+    };
+    // (angle to render at, angle to stamp)
+    using AngleSource = std::function<Result<std::pair<double, double>>()>;
+    // Through make() only (the key is private); the options must be valid.
+    SimCamera(Key,
+              optics::Lens lens,
+              const SimCameraOptions& options,
+              AngleSource angles,
+              std::shared_ptr<SimClock> clock,
+              std::optional<LightImage> light_image);
+
+private:
+    static Result<std::unique_ptr<SimCamera>> build(optics::Lens lens,
+                                                    const SimCameraOptions& options,
+                                                    AngleSource angles,
+                                                    std::shared_ptr<SimClock> clock);
+    Result<const std::vector<float>*> rate(double angle_deg);
+    std::string name() const;
+
+    optics::Lens lens_;
+    SimCameraOptions options_;
+    AngleSource angles_;
+    std::shared_ptr<SimClock> clock_;
+    double exposure_s_;
+    double gain_;
+    hdr::RawFormat format_;
+    SimCameraFaults faults_;
+    std::optional<LightImage> light_image_;  // none when options.render.starburst is false
+    std::vector<float> hot_e_s_;  // extra dark current per pixel; empty without hot pixels
+    std::deque<std::pair<double, std::vector<float>>> cache_;
+    int64_t sequence_ = 0;
+    int64_t renders_ = 0;
+    double last_render_ms_ = 0.0;
+};
+
+// Adds the "sim" scheme to a registry: "sim:" opens a SimCamera bound to `head` (or with no head
+// when null) with `defaults`, its lens `lens` when given. URI parameters override: lens=<path of
+// a prescription> (loaded with the default camera description), width, height, bits, seed,
+// format=mono|rggb, angle_deg (fixed angle without a head). NotFound naming the lens parameter
+// when there is no lens.
+Status addSimCameraBackend(CameraRegistry& registry,
+                           std::shared_ptr<SimHead> head,
+                           const SimCameraOptions& defaults = {},
+                           std::optional<optics::Lens> lens = std::nullopt);
+
+}  // namespace flarelab::drivers

@@ -1,0 +1,229 @@
+// ============================================================================
+//  flarelab hdr: SweepLens, SweepCamera, SweepCapture, SweepHeader, SweepBracketStats,
+//                SweepFrame, Sweep, ReadSweepOptions, SweepWriteOptions, SweepWriter,
+//                parseSweepManifest, formatSweepManifest, readSweepManifest, readSweep,
+//                loadFrame, sweepFrameFileName
+// ============================================================================
+//
+// Sweeps on disk (DESIGN.md, "Formats"): a directory holding `manifest.json` and one HDR frame
+// (OpenEXR, hdr/exr.h) per head angle, optionally with the raw brackets each frame was merged
+// from. The manifest is the message flarelab.v1.SweepManifest (proto/sweep.proto) in the protobuf
+// JSON mapping; this module turns it into the plain structs below and back, and validates it.
+//
+// Rules of format version 1. A manifest breaking any of them is refused with an Error naming the
+// manifest file and the field ("frames[3].angle_deg"):
+//   - format_version is 1 (another version: Unsupported). Fields the reader does not know are
+//     refused (ParseError), not skipped: a writer that adds a field raises the version, so a
+//     misspelt field cannot silently lose data. Field names may be written as in the .proto
+//     ("angle_deg", as the writer does) or in lowerCamelCase ("angleDeg"), as protobuf JSON allows.
+//   - every number is finite; exposure times, gain, focal length, f-number and pixel pitch > 0;
+//     capture.from_deg <= capture.to_deg; capture.step_deg > 0; capture.width_px and height_px
+//     1..32768; camera.bit_depth 1..32; strings hold no NUL (EXR attributes cannot).
+//   - frame angles strictly increase and lie in [from_deg, to_deg] (give or take
+//     kSweepAngleSlackDeg); they need not sit on the step grid.
+//   - a frame's raw_files and brackets are empty or have one entry per exposure time; brackets[i]
+//     .exposure_s equals exposure_times_s[i].
+//   - file names (exr_file, raw_files) are relative paths inside the sweep directory: '/'
+//     separated, no empty, "." or ".." component, no backslash or control character, at most 255
+//     bytes per component; exr_file ends in ".exr"; no file is named twice, nor manifest.json.
+// readSweep further checks every file (see there). Extra files in the directory that the
+// manifest does not list are warnings (Sweep::warnings), not errors, unless
+// ReadSweepOptions::extra_exr_files_are_errors: an interrupted writer leaves exactly such a file
+// (its last frame, written but not yet listed), and the sweep up to it is still good.
+//
+// SweepWriter keeps the manifest true at every instant: it writes a frame's EXR first (atomic,
+// hdr/exr.h), then replaces manifest.json by writing a temporary file, flushing it to disk and
+// renaming it over the old one. A crash leaves either the old manifest, which lists every frame
+// but the last, or the new one; never a torn one.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "common/result.h"
+#include "hdr/exr.h"
+#include "render/image.h"
+
+namespace flarelab::hdr {
+
+inline constexpr int kSweepFormatVersion = 1;
+inline constexpr char kSweepManifestFile[] = "manifest.json";
+inline constexpr int64_t kSweepMaxManifestBytes = int64_t{64} << 20;
+inline constexpr int64_t kSweepMaxSide = int64_t{1} << 15;  // frame width and height, pixels
+// How far a frame's angle may lie outside [from_deg, to_deg]: the writer computes angles as
+// from_deg + i * step_deg, which may round past to_deg.
+inline constexpr double kSweepAngleSlackDeg = 1e-6;
+
+struct SweepLens {
+    std::string description;  // also the frames' EXR attribute flarelab.lens
+    std::string serial;
+    std::optional<double> focal_length_mm;
+    std::optional<double> f_number;
+    bool operator==(const SweepLens&) const = default;
+};
+
+struct SweepCamera {
+    std::string description;  // also the frames' EXR attribute flarelab.camera
+    std::string serial;
+    std::optional<double> pixel_pitch_um;
+    std::optional<int> bit_depth;
+    bool operator==(const SweepCamera&) const = default;
+};
+
+// What the rig was asked to do.
+struct SweepCapture {
+    double from_deg = 0.0;
+    double to_deg = 0.0;
+    double step_deg = 0.2;
+    double roll_deg = 0.0;                 // the light's roll, fixed for the sweep
+    std::vector<double> exposure_times_s;  // the planned bracket; empty when not bracketed
+    std::optional<double> gain;            // linear
+    int64_t width_px = 0;                  // every frame's size
+    int64_t height_px = 0;
+    bool operator==(const SweepCapture&) const = default;
+};
+
+struct SweepHeader {
+    int format_version = kSweepFormatVersion;
+    std::string software_version;
+    // When the sweep started, RFC 3339 ("2026-11-29T07:04:02Z"); empty when the manifest does not
+    // say. SweepWriter::create fills in the current time when it is empty.
+    std::string created_utc;
+    SweepLens lens;
+    SweepCamera camera;
+    SweepCapture capture;
+    bool operator==(const SweepHeader&) const = default;
+};
+
+// How one exposure of the bracket contributed to the merged frame.
+struct SweepBracketStats {
+    double exposure_s = 0.0;
+    uint64_t samples_used = 0;
+    uint64_t samples_clipped = 0;
+    bool operator==(const SweepBracketStats&) const = default;
+};
+
+struct SweepFrame {
+    double angle_deg = 0.0;
+    std::string exr_file;                  // relative to the sweep directory
+    std::vector<double> exposure_times_s;  // the bracket merged into this frame
+    std::vector<std::string> raw_files;    // relative; none or one per exposure time
+    std::string merge_method;
+    std::vector<SweepBracketStats> brackets;  // none or one per exposure time
+    bool operator==(const SweepFrame&) const = default;
+};
+
+struct Sweep {
+    std::string directory;  // as given to the reader or writer; empty for parseSweepManifest
+    SweepHeader header;
+    std::vector<SweepFrame> frames;  // angles strictly increasing
+    // What readSweep found odd but not wrong (files the manifest does not list), one line each,
+    // naming the file. Not part of the manifest.
+    std::vector<std::string> warnings;
+    bool operator==(const Sweep&) const = default;
+};
+
+struct ReadSweepOptions {
+    // An EXR file in the directory that the manifest does not list is an error instead of a
+    // warning. Off by default: an interrupted writer leaves one (see the top of this file).
+    bool extra_exr_files_are_errors = false;
+    ExrReadOptions exr;  // limits for reading each frame
+};
+
+// Parses and validates manifest text (the rules at the top of this file; no file is looked at).
+// `name` stands for the manifest in error messages. ParseError for malformed JSON, unknown fields
+// and broken rules, Unsupported for another format_version.
+Result<Sweep> parseSweepManifest(std::string_view json, const std::string& name = "<memory>");
+
+// The manifest text of `sweep` (header and frames; directory and warnings are not part of it), as
+// the writer stores it: protobuf JSON with the .proto's field names, indented. InvalidArgument,
+// naming the field, when `sweep` breaks a rule, so whatever this returns parses back to `sweep`.
+Result<std::string> formatSweepManifest(const Sweep& sweep);
+
+// Reads and validates `directory`/manifest.json alone: cheap, for listing a sweep. NotFound when
+// there is no manifest, IoError when it cannot be read or exceeds kSweepMaxManifestBytes, else
+// as parseSweepManifest. Frame files are not looked at and `warnings` stays empty.
+Result<Sweep> readSweepManifest(const std::string& directory);
+
+// Reads and validates a whole sweep: the manifest as readSweepManifest, then every file it lists
+// (one frame in memory at a time). Refused, with the manifest field and the file named:
+//   - a missing file (NotFound), one that is not a regular file, or one that resolves (through
+//     symbolic links) to a place outside the directory;
+//   - a frame that readExr refuses (unreadable, corrupt, NaN or infinite pixels), whose size is not
+//     capture.width_px x capture.height_px, or whose flarelab attributes disagree with the
+//     manifest: angle_deg must equal the frame's angle, roll_deg the capture's roll, gain the
+//     capture's gain, exposure_times_s, lens, camera and merge_method the manifest's, each
+//     exactly (an attribute absent on one side must be absent or empty on the other; the angle
+//     and roll must be present). flarelab.software_version and flarelab.extra.* are not compared.
+//   - raw files are checked for existence and type only; their contents belong to hdr/raw_io.h.
+// Then every file under the directory that the manifest does not list (temporary files of an
+// interrupted write included) becomes a warning, or for an EXR file an error when
+// options.extra_exr_files_are_errors.
+Result<Sweep> readSweep(const std::string& directory, const ReadSweepOptions& options = {});
+
+// Reads frame `index` (< sweep.frames.size(), else a bug) of a sweep from readSweep or
+// readSweepManifest and checks it against the manifest as readSweep does.
+Result<ExrImage> loadFrame(const Sweep& sweep, size_t index, const ExrReadOptions& options = {});
+
+// The file name SweepWriter gives frame `index` at `angle_deg`: "frame_00012_+2.4000deg.exr".
+// The index keeps names unique and sorted whatever the angles.
+std::string sweepFrameFileName(size_t index, double angle_deg);
+
+struct SweepWriteOptions {
+    ExrWriteOptions exr;
+    // Append to the sweep already in the directory, whose lens, camera and capture settings must
+    // equal the new header's (its software_version and created_utc are kept). Without it a
+    // directory that holds a manifest or any EXR file is refused.
+    bool resume = false;
+    // Test seams, to simulate a crash: called after a frame's EXR is in place and before the
+    // manifest is touched, and after the new manifest is on disk under its temporary name and
+    // before it is renamed over the old one.
+    std::function<void()> after_frame_written;
+    std::function<void()> before_manifest_replaced;
+};
+
+// Writes a sweep frame by frame. One writer per directory: the writer holds an exclusive lock
+// (flock) on the directory, and a second writer is refused.
+class SweepWriter {
+public:
+    // Creates `directory` (and its parents) if needed, checks `header` against the rules and
+    // writes a manifest with no frames (or, with options.resume, reads the existing one).
+    // InvalidArgument naming the field for a bad header, or when the directory already holds a
+    // sweep or EXR files (without resume) or another writer; IoError when the system refuses.
+    static Result<SweepWriter> create(const std::string& directory,
+                                      SweepHeader header,
+                                      SweepWriteOptions options = {});
+
+    SweepWriter(SweepWriter&&) noexcept;
+    SweepWriter& operator=(SweepWriter&&) noexcept;
+    ~SweepWriter();
+
+    // Writes `image` as the next frame and lists it in the manifest. `frame.exr_file` empty means
+    // sweepFrameFileName(frames so far, angle); its raw_files must already be on disk. Refused,
+    // with nothing changed on disk: a frame that breaks a rule (an angle not above the last one,
+    // an image not capture.width_px x capture.height_px, ...), a raw file that is missing, and an
+    // exr_file that already exists, whatever it holds (a frame is never silently overwritten;
+    // after a crash, the unlisted frame the crash left must be removed by hand). When the
+    // manifest cannot be replaced, the new EXR is removed again and the sweep stays as it was.
+    // (The existence check and the write are not one atomic step: the directory lock keeps other
+    // SweepWriters out, not other programs.) Returns the frame as listed.
+    Result<SweepFrame> addFrame(const render::ImageRGB& image, SweepFrame frame);
+
+    // The sweep as written so far (the manifest on disk says the same).
+    const Sweep& sweep() const { return sweep_; }
+
+private:
+    struct DirectoryLock;
+    SweepWriter(Sweep sweep, SweepWriteOptions options, std::unique_ptr<DirectoryLock> lock);
+
+    Sweep sweep_;
+    SweepWriteOptions options_;
+    std::unique_ptr<DirectoryLock> lock_;
+};
+
+}  // namespace flarelab::hdr

@@ -1,0 +1,81 @@
+#include "apps/capture_command.h"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+
+#include "hdr/sweep.h"
+#include "tests/apps/command_runner.h"
+#include "tests/test_paths.h"
+
+namespace flarelab::apps {
+namespace {
+
+using testing::CommandRun;
+
+CommandRun capture(std::vector<std::string> args) {
+    args.insert(args.begin(), "capture");
+    return testing::runCommand(addCaptureCommand, args);
+}
+
+std::string freshDir(const std::string& name) {
+    const auto dir = std::filesystem::temp_directory_path() / ("flarelab_capture_test_" + name);
+    std::filesystem::remove_all(dir);
+    return dir.string();
+}
+
+std::vector<std::string> small(const std::string& dir) {
+    return {"--sim",    "--fast", "--lens",  flarelab::testing::lensPath("lensbaby-toy.csv"),
+            "--from",   "0",      "--to",    "0.4",
+            "--step",   "0.2",    "--width", "48",
+            "--height", "32",     "-o",      dir};
+}
+
+TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
+    const std::string dir = freshDir("sweep");
+    auto args = small(dir);
+    args.push_back("--keep-raw");
+    CommandRun run = capture(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_NE(run.out.find("3 frames"), std::string::npos) << run.out;
+    auto sweep = hdr::readSweep(dir);
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    ASSERT_EQ(sweep->frames.size(), 3u);
+    EXPECT_EQ(sweep->frames[2].angle_deg, 0.4);
+    EXPECT_EQ(sweep->frames[0].raw_files.size(), 3u);
+    EXPECT_EQ(sweep->header.capture.exposure_times_s, (std::vector<double>{0.25, 1.0, 4.0}));
+    // Asked again for a longer range with --resume, only the new frames are taken.
+    args = small(dir);
+    args[7] = "0.8";
+    args.push_back("--keep-raw");
+    run = capture(args);
+    EXPECT_EQ(run.code, 1) << "a new range is a different sweep";
+    args = small(dir);
+    args.push_back("--keep-raw");
+    args.push_back("--resume");
+    run = capture(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_NE(run.out.find("3 already there"), std::string::npos) << run.out;
+}
+
+TEST(Capture, RefusesBadRequestsNamingWhatIsWrong) {
+    const std::string dir = freshDir("bad");
+    auto args = small(dir);
+    args.erase(args.begin());  // no --sim
+    CommandRun run = capture(args);
+    EXPECT_EQ(run.code, 1);
+    EXPECT_NE(run.err.find("--sim"), std::string::npos);
+    args = small(dir);
+    args.insert(args.end(), {"--brackets", "0.25,abc"});
+    run = capture(args);
+    EXPECT_EQ(run.code, 1);
+    EXPECT_NE(run.err.find("abc"), std::string::npos) << run.err;
+    args = small(dir);
+    args[5] = "1";  // --from 1 > --to 0.4
+    run = capture(args);
+    EXPECT_EQ(run.code, 1);
+    EXPECT_FALSE(std::filesystem::exists(dir + "/manifest.json"));
+}
+
+}  // namespace
+}  // namespace flarelab::apps

@@ -1,0 +1,123 @@
+#include "hdr/raw_io.h"
+
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+namespace flarelab::hdr {
+namespace {
+
+RawFrame sample() {
+    RawFrame f;
+    f.width = 5;
+    f.height = 3;
+    f.format = RawFormat::BayerGRBG;
+    f.bit_depth = 12;
+    for (int i = 0; i < 15; ++i) f.samples.push_back(static_cast<uint16_t>(i * 273));
+    f.exposure_s = 0.25;
+    f.gain = 1.7;
+    f.black_level_dn = 256;
+    f.white_level_dn = 4000;
+    f.read_noise_dn = 2.25;
+    f.electrons_per_dn = 0.8125;
+    f.angle_deg = -1.4;
+    f.timestamp_ns = 1234567890123;
+    f.sequence = 42;
+    f.camera = "sim camera, serial 0";
+    return f;
+}
+
+std::string tempPath(const std::string& name) {
+    const auto dir = std::filesystem::temp_directory_path() / "flarelab_raw_io_test";
+    std::filesystem::create_directories(dir);
+    return (dir / name).string();
+}
+
+std::string slurp(const std::string& path) {
+    std::ifstream in(path, std::ios::binary);
+    return {std::istreambuf_iterator<char>(in), {}};
+}
+
+Result<RawFrame> parse(const std::string& text) {
+    return readRawFromMemory(std::span(reinterpret_cast<const uint8_t*>(text.data()), text.size()),
+                             "t.pgm");
+}
+
+TEST(RawIo, RoundTripsEveryFieldExactly) {
+    const std::string path = tempPath("round.pgm");
+    const RawFrame f = sample();
+    ASSERT_TRUE(writeRaw(path, f));
+    const auto back = readRaw(path);
+    ASSERT_TRUE(back) << back.error().message;
+    EXPECT_EQ(*back, f);
+    // A plain PGM: magic, then a 16-bit MAXVAL of 4095 for 12 bits.
+    const std::string text = slurp(path);
+    EXPECT_EQ(text.substr(0, 3), "P5\n");
+    EXPECT_NE(text.find("\n5 3\n4095\n"), std::string::npos);
+}
+
+TEST(RawIo, RefusesBrokenHeadersNamingTheKey) {
+    const std::string good = [] {
+        const std::string path = tempPath("good.pgm");
+        EXPECT_TRUE(writeRaw(path, sample()));
+        return slurp(path);
+    }();
+    ASSERT_TRUE(parse(good));
+    const auto replaced = [&](const std::string& from, const std::string& to) {
+        std::string t = good;
+        const size_t at = t.find(from);
+        EXPECT_NE(at, std::string::npos) << from;
+        return t.replace(at, from.size(), to);
+    };
+    const auto message = [&](const std::string& text) {
+        const auto r = parse(text);
+        EXPECT_FALSE(r);
+        return r ? std::string() : r.error().message;
+    };
+    EXPECT_NE(message(replaced("# gain 1.7\n", "")).find("\"gain\" is missing"), std::string::npos);
+    EXPECT_NE(message(replaced("# gain 1.7\n", "# gain 1.7\n# gain 2\n")).find("twice"),
+              std::string::npos);
+    EXPECT_NE(message(replaced("# gain 1.7\n", "# gain nan\n")).find("gain"), std::string::npos);
+    EXPECT_NE(message(replaced("# gain 1.7\n", "# gain -1\n")).find("gain"), std::string::npos);
+    EXPECT_NE(message(replaced("# gain 1.7\n", "# colour red\n")).find("unknown header key"),
+              std::string::npos);
+    EXPECT_NE(message(replaced("flarelab-raw 1", "flarelab-raw 2")).find("not a flarelab raw"),
+              std::string::npos);
+    EXPECT_NE(message(replaced("\n4095\n", "\n65535\n")).find("MAXVAL"), std::string::npos);
+    EXPECT_NE(message(replaced("\n5 3\n", "\n5 4\n")).find("bytes of samples"), std::string::npos);
+    EXPECT_NE(message(replaced("\n5 3\n", "\n0 3\n")).find("limits"), std::string::npos);
+    EXPECT_NE(message(replaced("# format bayer-grbg", "# format bayer-xyzw")).find("format"),
+              std::string::npos);
+    EXPECT_NE(message(replaced("# black_level_dn 256", "# black_level_dn 4001")).find("black"),
+              std::string::npos);
+    EXPECT_NE(message(good.substr(0, good.size() - 1)).find("bytes of samples"), std::string::npos);
+    std::string high = good;
+    high[high.size() - 2] = static_cast<char>(0xff);  // last sample 0xff.. > 4095
+    EXPECT_NE(message(high).find("above MAXVAL"), std::string::npos);
+    EXPECT_FALSE(parse(""));
+    EXPECT_EQ(readRaw(tempPath("missing.pgm")).error().code, ErrorCode::NotFound);
+}
+
+TEST(RawIo, RefusesToWriteFramesThatBreakTheRulesAndKeepsTheOldFile) {
+    const std::string path = tempPath("keep.pgm");
+    ASSERT_TRUE(writeRaw(path, sample()));
+    RawFrame bad = sample();
+    bad.samples[3] = 5000;  // above 2^12 - 1
+    EXPECT_FALSE(writeRaw(path, bad));
+    bad = sample();
+    bad.camera = "two\nlines";
+    EXPECT_FALSE(writeRaw(path, bad));
+    bad = sample();
+    bad.exposure_s = 0.0;
+    EXPECT_FALSE(writeRaw(path, bad));
+    bad = sample();
+    bad.samples.pop_back();
+    EXPECT_FALSE(writeRaw(path, bad));
+    EXPECT_EQ(*readRaw(path), sample());
+    EXPECT_FALSE(writeRaw("/nonexistent-dir/x.pgm", sample()));
+}
+
+}  // namespace
+}  // namespace flarelab::hdr
