@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The optics benchmarks, the paraxial-versus-exact ghost report and the renderer benchmark
-# (flarelab bench render), written under out/bench/.
+# The optics benchmarks, the paraxial-versus-exact ghost report, the renderer benchmark
+# (flarelab bench render) and the bracket merge benchmark (flarelab bench merge), written under
+# out/bench/.
 #   scripts/bench.sh BUILD_DIR [--quick]
 # The renderer benchmark takes about an hour on 2 cores; --quick runs its smoke version.
 # optics_bench runs every benchmark five times and the summary keeps the fastest repetition of
@@ -96,3 +97,11 @@ if [[ ${2:-} != --quick ]]; then
     scripts/plot_render_trade.sh "$out/render.json" "$out/render_trade.png"
 fi
 echo "bench: wrote $out/render.{md,json}"
+
+echo
+echo "bench: flarelab bench merge${2:+ $2}"
+"$build/apps/flarelab" bench merge ${2:+"$2"} --json "$out/merge.json.tmp" >"$out/merge.md.tmp"
+mv "$out/merge.json.tmp" "$out/merge.json"
+mv "$out/merge.md.tmp" "$out/merge.md"
+cat "$out/merge.md"
+echo "bench: wrote $out/merge.{md,json}"
