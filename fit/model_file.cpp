@@ -1,0 +1,731 @@
+#include "fit/model_file.h"
+
+#include <fcntl.h>
+#include <google/protobuf/struct.pb.h>
+#include <google/protobuf/util/json_util.h>
+#include <google/protobuf/util/time_util.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cerrno>
+#include <charconv>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <limits>
+#include <set>
+#include <system_error>
+#include <utility>
+
+#include "common/check.h"
+#include "proto/model.pb.h"
+
+namespace flarelab::fit {
+namespace {
+
+namespace fs = std::filesystem;
+namespace pb = google::protobuf;
+namespace v1 = flarelab::v1;
+
+constexpr int64_t kMaxUint32 = std::numeric_limits<uint32_t>::max();
+
+std::string osMessage(int error_number) {
+    return std::error_code(error_number, std::generic_category()).message();
+}
+
+// Shortest decimal that reads back to the same double.
+std::string formatDouble(double value) {
+    std::array<char, 32> buffer{};
+    const auto result = std::to_chars(buffer.data(), buffer.data() + buffer.size(), value);
+    return std::string(buffer.data(), result.ptr);
+}
+
+std::string indexed(const std::string& field, size_t index) {
+    return field + "[" + std::to_string(index) + "]";
+}
+
+bool validUtf8(std::string_view text) {
+    size_t i = 0;
+    while (i < text.size()) {
+        const auto c = static_cast<unsigned char>(text[i]);
+        int extra = 0;
+        uint32_t code = 0;
+        if (c < 0x80) {
+            ++i;
+            continue;
+        } else if ((c & 0xE0) == 0xC0) {
+            extra = 1;
+            code = c & 0x1F;
+        } else if ((c & 0xF0) == 0xE0) {
+            extra = 2;
+            code = c & 0x0F;
+        } else if ((c & 0xF8) == 0xF0) {
+            extra = 3;
+            code = c & 0x07;
+        } else {
+            return false;
+        }
+        if (text.size() - i <= static_cast<size_t>(extra)) return false;
+        for (int k = 1; k <= extra; ++k) {
+            const auto next = static_cast<unsigned char>(text[i + k]);
+            if ((next & 0xC0) != 0x80) return false;
+            code = (code << 6) | (next & 0x3F);
+        }
+        static constexpr uint32_t kSmallest[] = {0, 0x80, 0x800, 0x10000};
+        if (code < kSmallest[extra] || code > 0x10FFFF || (code >= 0xD800 && code <= 0xDFFF))
+            return false;
+        i += static_cast<size_t>(extra) + 1;
+    }
+    return true;
+}
+
+// For messages: control characters escaped, long text shortened, in single quotes.
+std::string quotedText(std::string_view text) {
+    std::string out = "'";
+    for (const char c : text.substr(0, 200)) {
+        const auto u = static_cast<unsigned char>(c);
+        if (u < 0x20 || u == 0x7F) {
+            char escape[8];
+            std::snprintf(escape, sizeof(escape), "\\x%02x", u);
+            out += escape;
+        } else {
+            out += c;
+        }
+    }
+    if (text.size() > 200) out += "...";
+    return out + "'";
+}
+
+// ---------------------------------------------------------------------------------------------
+// The rules of format version 1 (model_file.h), on the plain structs. Reading reports a broken
+// rule as ParseError, writing as InvalidArgument; `name` is the file or a stand-in.
+
+class Checker {
+public:
+    Checker(ErrorCode code, std::string name) : code_(code), name_(std::move(name)) {}
+
+    Error fail(const std::string& field, const std::string& what) const {
+        return makeError(code_, name_ + ": " + field + ": " + what);
+    }
+    Status finite(const std::string& field, double value) const {
+        if (!std::isfinite(value)) return fail(field, formatDouble(value) + " is not finite");
+        return Ok{};
+    }
+    Status positive(const std::string& field, double value) const {
+        if (!(std::isfinite(value) && value > 0.0))
+            return fail(field, formatDouble(value) + " is not a finite number > 0");
+        return Ok{};
+    }
+    Status positive(const std::string& field, const std::optional<double>& value) const {
+        return value ? positive(field, *value) : Status(Ok{});
+    }
+    Status nonNegative(const std::string& field, double value) const {
+        if (!(std::isfinite(value) && value >= 0.0))
+            return fail(field, formatDouble(value) + " is not a finite number >= 0");
+        return Ok{};
+    }
+    Status text(const std::string& field, const std::string& value) const {
+        if (value.size() > kModelMaxStringBytes)
+            return fail(field, std::to_string(value.size()) + " bytes, more than the limit of " +
+                                   std::to_string(kModelMaxStringBytes));
+        if (value.find('\0') != std::string::npos) return fail(field, "holds a NUL character");
+        if (!validUtf8(value)) return fail(field, "is not valid UTF-8");
+        return Ok{};
+    }
+    Status count(const std::string& field, size_t n, size_t low, size_t high) const {
+        if (n < low || n > high)
+            return fail(field, std::to_string(n) + " entries; " + std::to_string(low) + ".." +
+                                   std::to_string(high) + " allowed");
+        return Ok{};
+    }
+
+private:
+    ErrorCode code_;
+    std::string name_;
+};
+
+bool isLowerHexDigest(std::string_view text) {
+    if (text.size() != 64) return false;
+    return std::all_of(text.begin(), text.end(),
+                       [](char c) { return (c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'); });
+}
+
+Status checkHeader(const FlareModel& m, const Checker& check) {
+    if (m.format_version != kModelFormatVersion)
+        return check.fail("format_version", std::to_string(m.format_version) +
+                                                " is not the version this program knows (" +
+                                                std::to_string(kModelFormatVersion) + ")");
+    if (auto ok = check.text("software_version", m.software_version); !ok) return ok;
+    if (!m.created_utc.empty()) {
+        pb::Timestamp stamp;
+        if (m.created_utc.size() > 64 || !pb::util::TimeUtil::FromString(m.created_utc, &stamp))
+            return check.fail("created", quotedText(m.created_utc) +
+                                             " is not an RFC 3339 time (2026-11-29T07:04:02Z)");
+    }
+    const ModelLens& lens = m.lens;
+    if (auto ok = check.text("lens.description", lens.description); !ok) return ok;
+    if (auto ok = check.text("lens.prescription_file", lens.prescription_file); !ok) return ok;
+    if (!lens.prescription_sha256.empty() && !isLowerHexDigest(lens.prescription_sha256))
+        return check.fail(
+            "lens.prescription_sha256",
+            quotedText(lens.prescription_sha256) + " is not 64 lowercase hex digits (a SHA-256)");
+    if (auto ok = check.positive("lens.f_number", lens.f_number); !ok) return ok;
+    if (auto ok = check.positive("lens.focal_length_mm", lens.focal_length_mm); !ok) return ok;
+    if (auto ok = check.positive("lens.sensor_width_mm", lens.sensor_width_mm); !ok) return ok;
+    if (auto ok = check.positive("lens.sensor_height_mm", lens.sensor_height_mm); !ok) return ok;
+
+    const ModelCapture& c = m.capture;
+    if (auto ok = check.finite("capture.from_deg", c.from_deg); !ok) return ok;
+    if (auto ok = check.finite("capture.to_deg", c.to_deg); !ok) return ok;
+    if (auto ok = check.finite("capture.roll_deg", c.roll_deg); !ok) return ok;
+    if (auto ok = check.positive("capture.step_deg", c.step_deg); !ok) return ok;
+    if (c.from_deg > c.to_deg)
+        return check.fail("capture.to_deg", formatDouble(c.to_deg) + " is below capture.from_deg " +
+                                                formatDouble(c.from_deg));
+    for (size_t i = 0; i < c.exposure_times_s.size(); ++i)
+        if (auto ok = check.positive(indexed("capture.exposure_times_s", i), c.exposure_times_s[i]);
+            !ok)
+            return ok;
+    const std::pair<const char*, int64_t> sides[] = {{"capture.width_px", c.width_px},
+                                                     {"capture.height_px", c.height_px}};
+    for (const auto& [field, side] : sides)
+        if (side < 1 || side > kModelMaxSide)
+            return check.fail(field, std::to_string(side) + " is outside 1.." +
+                                         std::to_string(kModelMaxSide) + " pixels");
+    if (auto ok = check.text("capture.camera", c.camera); !ok) return ok;
+
+    if (auto ok = check.finite("valid_range.from_deg", m.valid_from_deg); !ok) return ok;
+    if (auto ok = check.finite("valid_range.to_deg", m.valid_to_deg); !ok) return ok;
+    if (!(m.valid_from_deg < m.valid_to_deg))
+        return check.fail("valid_range.to_deg", formatDouble(m.valid_to_deg) +
+                                                    " is not above valid_range.from_deg " +
+                                                    formatDouble(m.valid_from_deg));
+    if (m.valid_from_deg < c.from_deg || m.valid_to_deg > c.to_deg)
+        return check.fail("valid_range",
+                          formatDouble(m.valid_from_deg) + ".." + formatDouble(m.valid_to_deg) +
+                              " reaches outside capture.from_deg..capture.to_deg (" +
+                              formatDouble(c.from_deg) + ".." + formatDouble(c.to_deg) + ")");
+    return Ok{};
+}
+
+// `sole`: the parameter's only piece, which may cover a single angle.
+Status checkPiece(const ModelPiece& p, const std::string& at, bool sole, const Checker& check) {
+    if (auto ok = check.finite(at + ".angle_from_deg", p.angle_from_deg); !ok) return ok;
+    if (auto ok = check.finite(at + ".angle_to_deg", p.angle_to_deg); !ok) return ok;
+    if (!(p.angle_from_deg < p.angle_to_deg || (sole && p.angle_from_deg == p.angle_to_deg)))
+        return check.fail(at + ".angle_to_deg",
+                          formatDouble(p.angle_to_deg) + " is not above angle_from_deg " +
+                              formatDouble(p.angle_from_deg) +
+                              (sole ? "" : " (only a parameter's sole piece may cover one angle)"));
+    if (auto ok =
+            check.count(at + ".coefficients", p.coefficients.size(), 1, kModelMaxCoefficients);
+        !ok)
+        return ok;
+    for (size_t k = 0; k < p.coefficients.size(); ++k)
+        if (auto ok = check.finite(indexed(at + ".coefficients", k), p.coefficients[k]); !ok)
+            return ok;
+    if (auto ok = check.nonNegative(at + ".residual_rms", p.residual_rms); !ok) return ok;
+    if (auto ok = check.nonNegative(at + ".residual_max", p.residual_max); !ok) return ok;
+    if (p.samples < 1 || p.samples > kMaxUint32)
+        return check.fail(at + ".samples", std::to_string(p.samples) + " is outside 1.." +
+                                               std::to_string(kMaxUint32));
+    return Ok{};
+}
+
+Status checkParameter(const FlareModel& m,
+                      const ModelParameter& p,
+                      const std::string& at,
+                      const Checker& check) {
+    if (auto ok = check.text(at + ".name", p.name); !ok) return ok;
+    if (p.name.empty()) return check.fail(at + ".name", "is empty");
+    if (auto ok = check.text(at + ".unit", p.unit); !ok) return ok;
+    if (p.lower_bound)
+        if (auto ok = check.finite(at + ".lower_bound", *p.lower_bound); !ok) return ok;
+    if (p.upper_bound)
+        if (auto ok = check.finite(at + ".upper_bound", *p.upper_bound); !ok) return ok;
+    if (p.lower_bound && p.upper_bound && *p.lower_bound > *p.upper_bound)
+        return check.fail(
+            at + ".upper_bound",
+            formatDouble(*p.upper_bound) + " is below lower_bound " + formatDouble(*p.lower_bound));
+    if (auto ok = check.count(at + ".pieces", p.pieces.size(), 1, kModelMaxPieces); !ok) return ok;
+    for (size_t i = 0; i < p.pieces.size(); ++i) {
+        const std::string piece_at = indexed(at + ".pieces", i);
+        if (auto ok = checkPiece(p.pieces[i], piece_at, p.pieces.size() == 1, check); !ok)
+            return ok;
+        if (i > 0 && p.pieces[i].angle_from_deg != p.pieces[i - 1].angle_to_deg)
+            return check.fail(piece_at + ".angle_from_deg",
+                              formatDouble(p.pieces[i].angle_from_deg) + " is not " +
+                                  indexed(at + ".pieces", i - 1) + ".angle_to_deg " +
+                                  formatDouble(p.pieces[i - 1].angle_to_deg) +
+                                  "; pieces must be ordered and contiguous");
+    }
+    const double from = p.pieces.front().angle_from_deg;
+    const double to = p.pieces.back().angle_to_deg;
+    if (from < m.valid_from_deg || to > m.valid_to_deg)
+        return check.fail(at + ".pieces", "cover " + formatDouble(from) + ".." + formatDouble(to) +
+                                              ", outside valid_range (" +
+                                              formatDouble(m.valid_from_deg) + ".." +
+                                              formatDouble(m.valid_to_deg) + ")");
+    return Ok{};
+}
+
+Status checkGhost(const FlareModel& m,
+                  const ModelGhost& g,
+                  const std::string& at,
+                  const Checker& check) {
+    if (g.id < 0 || g.id > kMaxUint32)
+        return check.fail(at + ".id",
+                          std::to_string(g.id) + " is outside 0.." + std::to_string(kMaxUint32));
+    if (auto ok = check.text(at + ".name", g.name); !ok) return ok;
+    if (auto ok = check.count(at + ".parameters", g.parameters.size(), 1, kModelMaxParameters); !ok)
+        return ok;
+    std::set<std::string_view> names;
+    for (size_t i = 0; i < g.parameters.size(); ++i) {
+        const ModelParameter& p = g.parameters[i];
+        const std::string param_at = indexed(at + ".parameters", i);
+        if (auto ok = checkParameter(m, p, param_at, check); !ok) return ok;
+        if (!names.insert(p.name).second)
+            return check.fail(param_at + ".name",
+                              quotedText(p.name) + " names two parameters of the ghost");
+        const ModelParameter& first = g.parameters.front();
+        if (p.pieces.front().angle_from_deg != first.pieces.front().angle_from_deg ||
+            p.pieces.back().angle_to_deg != first.pieces.back().angle_to_deg)
+            return check.fail(param_at + ".pieces",
+                              "cover " + formatDouble(p.pieces.front().angle_from_deg) + ".." +
+                                  formatDouble(p.pieces.back().angle_to_deg) + ", but " + at +
+                                  ".parameters[0].pieces cover " +
+                                  formatDouble(first.pieces.front().angle_from_deg) + ".." +
+                                  formatDouble(first.pieces.back().angle_to_deg) +
+                                  "; a ghost's parameters share one span");
+    }
+    const ModelGhostFit& f = g.fit;
+    if (f.frames_fitted < 1 || f.frames_fitted > kMaxUint32)
+        return check.fail(
+            at + ".fit.frames_fitted",
+            std::to_string(f.frames_fitted) + " is outside 1.." + std::to_string(kMaxUint32));
+    if (auto ok = check.finite(at + ".fit.first_angle_deg", f.first_angle_deg); !ok) return ok;
+    if (auto ok = check.finite(at + ".fit.last_angle_deg", f.last_angle_deg); !ok) return ok;
+    if (f.first_angle_deg > f.last_angle_deg)
+        return check.fail(at + ".fit.last_angle_deg", formatDouble(f.last_angle_deg) +
+                                                          " is below fit.first_angle_deg " +
+                                                          formatDouble(f.first_angle_deg));
+    return Ok{};
+}
+
+Status checkModel(const FlareModel& m, const Checker& check) {
+    if (auto ok = checkHeader(m, check); !ok) return ok;
+    if (auto ok = check.count("ghosts", m.ghosts.size(), 0, kModelMaxGhosts); !ok) return ok;
+    std::set<int64_t> ids;
+    for (size_t i = 0; i < m.ghosts.size(); ++i) {
+        const std::string at = indexed("ghosts", i);
+        if (auto ok = checkGhost(m, m.ghosts[i], at, check); !ok) return ok;
+        if (!ids.insert(m.ghosts[i].id).second)
+            return check.fail(at + ".id",
+                              std::to_string(m.ghosts[i].id) + " is the id of an earlier ghost");
+    }
+    return Ok{};
+}
+
+// ---------------------------------------------------------------------------------------------
+// Between the structs and flarelab.v1.FlareModel.
+
+template <typename T>
+std::vector<T> toVector(const pb::RepeatedField<T>& values) {
+    return std::vector<T>(values.begin(), values.end());
+}
+
+// Unvalidated; every proto value fits its struct field. Counts were limited before (limitCounts).
+FlareModel fromProto(const v1::FlareModel& m) {
+    FlareModel model;
+    // format_version was checked before; keeps the uint32 from wrapping.
+    model.format_version = static_cast<int>(std::min<uint32_t>(m.format_version(), 1u << 30));
+    model.software_version = m.software_version();
+    if (m.has_created()) model.created_utc = pb::util::TimeUtil::ToString(m.created());
+    const v1::ModelLens& l = m.lens();
+    model.lens.description = l.description();
+    model.lens.prescription_file = l.prescription_file();
+    model.lens.prescription_sha256 = l.prescription_sha256();
+    if (l.has_f_number()) model.lens.f_number = l.f_number();
+    if (l.has_focal_length_mm()) model.lens.focal_length_mm = l.focal_length_mm();
+    model.lens.sensor_width_mm = l.sensor_width_mm();
+    model.lens.sensor_height_mm = l.sensor_height_mm();
+    const v1::ModelCapture& c = m.capture();
+    model.capture.from_deg = c.from_deg();
+    model.capture.to_deg = c.to_deg();
+    model.capture.step_deg = c.step_deg();
+    model.capture.roll_deg = c.roll_deg();
+    model.capture.exposure_times_s = toVector(c.exposure_times_s());
+    model.capture.width_px = c.width_px();
+    model.capture.height_px = c.height_px();
+    model.capture.camera = c.camera();
+    model.valid_from_deg = m.valid_range().from_deg();
+    model.valid_to_deg = m.valid_range().to_deg();
+    model.ghosts.reserve(static_cast<size_t>(m.ghosts_size()));
+    for (const v1::ModelGhost& g : m.ghosts()) {
+        ModelGhost ghost;
+        ghost.id = g.id();
+        ghost.name = g.name();
+        ghost.parameters.reserve(static_cast<size_t>(g.parameters_size()));
+        for (const v1::ModelParameter& p : g.parameters()) {
+            ModelParameter parameter;
+            parameter.name = p.name();
+            parameter.unit = p.unit();
+            if (p.has_lower_bound()) parameter.lower_bound = p.lower_bound();
+            if (p.has_upper_bound()) parameter.upper_bound = p.upper_bound();
+            parameter.pieces.reserve(static_cast<size_t>(p.pieces_size()));
+            for (const v1::ModelPiece& q : p.pieces())
+                parameter.pieces.push_back({q.angle_from_deg(), q.angle_to_deg(),
+                                            toVector(q.coefficients()), q.residual_rms(),
+                                            q.residual_max(), q.samples()});
+            ghost.parameters.push_back(std::move(parameter));
+        }
+        ghost.fit = {g.fit().frames_fitted(), g.fit().first_angle_deg(), g.fit().last_angle_deg()};
+        model.ghosts.push_back(std::move(ghost));
+    }
+    return model;
+}
+
+// `model` must have passed checkModel.
+v1::FlareModel toProto(const FlareModel& model) {
+    v1::FlareModel m;
+    m.set_format_version(static_cast<uint32_t>(model.format_version));
+    m.set_software_version(model.software_version);
+    if (!model.created_utc.empty()) {
+        const bool parsed = pb::util::TimeUtil::FromString(model.created_utc, m.mutable_created());
+        FLARELAB_CHECK(parsed);
+    }
+    v1::ModelLens* l = m.mutable_lens();
+    l->set_description(model.lens.description);
+    l->set_prescription_file(model.lens.prescription_file);
+    l->set_prescription_sha256(model.lens.prescription_sha256);
+    if (model.lens.f_number) l->set_f_number(*model.lens.f_number);
+    if (model.lens.focal_length_mm) l->set_focal_length_mm(*model.lens.focal_length_mm);
+    l->set_sensor_width_mm(model.lens.sensor_width_mm);
+    l->set_sensor_height_mm(model.lens.sensor_height_mm);
+    v1::ModelCapture* c = m.mutable_capture();
+    c->set_from_deg(model.capture.from_deg);
+    c->set_to_deg(model.capture.to_deg);
+    c->set_step_deg(model.capture.step_deg);
+    c->set_roll_deg(model.capture.roll_deg);
+    for (const double t : model.capture.exposure_times_s) c->add_exposure_times_s(t);
+    c->set_width_px(static_cast<uint32_t>(model.capture.width_px));
+    c->set_height_px(static_cast<uint32_t>(model.capture.height_px));
+    c->set_camera(model.capture.camera);
+    m.mutable_valid_range()->set_from_deg(model.valid_from_deg);
+    m.mutable_valid_range()->set_to_deg(model.valid_to_deg);
+    for (const ModelGhost& ghost : model.ghosts) {
+        v1::ModelGhost* g = m.add_ghosts();
+        g->set_id(static_cast<uint32_t>(ghost.id));
+        g->set_name(ghost.name);
+        for (const ModelParameter& parameter : ghost.parameters) {
+            v1::ModelParameter* p = g->add_parameters();
+            p->set_name(parameter.name);
+            p->set_unit(parameter.unit);
+            if (parameter.lower_bound) p->set_lower_bound(*parameter.lower_bound);
+            if (parameter.upper_bound) p->set_upper_bound(*parameter.upper_bound);
+            for (const ModelPiece& piece : parameter.pieces) {
+                v1::ModelPiece* q = p->add_pieces();
+                q->set_angle_from_deg(piece.angle_from_deg);
+                q->set_angle_to_deg(piece.angle_to_deg);
+                for (const double k : piece.coefficients) q->add_coefficients(k);
+                q->set_residual_rms(piece.residual_rms);
+                q->set_residual_max(piece.residual_max);
+                q->set_samples(static_cast<uint32_t>(piece.samples));
+            }
+        }
+        v1::ModelGhostFit* f = g->mutable_fit();
+        f->set_frames_fitted(static_cast<uint32_t>(ghost.fit.frames_fitted));
+        f->set_first_angle_deg(ghost.fit.first_angle_deg);
+        f->set_last_angle_deg(ghost.fit.last_angle_deg);
+    }
+    return m;
+}
+
+// Where in `message` (recursively) protobuf kept fields it does not know, as a field path
+// ("ghosts[0].fit"); nullopt when nowhere. A binary file from a newer writer carries them.
+std::optional<std::string> findUnknownFields(const pb::Message& message, const std::string& at) {
+    const pb::Reflection* reflection = message.GetReflection();
+    if (!reflection->GetUnknownFields(message).empty()) {
+        const int number = reflection->GetUnknownFields(message).field(0).number();
+        return (at.empty() ? std::string() : at + ".") + "field number " + std::to_string(number);
+    }
+    std::vector<const pb::FieldDescriptor*> fields;
+    reflection->ListFields(message, &fields);
+    for (const pb::FieldDescriptor* field : fields) {
+        if (field->cpp_type() != pb::FieldDescriptor::CPPTYPE_MESSAGE) continue;
+        const std::string name = (at.empty() ? std::string() : at + ".") + field->name();
+        if (field->is_repeated()) {
+            const int n = reflection->FieldSize(message, field);
+            for (int i = 0; i < n; ++i)
+                if (auto found =
+                        findUnknownFields(reflection->GetRepeatedMessage(message, field, i),
+                                          indexed(name, static_cast<size_t>(i))))
+                    return found;
+        } else if (auto found = findUnknownFields(reflection->GetMessage(message, field), name)) {
+            return found;
+        }
+    }
+    return std::nullopt;
+}
+
+// The counts limited before the structs are built, so a hostile file cannot make fromProto
+// allocate more than the message already holds, and errors name the field.
+Status limitCounts(const v1::FlareModel& m, const Checker& check) {
+    if (auto ok = check.count("ghosts", static_cast<size_t>(m.ghosts_size()), 0, kModelMaxGhosts);
+        !ok)
+        return ok;
+    for (int i = 0; i < m.ghosts_size(); ++i) {
+        const std::string at = indexed("ghosts", static_cast<size_t>(i));
+        const v1::ModelGhost& g = m.ghosts(i);
+        if (auto ok = check.count(at + ".parameters", static_cast<size_t>(g.parameters_size()), 1,
+                                  kModelMaxParameters);
+            !ok)
+            return ok;
+        for (int j = 0; j < g.parameters_size(); ++j)
+            if (auto ok = check.count(
+                    indexed(at + ".parameters", static_cast<size_t>(j)) + ".pieces",
+                    static_cast<size_t>(g.parameters(j).pieces_size()), 1, kModelMaxPieces);
+                !ok)
+                return ok;
+    }
+    return Ok{};
+}
+
+Error unsupportedVersion(const std::string& name, const std::string& shown) {
+    return makeError(ErrorCode::Unsupported, name + ": format_version: " + shown +
+                                                 " is not a version this reader knows (" +
+                                                 std::to_string(kModelFormatVersion) + ")");
+}
+
+Result<FlareModel> fromCheckedProto(const v1::FlareModel& m, const std::string& name) {
+    const Checker check(ErrorCode::ParseError, name);
+    if (auto ok = limitCounts(m, check); !ok) return ok.error();
+    FlareModel model = fromProto(m);
+    if (auto ok = checkModel(model, check); !ok) return ok.error();
+    return model;
+}
+
+// protobuf's JSON syntax errors run over three lines: the complaint, an excerpt and a caret. One
+// line here: the complaint and the text from the caret.
+std::string statusText(const pb::util::Status& status) {
+    const std::string text(status.message());
+    const size_t first = text.find('\n');
+    if (first == std::string::npos) return text;
+    const size_t second = text.find('\n', first + 1);
+    const std::string excerpt = text.substr(
+        first + 1, second == std::string::npos ? std::string::npos : second - first - 1);
+    const std::string caret_line = second == std::string::npos ? "" : text.substr(second + 1);
+    const size_t caret = caret_line.find('^');
+    std::string line = text.substr(0, first);
+    if (caret == std::string::npos) return line;
+    const std::string near = caret < excerpt.size() ? excerpt.substr(caret, 40) : "";
+    line += near.empty() ? " (at the end of the text)" : " (at " + quotedText(near) + ")";
+    return line;
+}
+
+// protobuf says "(ghosts[1]) idd: Cannot find field."; this says "ghosts[1].idd: unknown field".
+std::string describeStrictFailure(const pb::util::Status& status) {
+    const std::string text = statusText(status);
+    constexpr std::string_view kUnknown = ": Cannot find field.";
+    if (text.size() < kUnknown.size() || text.substr(text.size() - kUnknown.size()) != kUnknown) {
+        // "(ghosts[1].fit.frames_fitted): invalid value ..." reads "ghosts[1].fit...: invalid ...".
+        if (text.rfind("(", 0) == 0) {
+            const size_t close = text.find("):");
+            if (close != std::string::npos)
+                return text.substr(1, close - 1) + text.substr(close + 1);
+        }
+        return text;
+    }
+    std::string field = text.substr(0, text.size() - kUnknown.size());
+    if (!field.empty() && field.front() == '(') {
+        const size_t close = field.find(") ");
+        if (close != std::string::npos)
+            field = field.substr(1, close - 1) + "." + field.substr(close + 2);
+    }
+    return field + ": unknown field (a version " + std::to_string(kModelFormatVersion) +
+           " model has no such field; new fields come with a new format_version)";
+}
+
+// ---------------------------------------------------------------------------------------------
+// Files.
+
+class FileDescriptor {
+public:
+    explicit FileDescriptor(int fd) : fd_(fd) {}
+    ~FileDescriptor() {
+        if (fd_ >= 0) ::close(fd_);
+    }
+    FileDescriptor(const FileDescriptor&) = delete;
+    FileDescriptor& operator=(const FileDescriptor&) = delete;
+    int get() const { return fd_; }
+    bool valid() const { return fd_ >= 0; }
+    // 0 or the errno of close().
+    int close() {
+        const int result = ::close(fd_);
+        fd_ = -1;
+        return result == 0 ? 0 : errno;
+    }
+
+private:
+    int fd_ = -1;
+};
+
+Result<std::string> readWholeFile(const std::string& path, int64_t max_bytes) {
+    FileDescriptor fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
+    if (!fd.valid()) {
+        const int error = errno;
+        return makeError(error == ENOENT ? ErrorCode::NotFound : ErrorCode::IoError,
+                         path + ": cannot open: " + osMessage(error));
+    }
+    struct stat info {};
+    if (::fstat(fd.get(), &info) != 0)
+        return makeError(ErrorCode::IoError, path + ": cannot stat: " + osMessage(errno));
+    if (!S_ISREG(info.st_mode)) return makeError(ErrorCode::IoError, path + ": not a regular file");
+    if (info.st_size > max_bytes)
+        return makeError(ErrorCode::IoError, path + ": " + std::to_string(info.st_size) +
+                                                 " bytes, more than the limit of " +
+                                                 std::to_string(max_bytes));
+    std::string bytes(static_cast<size_t>(info.st_size), '\0');
+    size_t done = 0;
+    while (done < bytes.size()) {
+        const ssize_t got = ::read(fd.get(), bytes.data() + done, bytes.size() - done);
+        if (got < 0 && errno == EINTR) continue;
+        if (got < 0)
+            return makeError(ErrorCode::IoError, path + ": read failed: " + osMessage(errno));
+        if (got == 0) break;  // shrank while being read
+        done += static_cast<size_t>(got);
+    }
+    bytes.resize(done);
+    return bytes;
+}
+
+// Writes `bytes` to `path` so that it holds either its old or its new contents whatever happens.
+Status replaceFile(const std::string& path, const std::string& bytes) {
+    const std::string temporary = path + ".tmp-" + std::to_string(::getpid());
+    const auto fail = [&](const std::string& what, int error) -> Status {
+        ::unlink(temporary.c_str());
+        return makeError(ErrorCode::IoError, path + ": " + what + ": " + osMessage(error));
+    };
+    FileDescriptor fd(
+        ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0666));
+    if (!fd.valid()) {
+        // Nothing was created: unlinking `temporary` here could remove another writer's file.
+        const int error = errno;
+        return makeError(ErrorCode::IoError,
+                         path + ": cannot create " + temporary + ": " + osMessage(error));
+    }
+    size_t done = 0;
+    while (done < bytes.size()) {
+        const ssize_t wrote = ::write(fd.get(), bytes.data() + done, bytes.size() - done);
+        if (wrote < 0 && errno == EINTR) continue;
+        if (wrote <= 0) return fail("cannot write " + temporary, wrote < 0 ? errno : EIO);
+        done += static_cast<size_t>(wrote);
+    }
+    if (::fsync(fd.get()) != 0) return fail("cannot flush " + temporary + " to disk", errno);
+    if (const int error = fd.close(); error != 0) return fail("cannot close " + temporary, error);
+    if (::rename(temporary.c_str(), path.c_str()) != 0)
+        return fail("cannot rename " + temporary + " into place", errno);
+    // The rename has happened; a failed flush of the directory is not a failed write.
+    const fs::path parent = fs::path(path).parent_path();
+    FileDescriptor directory(
+        ::open(parent.empty() ? "." : parent.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+    if (directory.valid()) ::fsync(directory.get());
+    return Ok{};
+}
+
+}  // namespace
+
+Status validateModel(const FlareModel& model) {
+    return checkModel(model, Checker(ErrorCode::InvalidArgument, "model"));
+}
+
+Status writeModel(const std::string& path, const FlareModel& model) {
+    if (auto ok = checkModel(model, Checker(ErrorCode::InvalidArgument, path)); !ok) return ok;
+    std::string bytes;
+    if (!toProto(model).SerializeToString(&bytes))
+        return makeError(ErrorCode::Internal, path + ": cannot serialize the model");
+    return replaceFile(path, bytes);
+}
+
+Result<FlareModel> readModelFromMemory(std::string_view bytes, const std::string& name) {
+    if (bytes.size() > static_cast<uint64_t>(kModelMaxFileBytes))
+        return makeError(ErrorCode::IoError, name + ": " + std::to_string(bytes.size()) +
+                                                 " bytes, more than the limit of " +
+                                                 std::to_string(kModelMaxFileBytes));
+    v1::FlareModel m;
+    if (!m.ParseFromArray(bytes.data(), static_cast<int>(bytes.size())))
+        return makeError(ErrorCode::ParseError,
+                         name +
+                             ": not a flare model (binary protobuf that does not parse as "
+                             "flarelab.v1.FlareModel; truncated or another kind of file?)");
+    // The version first: a newer writer's fields should read as "unsupported version", not as
+    // "unknown field".
+    if (m.format_version() != static_cast<uint32_t>(kModelFormatVersion))
+        return unsupportedVersion(name, std::to_string(m.format_version()));
+    if (auto unknown = findUnknownFields(m, ""))
+        return makeError(ErrorCode::ParseError,
+                         name + ": " + *unknown + ": unknown field (a version " +
+                             std::to_string(kModelFormatVersion) +
+                             " model has no such field; new fields come with a new "
+                             "format_version)");
+    return fromCheckedProto(m, name);
+}
+
+Result<FlareModel> readModel(const std::string& path) {
+    auto bytes = readWholeFile(path, kModelMaxFileBytes);
+    if (!bytes) return bytes.error();
+    return readModelFromMemory(*bytes, path);
+}
+
+Result<std::string> modelToJson(const FlareModel& model) {
+    if (auto ok = validateModel(model); !ok) return ok.error();
+    pb::util::JsonPrintOptions options;
+    options.add_whitespace = true;
+    options.always_print_primitive_fields = true;
+    options.preserve_proto_field_names = true;
+    std::string json;
+    if (auto status = pb::util::MessageToJsonString(toProto(model), &json, options); !status.ok())
+        return makeError(ErrorCode::Internal, "cannot print the model: " + statusText(status));
+    return json;
+}
+
+Result<FlareModel> modelFromJson(std::string_view json, const std::string& name) {
+    if (json.size() > static_cast<uint64_t>(kModelMaxFileBytes))
+        return makeError(ErrorCode::IoError, name + ": " + std::to_string(json.size()) +
+                                                 " bytes, more than the limit of " +
+                                                 std::to_string(kModelMaxFileBytes));
+    // format_version before the strict parse, as for binary files.
+    pb::Struct loose;
+    pb::util::JsonParseOptions options;
+    options.ignore_unknown_fields = false;
+    const pb::StringPiece text(json.data(), json.size());
+    if (auto status = pb::util::JsonStringToMessage(text, &loose, options); !status.ok())
+        return makeError(ErrorCode::ParseError,
+                         name + ": not a valid JSON object: " + statusText(status));
+    const auto& fields = loose.fields();
+    auto version = fields.find("format_version");
+    if (version == fields.end()) version = fields.find("formatVersion");
+    if (version == fields.end())
+        return makeError(ErrorCode::ParseError, name + ": format_version: missing");
+    const pb::Value& value = version->second;
+    // protobuf JSON allows integers as numbers or as strings ("1").
+    const bool known = (value.kind_case() == pb::Value::kNumberValue &&
+                        value.number_value() == kModelFormatVersion) ||
+                       (value.kind_case() == pb::Value::kStringValue &&
+                        value.string_value() == std::to_string(kModelFormatVersion));
+    if (!known) {
+        std::string shown = "a value that is not a number";
+        if (value.kind_case() == pb::Value::kNumberValue)
+            shown = formatDouble(value.number_value());
+        if (value.kind_case() == pb::Value::kStringValue) shown = quotedText(value.string_value());
+        return unsupportedVersion(name, shown);
+    }
+    v1::FlareModel m;
+    if (auto status = pb::util::JsonStringToMessage(text, &m, options); !status.ok())
+        return makeError(ErrorCode::ParseError, name + ": " + describeStrictFailure(status));
+    return fromCheckedProto(m, name);
+}
+
+}  // namespace flarelab::fit
