@@ -29,6 +29,8 @@
 #include <system_error>
 #include <utility>
 
+#include "hdr/detail/file_descriptor.h"
+
 namespace flarelab::hdr {
 namespace {
 
@@ -43,27 +45,7 @@ std::string osMessage(int error_number) {
     return std::error_code(error_number, std::generic_category()).message();
 }
 
-// Owns a file descriptor; close() reports the error a destructor would have to drop.
-class FileDescriptor {
-public:
-    explicit FileDescriptor(int fd) : fd_(fd) {}
-    ~FileDescriptor() {
-        if (fd_ >= 0) ::close(fd_);
-    }
-    FileDescriptor(const FileDescriptor&) = delete;
-    FileDescriptor& operator=(const FileDescriptor&) = delete;
-    int get() const { return fd_; }
-    bool valid() const { return fd_ >= 0; }
-    // 0 or the errno of close().
-    int close() {
-        const int result = ::close(fd_);
-        fd_ = -1;
-        return result == 0 ? 0 : errno;
-    }
-
-private:
-    int fd_ = -1;
-};
+using detail::FileDescriptor;
 
 // ---------------------------------------------------------------------------------------------
 // Streams. OpenEXR reports stream failures by exception; these throw Iex exceptions, which the

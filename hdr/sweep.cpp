@@ -22,6 +22,7 @@
 #include <utility>
 
 #include "common/check.h"
+#include "hdr/detail/file_descriptor.h"
 #include "proto/sweep.pb.h"
 
 namespace flarelab::hdr {
@@ -76,27 +77,7 @@ bool hasExrExtension(std::string_view name) {
     return tail == ".exr";
 }
 
-// Owns a file descriptor.
-class FileDescriptor {
-public:
-    explicit FileDescriptor(int fd) : fd_(fd) {}
-    ~FileDescriptor() {
-        if (fd_ >= 0) ::close(fd_);
-    }
-    FileDescriptor(const FileDescriptor&) = delete;
-    FileDescriptor& operator=(const FileDescriptor&) = delete;
-    int get() const { return fd_; }
-    bool valid() const { return fd_ >= 0; }
-    // 0 or the errno of close().
-    int close() {
-        const int result = ::close(fd_);
-        fd_ = -1;
-        return result == 0 ? 0 : errno;
-    }
-
-private:
-    int fd_ = -1;
-};
+using detail::FileDescriptor;
 
 // ---------------------------------------------------------------------------------------------
 // The rules of format version 1 (sweep.h), on the plain structs. Parsing reports a broken rule as
