@@ -29,6 +29,8 @@
 #include <system_error>
 #include <utility>
 
+#include "hdr/detail/file_descriptor.h"
+
 namespace flarelab::hdr {
 namespace {
 
@@ -39,31 +41,9 @@ constexpr int64_t kMaxChunkBytes = int64_t{1} << 28;
 constexpr size_t kWriteBufferBytes = size_t{1} << 20;
 constexpr const char* kChannelNames[3] = {"R", "G", "B"};
 
-std::string osMessage(int error_number) {
-    return std::error_code(error_number, std::generic_category()).message();
-}
+using detail::osMessage;
 
-// Owns a file descriptor; close() reports the error a destructor would have to drop.
-class FileDescriptor {
-public:
-    explicit FileDescriptor(int fd) : fd_(fd) {}
-    ~FileDescriptor() {
-        if (fd_ >= 0) ::close(fd_);
-    }
-    FileDescriptor(const FileDescriptor&) = delete;
-    FileDescriptor& operator=(const FileDescriptor&) = delete;
-    int get() const { return fd_; }
-    bool valid() const { return fd_ >= 0; }
-    // 0 or the errno of close().
-    int close() {
-        const int result = ::close(fd_);
-        fd_ = -1;
-        return result == 0 ? 0 : errno;
-    }
-
-private:
-    int fd_ = -1;
-};
+using detail::FileDescriptor;
 
 // ---------------------------------------------------------------------------------------------
 // Streams. OpenEXR reports stream failures by exception; these throw Iex exceptions, which the
@@ -851,17 +831,10 @@ Result<ExrWriteReport> writeExr(const std::string& path,
 }
 
 Result<ExrImage> readExr(const std::string& path, const ExrReadOptions& options) {
-    FileDescriptor fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
-    if (!fd.valid()) {
-        const int error = errno;
-        return makeError(error == ENOENT ? ErrorCode::NotFound : ErrorCode::IoError,
-                         path + ": cannot open: " + osMessage(error));
-    }
-    struct stat info {};
-    if (::fstat(fd.get(), &info) != 0)
-        return makeError(ErrorCode::IoError, path + ": cannot stat: " + osMessage(errno));
-    if (!S_ISREG(info.st_mode)) return makeError(ErrorCode::IoError, path + ": not a regular file");
-    FileIStream in(path, fd.get(), static_cast<uint64_t>(info.st_size));
+    auto file = detail::openRegularFile(path);
+    if (!file) return file.error();
+    const FileDescriptor& fd = file->fd;
+    FileIStream in(path, fd.get(), static_cast<uint64_t>(file->size));
     return decode(in, path, options);
 }
 

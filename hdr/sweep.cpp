@@ -22,6 +22,7 @@
 #include <utility>
 
 #include "common/check.h"
+#include "hdr/detail/file_descriptor.h"
 #include "proto/sweep.pb.h"
 
 namespace flarelab::hdr {
@@ -34,9 +35,7 @@ constexpr size_t kMaxPathBytes = 4096;
 constexpr size_t kMaxComponentBytes = 255;
 constexpr int kMaxBitDepth = 32;
 
-std::string osMessage(int error_number) {
-    return std::error_code(error_number, std::generic_category()).message();
-}
+using detail::osMessage;
 
 // Shortest decimal that reads back to the same double, as the EXR attributes write them.
 std::string formatDouble(double value) {
@@ -76,27 +75,7 @@ bool hasExrExtension(std::string_view name) {
     return tail == ".exr";
 }
 
-// Owns a file descriptor.
-class FileDescriptor {
-public:
-    explicit FileDescriptor(int fd) : fd_(fd) {}
-    ~FileDescriptor() {
-        if (fd_ >= 0) ::close(fd_);
-    }
-    FileDescriptor(const FileDescriptor&) = delete;
-    FileDescriptor& operator=(const FileDescriptor&) = delete;
-    int get() const { return fd_; }
-    bool valid() const { return fd_ >= 0; }
-    // 0 or the errno of close().
-    int close() {
-        const int result = ::close(fd_);
-        fd_ = -1;
-        return result == 0 ? 0 : errno;
-    }
-
-private:
-    int fd_ = -1;
-};
+using detail::FileDescriptor;
 
 // ---------------------------------------------------------------------------------------------
 // The rules of format version 1 (sweep.h), on the plain structs. Parsing reports a broken rule as
@@ -491,21 +470,14 @@ std::string describeStrictFailure(const pb::util::Status& status) {
 // Files.
 
 Result<std::string> readWholeFile(const std::string& path, int64_t max_bytes) {
-    FileDescriptor fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
-    if (!fd.valid()) {
-        const int error = errno;
-        return makeError(error == ENOENT ? ErrorCode::NotFound : ErrorCode::IoError,
-                         path + ": cannot open: " + osMessage(error));
-    }
-    struct stat info {};
-    if (::fstat(fd.get(), &info) != 0)
-        return makeError(ErrorCode::IoError, path + ": cannot stat: " + osMessage(errno));
-    if (!S_ISREG(info.st_mode)) return makeError(ErrorCode::IoError, path + ": not a regular file");
-    if (info.st_size > max_bytes)
-        return makeError(ErrorCode::IoError, path + ": " + std::to_string(info.st_size) +
+    auto file = detail::openRegularFile(path);
+    if (!file) return file.error();
+    const FileDescriptor& fd = file->fd;
+    if (file->size > max_bytes)
+        return makeError(ErrorCode::IoError, path + ": " + std::to_string(file->size) +
                                                  " bytes, more than the limit of " +
                                                  std::to_string(max_bytes));
-    std::string text(static_cast<size_t>(info.st_size), '\0');
+    std::string text(static_cast<size_t>(file->size), '\0');
     size_t done = 0;
     while (done < text.size()) {
         const ssize_t got = ::read(fd.get(), text.data() + done, text.size() - done);
