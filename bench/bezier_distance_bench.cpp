@@ -4,7 +4,7 @@
 //
 // The renderer evaluates signedDistanceFast (a fixed number of Newton steps from a few seeds per
 // segment) for every pixel a ghost covers; fits trust signedDistanceExact (branch and bound to
-// 1e-9 mm). This tool draws seeded random default shapes (fit/ghost_shape.h, inside their
+// 1e-9 mm). This tool draws seeded random default shapes (render/ghost_shape.h, inside their
 // documented bounds) and, per shape, query points in three equal groups:
 //   near   - a curve point moved along the normal by up to 5 % of the shape's size either way;
 //   far    - 1.5 to 4 sizes from the centre;
@@ -25,14 +25,14 @@
 #include <string>
 #include <vector>
 
-#include "fit/ghost_shape.h"
+#include "render/ghost_shape.h"
 
 namespace flarelab::bench {
 namespace {
 
-using fit::BezierLoop;
-using fit::FastDistanceOptions;
-using fit::GhostShapeParams;
+using render::BezierLoop;
+using render::FastDistanceOptions;
+using render::GhostShapeParams;
 using Vec2 = Eigen::Vector2d;
 
 enum Group { kNear = 0, kFar = 1, kInside = 2, kGroupCount = 3 };
@@ -162,8 +162,8 @@ int run(int argc, char** argv) {
     std::vector<Query> queries;
     for (int s = 0; s < options.shapes; ++s) {
         const GhostShapeParams p = randomShape(rng);
-        if (!fit::validateGhostShape(p)) std::abort();  // randomShape stays inside the bounds
-        loops.push_back(fit::toBezierLoop(p));
+        if (!render::validateGhostShape(p)) std::abort();  // randomShape stays inside the bounds
+        loops.push_back(render::toBezierLoop(p));
         for (int k = 0; k < options.queries_per_shape; ++k)
             queries.push_back(
                 randomQuery(s, p, loops.back(), static_cast<Group>(k % kGroupCount), rng));
@@ -172,14 +172,14 @@ int run(int argc, char** argv) {
     // The reference values and the reference time.
     std::vector<double> exact(queries.size());
     for (std::size_t i = 0; i < queries.size(); ++i)
-        exact[i] = fit::signedDistanceExact(loops[queries[i].shape], queries[i].point);
+        exact[i] = render::signedDistanceExact(loops[queries[i].shape], queries[i].point);
     const double exact_s = bestSecondsPerEvaluation(queries, options.runs, [&](const Query& q) {
-        return fit::signedDistanceExact(loops[q.shape], q.point);
+        return render::signedDistanceExact(loops[q.shape], q.point);
     });
 
     // The inside/outside decision both methods share, timed alone.
     const double winding_s = bestSecondsPerEvaluation(queries, options.runs, [&](const Query& q) {
-        return static_cast<double>(fit::windingNumber(loops[q.shape], q.point));
+        return static_cast<double>(render::windingNumber(loops[q.shape], q.point));
     });
 
     std::printf("# bezier_distance_bench\n\n");
@@ -206,11 +206,11 @@ int run(int argc, char** argv) {
         std::vector<double> errors(queries.size());
         for (std::size_t i = 0; i < queries.size(); ++i) {
             const Query& q = queries[i];
-            errors[i] = std::abs(fit::signedDistanceFast(loops[q.shape], q.point, fast) - exact[i]);
+            errors[i] = std::abs(render::signedDistanceFast(loops[q.shape], q.point, fast) - exact[i]);
             worst[q.group] = std::max(worst[q.group], errors[i]);
         }
         const double fast_s = bestSecondsPerEvaluation(queries, options.runs, [&](const Query& q) {
-            return fit::signedDistanceFast(loops[q.shape], q.point, fast);
+            return render::signedDistanceFast(loops[q.shape], q.point, fast);
         });
         std::printf("| %d | %.2e | %.2e | %.2e | %.2e | %.2e | %.0f | %.3f |\n", iterations,
                     worst[kNear], worst[kFar], worst[kInside],

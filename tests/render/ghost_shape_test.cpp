@@ -1,4 +1,4 @@
-#include "fit/ghost_shape.h"
+#include "render/ghost_shape.h"
 
 #include <gtest/gtest.h>
 
@@ -7,7 +7,7 @@
 #include <random>
 #include <string>
 
-namespace flarelab::fit {
+namespace flarelab::render {
 namespace {
 
 using Vec2 = Eigen::Vector2d;
@@ -354,4 +354,4 @@ TEST(TransferIntensity, ShadesEachChannelAndValidatesFields) {
 }
 
 }  // namespace
-}  // namespace flarelab::fit
+}  // namespace flarelab::render

@@ -1,5 +1,5 @@
 // ============================================================================
-//  flarelab fit: BezierLoop, GhostShapeParams, signed distance, GhostShading
+//  flarelab render: BezierLoop, GhostShapeParams, signed distance, GhostShading
 // ============================================================================
 //
 // The shape and shading of one model ghost (chapter 6.3 of the thesis).
@@ -44,7 +44,7 @@
 
 #include "common/result.h"
 
-namespace flarelab::fit {
+namespace flarelab::render {
 
 // ---------------------------------------------------------------------------
 // A closed loop of cubic Bézier segments
@@ -238,4 +238,4 @@ std::array<double, 3> shadeGhost(const BezierLoop& loop,
                                  const Eigen::Vector2d& q_mm,
                                  const FastDistanceOptions& options = {});
 
-}  // namespace flarelab::fit
+}  // namespace flarelab::render

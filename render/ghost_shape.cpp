@@ -1,4 +1,4 @@
-#include "fit/ghost_shape.h"
+#include "render/ghost_shape.h"
 
 #include <cstddef>
 #include <limits>
@@ -8,7 +8,7 @@
 #include "common/check.h"
 #include "render/quad.h"
 
-namespace flarelab::fit {
+namespace flarelab::render {
 namespace {
 
 using Vec2 = Eigen::Vector2d;
@@ -400,4 +400,4 @@ std::array<double, 3> shadeGhost(const BezierLoop& loop,
     return shadeAtDistance(shading, signedDistanceFast(loop, q_mm, options));
 }
 
-}  // namespace flarelab::fit
+}  // namespace flarelab::render

@@ -1,0 +1,71 @@
+// ============================================================================
+//  flarelab fit: DetectOptions, LightSpot, GhostCandidate, FrameDetection, detectGhosts
+// ============================================================================
+//
+// Automatic detection: what the thesis set by hand (chapter 11: manual initial parameters), found
+// in the frame itself.
+//   1. The sky: the background level and its noise per channel, robustly (median and MAD of the
+//      pixels), so that the ghosts, however many, do not bias it.
+//   2. The light: the brightest blob (the light's own image, saturated in every bracket on the rig)
+//      and a disc around it that the fit and the score leave out: its radius grows with the
+//      light's blob until its neighbourhood falls to the noise, plus a margin.
+//   3. Ghost candidates: connected components (OpenCV) of the smoothed frame above the noise floor
+//      outside the light's disc, each measured (bounding box, centroid, second moments, energy,
+//      peak) and turned into an initial ghost (shape from its extents, shading from its values).
+//      Blobs whose energy does not rise above the noise are dropped.
+// A black frame, pure noise or a saturated frame gives no candidates, not an error.
+#pragma once
+
+#include <Eigen/Core>
+#include <array>
+#include <cstdint>
+#include <vector>
+
+#include "common/result.h"
+#include "fit/frame.h"
+
+namespace flarelab::fit {
+
+struct DetectOptions {
+    double smoothing_px = 1.0;      // Gaussian sigma applied before thresholding, >= 0
+    double threshold_sigmas = 4.0;  // a pixel is lit above background + this many noise sigmas, > 0
+    int64_t min_area_px = 6;        // smaller components are noise, >= 1
+    // A candidate's energy (sum over its pixels of value - background) must exceed this many
+    // times the noise sigma times the square root of its area (its energy's own noise), > 0.
+    double min_energy_sigmas = 10.0;
+    double light_margin_px = 3.0;   // added to the light's radius, >= 0
+    double light_min_radius_px = 2.0;
+    int max_candidates = 256;  // the brightest kept, >= 0
+};
+
+struct LightSpot {
+    bool found = false;
+    Eigen::Vector2d centre_px = Eigen::Vector2d::Zero();  // image space (pixel centres at +0.5)
+    double radius_px = 0.0;                               // of the disc left out
+};
+
+struct GhostCandidate {
+    Eigen::Vector2d centroid_px = Eigen::Vector2d::Zero();  // energy-weighted
+    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;                // bounding box, inclusive pixels
+    int64_t area_px = 0;
+    std::array<double, 3> energy{};  // sum of (value - background) over the component
+    std::array<double, 3> peak{};    // largest value - background in it
+    // Semi-axes of the blob along x and y in pixels (its extents from the centroid).
+    double left_px = 0.0, right_px = 0.0, up_px = 0.0, down_px = 0.0;
+    GhostState initial;  // sensor mm and the frame's unit
+};
+
+struct FrameDetection {
+    std::array<double, 3> background{};   // per channel, the frame's unit
+    std::array<double, 3> noise_sigma{};  // per channel, > 0 (a floor keeps it positive)
+    LightSpot light;
+    // width * height: 1 where a pixel is left out of fitting and scoring (the light's disc,
+    // non-finite or saturated-looking values), 0 elsewhere.
+    std::vector<uint8_t> excluded;
+    std::vector<GhostCandidate> candidates;  // by total energy, brightest first
+};
+
+// InvalidArgument for options out of range. Never fails on the image's content.
+Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& options = {});
+
+}  // namespace flarelab::fit
