@@ -4,6 +4,7 @@
 #include <memory>
 #include <ostream>
 
+#include "bench/fit_bench.h"
 #include "bench/merge_bench.h"
 #include "bench/render_bench.h"
 
@@ -93,6 +94,43 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             file << doc->dump(2) << "\n";
             if (!file) {
                 err << "flarelab: cannot write " << *merge_json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+
+    auto fit_options = std::make_shared<bench::FitBenchOptions>();
+    auto fit_json_path = std::make_shared<std::string>();
+    CLI::App* fit = bench->add_subcommand(
+        "fit", "the fitting backend: Ceres against the thesis's gradient descent, and the "
+               "speed/accuracy trade of its knobs, scored against the simulator");
+    fit->add_option("--sweep", fit_options->sweeps,
+                    "a simulated sweep (repeat: the first is the main one, the others the angular "
+                    "step rows)")
+        ->required();
+    fit->add_option("--lens", fit_options->lens_file, "the lens the sweeps were simulated with")
+        ->required();
+    fit->add_option("--optimizer-frames", fit_options->optimizer_frames,
+                    "frames of the optimizer table")
+        ->capture_default_str();
+    fit->add_flag("!--no-trade", fit_options->trade, "only the optimizer table");
+    fit->add_flag("--quick", fit_options->quick, "fewer settings and angles (a smoke test)");
+    fit->add_option("--json", *fit_json_path, "also write the results as JSON here");
+    fit->callback([fit_options, fit_json_path, &out, &err, &exit_code] {
+        auto report = bench::runFitBench(*fit_options, err);
+        if (!report) {
+            err << "flarelab: bench fit: " << report.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printFitBench(*report, out);
+        if (!fit_json_path->empty()) {
+            std::ofstream file(*fit_json_path);
+            file << bench::fitBenchJson(*report) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *fit_json_path << "\n";
                 exit_code = 1;
                 return;
             }

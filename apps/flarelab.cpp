@@ -8,6 +8,7 @@
 #include "apps/capture_command.h"
 #include "apps/lens_commands.h"
 #include "apps/merge_command.h"
+#include "apps/fit_command.h"
 #include "apps/model_command.h"
 #include "apps/simulate_command.h"
 #include "apps/sweep_command.h"
@@ -23,6 +24,7 @@ int main(int argc, char** argv) {
         flarelab::apps::addCaptureCommand(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addSweepCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addModelCommands(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addFitCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addBenchCommands(app, std::cout, std::cerr, exit_code);
         CLI11_PARSE(app, argc, argv);
         return exit_code;

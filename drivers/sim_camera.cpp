@@ -91,16 +91,10 @@ constexpr double kChannel_nm[3] = {kLambdaRed_nm, kLambdaGreen_nm, kLambdaBlue_n
 // Rays per side of the grid that measures the power of the light's own image.
 constexpr int kLightGrid = 32;
 
-// Where the light's image lands (sensor mm, the real chief ray at the green wavelength) and the
-// power of each channel that passes the stop on the imaging path, in the scene's units.
-struct LightSpot {
-    Eigen::Vector2d centre_mm = Eigen::Vector2d::Zero();
-    std::array<double, 3> power = {0.0, 0.0, 0.0};
-    bool placed = false;
-};
+}  // namespace
 
-LightSpot traceLightSpot(const optics::Lens& lens, const render::Light& light) {
-    LightSpot spot;
+SimLightSpot simLightSpot(const optics::Lens& lens, const render::Light& light) {
+    SimLightSpot spot;
     const double theta = degToRad(light.theta_deg), phi = degToRad(light.phi_deg);
     const optics::GhostPath imaging{};
     for (int c = 0; c < 3; ++c) {
@@ -131,6 +125,8 @@ LightSpot traceLightSpot(const optics::Lens& lens, const render::Light& light) {
     }
     return spot;
 }
+
+namespace {
 
 // Adds the starburst pattern (each channel summing to 1) times power at (cx, cy) in image space,
 // one pattern pixel spanning (sx, sy) image pixels, by splatting every pattern sample bilinearly
@@ -412,7 +408,7 @@ Result<const std::vector<float>*> SimCamera::rate(double angle_deg) {
     if (!image) return image.error().withContext(name() + ": rendering " + fmt(angle_deg) + " deg");
     ++renders_;
     if (light_image_ && !dark && light.theta_deg < 90.0) {
-        const LightSpot spot = traceLightSpot(lens_, light);
+        const SimLightSpot spot = simLightSpot(lens_, light);
         if (spot.placed) {
             const render::SensorToImage mapping = render::sensorToImage(lens_.camera(), w, h);
             const Eigen::Vector2d centre = mapping.toPixels(spot.centre_mm.x(), spot.centre_mm.y());

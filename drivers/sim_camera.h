@@ -70,6 +70,16 @@ namespace flarelab::drivers {
 
 enum class MonoResponse { Green, Luminance };
 
+// Where the light's own image lands (sensor mm, the real chief ray at the green wavelength) and
+// the power of each channel that passes the stop on the imaging path, in the scene's units;
+// placed is false when no chief ray reaches the sensor.
+struct SimLightSpot {
+    Eigen::Vector2d centre_mm = Eigen::Vector2d::Zero();
+    std::array<double, 3> power = {0.0, 0.0, 0.0};
+    bool placed = false;
+};
+SimLightSpot simLightSpot(const optics::Lens& lens, const render::Light& light);
+
 // Base grid 64, probe grid 8, the paper's light primitive merge; starburst mask 256 / FFT 512
 // (a pattern 33 px wide at 640 px with the Heliar at f/16, rendered once per camera).
 render::SceneOptions simRenderDefaults();

@@ -14,6 +14,11 @@
 //      peak) and turned into an initial ghost (shape from its extents, shading from its values).
 //      Blobs whose energy does not rise above the noise are dropped.
 // A black frame, pure noise or a saturated frame gives no candidates, not an error.
+// Details (fit/detect.cpp): the background is the lowest mode of the values (broad ghosts may
+// cover most of the frame, so not the median), its noise from the values below it; the
+// threshold applies to the smoothed noise (sigma times the kernel's sum of squares); ghosts that
+// overlap form one component, which the circle detector (DetectOptions::circles) splits into the
+// circles it finds inside it.
 #pragma once
 
 #include <Eigen/Core>
@@ -36,6 +41,26 @@ struct DetectOptions {
     double light_margin_px = 3.0;   // added to the light's radius, >= 0
     double light_min_radius_px = 2.0;
     int max_candidates = 256;  // the brightest kept, >= 0
+
+    // Overlapping circular ghosts (a second detector; fit/detect.cpp, detectCircles). Every
+    // ghost's centre lies on the light line: through the image centre and the light when the
+    // light is found away from the centre, else the horizontal line through the image centre.
+    // Edge pixels of the smoothed signal vote, for each centre on that line, for the radius that
+    // puts them on the circle (only where their gradient points at that centre), in a (centre,
+    // radius) Hough accumulator. A component holding two or more circles is replaced by them.
+    bool circles = true;
+    int max_circles = 32;  // the best supported kept, >= 0
+    // A circle's support: its votes over the length of its arc inside the frame and outside the
+    // excluded pixels (edge pixels per pixel of visible arc, weighted by how radial their
+    // gradient is); kept at this or more, > 0.
+    double min_circle_support = 2.5;
+    double min_circle_radius_px = 3.0;  // > 0
+    // An edge pixel: its gradient above this many noise sigmas of the gradient, > 0, and above
+    // min_circle_step times the local signal per pixel (a relative step: a smooth falloff of a
+    // bright ghost is no edge), >= 0.
+    double circle_edge_sigmas = 5.0;
+    double min_circle_step = 0.01;
+    int max_edge_pixels = 3000;  // edge pixels sampled evenly beyond this many, >= 16
 };
 
 struct LightSpot {
@@ -50,9 +75,15 @@ struct GhostCandidate {
     int64_t area_px = 0;
     std::array<double, 3> energy{};  // sum of (value - background) over the component
     std::array<double, 3> peak{};    // largest value - background in it
-    // Semi-axes of the blob along x and y in pixels (its extents from the centroid).
+    // Semi-axes of the blob along x and y in pixels: from the centroid to the outer edges of its
+    // body, the pixels whose smoothed value reaches a quarter of the component's 90th percentile
+    // (so the smoothing's fringe around a bright ghost does not count); within the bbox.
     double left_px = 0.0, right_px = 0.0, up_px = 0.0, down_px = 0.0;
-    GhostState initial;  // sensor mm and the frame's unit
+    // Sensor mm and the frame's unit: centre x at the centroid, centre y mid-way between the up
+    // and down extents (the model is symmetric there), circle handles, border from the 90th
+    // percentile, inside from the median within half the extents; passes validateGhostShape and
+    // validateShading.
+    GhostState initial;
 };
 
 struct FrameDetection {

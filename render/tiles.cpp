@@ -27,6 +27,15 @@ Status renderTiled(ImageRGB& image,
                    const optics::ApertureShape& aperture,
                    const TileOptions& options,
                    TileStats* stats) {
+    return renderTiled(image, primitives, {}, aperture, options, stats);
+}
+
+Status renderTiled(ImageRGB& image,
+                   std::span<const Primitive> primitives,
+                   std::span<const GhostPrimitive> ghosts,
+                   const optics::ApertureShape& aperture,
+                   const TileOptions& options,
+                   TileStats* stats) {
     const int dense = options.dense_tile_px, coarse = options.coarse_tile_px;
     if (dense < 1 || dense > 256)
         return makeError(ErrorCode::InvalidArgument, "tiles: dense_tile_px must lie in 1..256");
@@ -41,18 +50,42 @@ Status renderTiled(ImageRGB& image,
                              "tiles: primitive " + std::to_string(i) +
                                  " has a pixel range or channel outside the image");
     }
+    for (size_t i = 0; i < ghosts.size(); ++i) {
+        const GhostPrimitive& g = ghosts[i];
+        if (g.x0 < 0 || g.y0 < 0 || g.x1 >= image.width || g.y1 >= image.height || g.x0 > g.x1 ||
+            g.y0 > g.y1)
+            return makeError(ErrorCode::InvalidArgument,
+                             "tiles: model ghost " + std::to_string(i) +
+                                 " has a pixel range outside the image");
+    }
+    // One index space: 0..n-1 are the quads, n.. the model ghosts.
+    const size_t quad_count = primitives.size();
+    const size_t total = quad_count + ghosts.size();
+    if (total > UINT32_MAX)
+        return makeError(ErrorCode::InvalidArgument, "tiles: more than 2^32 - 1 primitives");
+    struct Range {
+        int64_t x0, y0, x1, y1;
+    };
+    const auto range = [&](uint32_t index) {
+        if (index < quad_count) {
+            const Primitive& p = primitives[index];
+            return Range{p.x0, p.y0, p.x1, p.y1};
+        }
+        const GhostPrimitive& g = ghosts[index - quad_count];
+        return Range{g.x0, g.y0, g.x1, g.y1};
+    };
     TileStats local;
     TileStats& st = stats ? *stats : local;
     st = TileStats{};
-    st.primitives = static_cast<int64_t>(primitives.size());
-    if (image.empty() || primitives.empty()) return Ok{};
+    st.primitives = static_cast<int64_t>(total);
+    if (image.empty() || total == 0) return Ok{};
 
     const auto build_start = Clock::now();
     const int64_t dense_x = ceilDiv(image.width, dense), dense_y = ceilDiv(image.height, dense);
     std::vector<std::vector<uint32_t>> dense_lists(static_cast<size_t>(dense_x * dense_y));
     const auto add_to_dense = [&](uint32_t index, int64_t tx0, int64_t ty0, int64_t tx1,
                                   int64_t ty1) {
-        const Primitive& p = primitives[index];
+        const Range p = range(index);
         const int64_t ax = std::max(tx0, p.x0 / dense), bx = std::min(tx1, p.x1 / dense);
         const int64_t ay = std::max(ty0, p.y0 / dense), by = std::min(ty1, p.y1 / dense);
         for (int64_t ty = ay; ty <= by; ++ty)
@@ -63,8 +96,8 @@ Status renderTiled(ImageRGB& image,
         const int64_t coarse_x = ceilDiv(image.width, coarse);
         const int64_t coarse_y = ceilDiv(image.height, coarse);
         std::vector<std::vector<uint32_t>> coarse_lists(static_cast<size_t>(coarse_x * coarse_y));
-        for (uint32_t i = 0; i < primitives.size(); ++i) {
-            const Primitive& p = primitives[i];
+        for (uint32_t i = 0; i < total; ++i) {
+            const Range p = range(i);
             for (int64_t ty = p.y0 / coarse; ty <= p.y1 / coarse; ++ty)
                 for (int64_t tx = p.x0 / coarse; tx <= p.x1 / coarse; ++tx)
                     coarse_lists[static_cast<size_t>(ty * coarse_x + tx)].push_back(i);
@@ -84,14 +117,14 @@ Status renderTiled(ImageRGB& image,
                 static_cast<int64_t>(list.capacity() * sizeof(uint32_t) + sizeof(list));
         }
     } else {
-        for (uint32_t i = 0; i < primitives.size(); ++i)
-            add_to_dense(i, 0, 0, dense_x - 1, dense_y - 1);
+        for (uint32_t i = 0; i < total; ++i) add_to_dense(i, 0, 0, dense_x - 1, dense_y - 1);
     }
     for (const auto& list : dense_lists) {
         st.dense_entries += static_cast<int64_t>(list.size());
         st.memory_bytes += static_cast<int64_t>(list.capacity() * sizeof(uint32_t) + sizeof(list));
     }
-    st.memory_bytes += static_cast<int64_t>(primitives.size() * sizeof(Primitive));
+    st.memory_bytes += static_cast<int64_t>(primitives.size() * sizeof(Primitive) +
+                                            ghosts.size() * sizeof(GhostPrimitive));
     st.build_ms = millisecondsSince(build_start);
 
     const auto traverse_start = Clock::now();
@@ -106,6 +139,15 @@ Status renderTiled(ImageRGB& image,
         thread_local std::vector<float> accumulator;
         accumulator.assign(static_cast<size_t>(dense) * dense * 3, 0.0f);
         for (const uint32_t index : list) {
+            if (index >= quad_count) {
+                const GhostPrimitive& g = ghosts[index - quad_count];
+                const int64_t x0 = std::max(tx, g.x0), x1 = std::min(tx1, g.x1);
+                const int64_t y0 = std::max(ty, g.y0), y1 = std::min(ty1, g.y1);
+                for (int64_t y = y0; y <= y1; ++y)
+                    addGhostRow(g, y, x0, x1,
+                                accumulator.data() + ((y - ty) * dense + (x0 - tx)) * 3);
+                continue;
+            }
             const Primitive& p = primitives[index];
             const int64_t x0 = std::max(tx, p.x0), x1 = std::min(tx1, p.x1);
             const int64_t y0 = std::max(ty, p.y0), y1 = std::min(ty1, p.y1);

@@ -16,6 +16,10 @@
 // Every pixel sums its primitives in the order of the input array, in a per-tile accumulator that
 // is written to the image once, with the arithmetic of rasterizeReference (primitiveValueAt): the
 // two renderers agree bit for bit on an empty image.
+//
+// Two primitive kinds share the tiles: the quads of traced ray grids (ghost_quads.h), one colour
+// channel each, and model ghosts (model_ghost.h), shaded Bézier loops that add all three
+// channels. A pixel sums the quads of its tile first, then the model ghosts, each in input order.
 #pragma once
 
 #include <cstdint>
@@ -25,6 +29,7 @@
 #include "optics/aperture.h"
 #include "render/ghost_quads.h"
 #include "render/image.h"
+#include "render/model_ghost.h"
 
 namespace flarelab::render {
 
@@ -47,6 +52,15 @@ struct TileStats {
 // out of range or a primitive whose pixel range leaves the image.
 Status renderTiled(ImageRGB& image,
                    std::span<const Primitive> primitives,
+                   const optics::ApertureShape& aperture,
+                   const TileOptions& options = {},
+                   TileStats* stats = nullptr);
+
+// The same with model ghosts (prepared for this image's size) after the quads. InvalidArgument
+// also for a ghost whose pixel range leaves the image.
+Status renderTiled(ImageRGB& image,
+                   std::span<const Primitive> primitives,
+                   std::span<const GhostPrimitive> ghosts,
                    const optics::ApertureShape& aperture,
                    const TileOptions& options = {},
                    TileStats* stats = nullptr);

@@ -9,7 +9,7 @@ packages=(
     build-essential cmake ninja-build pkg-config git
     clang clang-format libclang-rt-14-dev libfuzzer-14-dev valgrind
     # numerics, images, optimization
-    libeigen3-dev libceres-dev libopencv-dev libopenexr-dev libfftw3-dev libtbb-dev
+    libeigen3-dev libceres-dev libopencv-dev libopenexr-dev libfftw3-dev libtbb-dev libssl-dev
     # control API and model files
     libprotobuf-dev protobuf-compiler libgrpc++-dev protobuf-compiler-grpc
     python3 python3-grpcio python3-protobuf python3-grpc-tools

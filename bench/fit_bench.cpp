@@ -1,0 +1,243 @@
+#include "bench/fit_bench.h"
+
+#include <chrono>
+#include <cmath>
+#include <iomanip>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "drivers/sim_truth.h"
+#include "fit/model_eval.h"
+#include "fit/score.h"
+#include "optics/prescription.h"
+
+namespace flarelab::bench {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+double secondsSince(Clock::time_point start) {
+    return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+Result<optics::Lens> loadBenchLens(const std::string& path) {
+    auto prescription = optics::loadPrescription(path);
+    if (!prescription) return prescription.error();
+    return optics::Lens::make(*prescription, optics::CameraDescription{});
+}
+
+struct Scored {
+    TradeRow row;
+};
+
+Result<TradeRow> fitAndScore(const hdr::Sweep& sweep,
+                             const optics::Lens& lens,
+                             const fit::SweepFitOptions& options,
+                             const fit::ScoreOptions& score,
+                             const std::string& knob,
+                             const std::string& setting,
+                             std::ostream& log) {
+    const auto start = Clock::now();
+    fit::SweepFitResult result;
+    auto model = fit::fitSweep(sweep, lens.camera().sensor_width_mm, lens.camera().sensor_height_mm,
+                               options, {}, &result);
+    if (!model) return model.error().withContext(knob + " " + setting);
+    TradeRow row;
+    row.knob = knob;
+    row.setting = setting;
+    row.fit_s = secondsSince(start);
+    row.ghosts = static_cast<int>(model->ghosts.size());
+    auto truth = drivers::simulatedGhostTruth(lens, model->capture.width_px, model->capture.height_px);
+    if (!truth) return truth.error();
+    auto report = fit::scoreModel(*model, *truth, score);
+    if (!report) return report.error().withContext(knob + " " + setting);
+    row.heldout_median = report->heldout_rel_l2.median;
+    row.heldout_worst = report->heldout_rel_l2.worst;
+    row.fit_median = report->fit_rel_l2.median;
+    log << "bench fit: " << knob << " " << setting << ": " << row.ghosts << " ghosts, "
+        << std::fixed << std::setprecision(1) << row.fit_s << " s, held-out rel L2 median "
+        << std::setprecision(4) << row.heldout_median << " worst " << row.heldout_worst << "\n"
+        << std::defaultfloat;
+    return row;
+}
+
+}  // namespace
+
+Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream& log) {
+    if (options.sweeps.empty())
+        return makeError(ErrorCode::InvalidArgument, "bench fit: give at least one sweep");
+    if (options.optimizer_frames < 0)
+        return makeError(ErrorCode::InvalidArgument, "bench fit: optimizer_frames must be >= 0");
+    auto lens = loadBenchLens(options.lens_file);
+    if (!lens) return lens.error();
+    auto sweep = hdr::readSweep(options.sweeps.front());
+    if (!sweep) return sweep.error();
+    if (sweep->frames.empty()) return makeError(ErrorCode::InvalidArgument, "bench fit: empty sweep");
+    const double sw = lens->camera().sensor_width_mm, sh = lens->camera().sensor_height_mm;
+    auto truth = drivers::simulatedGhostTruth(*lens, sweep->header.capture.width_px,
+                                              sweep->header.capture.height_px);
+    if (!truth) return truth.error();
+    FitBenchReport report;
+
+    // Optimizers on the same frames from the same start.
+    const size_t n = sweep->frames.size();
+    for (int k = 0; k < options.optimizer_frames; ++k) {
+        const size_t index = options.optimizer_frames == 1
+                                 ? n / 2
+                                 : static_cast<size_t>(std::llround(
+                                       (0.1 + 0.8 * k / (options.optimizer_frames - 1.0)) * (n - 1)));
+        auto frame = fit::loadFitFrame(*sweep, index, sw, sh);
+        if (!frame) return frame.error();
+        auto detection = fit::detectGhosts(*frame, options.fit.detect);
+        if (!detection) return detection.error();
+        std::vector<fit::GhostState> start;
+        for (const auto& c : detection->candidates) start.push_back(c.initial);
+        auto t = (*truth)(frame->angle_deg);
+        if (!t) return t.error();
+        const double mask = 0.03 * std::hypot(static_cast<double>(frame->image.width),
+                                              static_cast<double>(frame->image.height));
+        auto initial = fit::compareImages(
+            fit::renderGhostStates(start, frame->mapping, frame->image.width, frame->image.height),
+            t->image, t->light_px, mask);
+        if (!initial) return initial.error();
+        double target = 0.0;
+        for (const fit::Optimizer optimizer : {fit::Optimizer::Ceres, fit::Optimizer::GradientDescent}) {
+            fit::FrameFitOptions fo = options.fit.frame;
+            fo.optimizer = optimizer;
+            if (optimizer == fit::Optimizer::GradientDescent) {
+                fo.max_iterations = options.quick ? 10 : 400;
+                fo.target_cost = target;
+                fo.function_tolerance = 0.0;
+            }
+            std::vector<fit::GhostState> ghosts = start;
+            auto fitted = fit::fitFrame(*frame, *detection, ghosts, fo);
+            if (!fitted) return fitted.error();
+            if (optimizer == fit::Optimizer::Ceres) target = fitted->final_cost;
+            const auto drawn = fit::renderGhostStates(ghosts, frame->mapping, frame->image.width,
+                                                      frame->image.height);
+            auto s = fit::compareImages(drawn, t->image, t->light_px, mask);
+            if (!s) return s.error();
+            OptimizerRow row;
+            row.angle_deg = frame->angle_deg;
+            row.optimizer = fit::optimizerName(optimizer);
+            row.ghosts = static_cast<int>(ghosts.size());
+            row.evaluations = fitted->evaluations;
+            row.time_ms = fitted->time_ms;
+            row.initial_cost = fitted->initial_cost;
+            row.final_cost = fitted->final_cost;
+            row.rel_l2 = s->rel_l2;
+            row.initial_rel_l2 = initial->rel_l2;
+            log << "bench fit: " << row.optimizer << " at " << row.angle_deg << " deg: "
+                << row.ghosts << " ghosts, " << row.evaluations << " evaluations, "
+                << row.time_ms << " ms, cost " << row.initial_cost << " -> " << row.final_cost
+                << ", rel L2 " << row.initial_rel_l2 << " -> " << row.rel_l2 << "\n";
+            report.optimizers.push_back(row);
+        }
+    }
+    if (!options.trade) return report;
+
+    // The trade: one knob at a time from the defaults.
+    fit::ScoreOptions score;
+    if (options.quick) {
+        score.halfway_angles = 4;
+        score.random_angles = 1;
+        score.fit_angles = 4;
+    }
+    const auto run = [&](const hdr::Sweep& s, const fit::SweepFitOptions& o, const std::string& knob,
+                         const std::string& setting) -> Status {
+        auto row = fitAndScore(s, *lens, o, score, knob, setting, log);
+        if (!row) return row.error();
+        report.trade.push_back(*row);
+        return Ok{};
+    };
+    if (Status ok = run(*sweep, options.fit, "baseline", "defaults"); !ok) return ok.error();
+    const std::vector<int> iterations = options.quick ? std::vector<int>{5} : std::vector<int>{3, 8, 40};
+    for (int it : iterations) {
+        auto o = options.fit;
+        o.frame.max_iterations = it;
+        if (Status ok = run(*sweep, o, "iterations", std::to_string(it)); !ok) return ok.error();
+    }
+    const std::vector<int> newton = options.quick ? std::vector<int>{1} : std::vector<int>{1, 2, 8};
+    for (int it : newton) {
+        auto o = options.fit;
+        o.frame.cost.distance.iterations = it;
+        if (Status ok = run(*sweep, o, "distance iterations", std::to_string(it)); !ok)
+            return ok.error();
+    }
+    const std::vector<int> samples = options.quick ? std::vector<int>{24} : std::vector<int>{16, 32, 96};
+    for (int v : samples) {
+        auto o = options.fit;
+        o.frame.cost.max_samples = v;
+        if (Status ok = run(*sweep, o, "samples per side", std::to_string(v)); !ok)
+            return ok.error();
+    }
+    const std::vector<int> degrees = options.quick ? std::vector<int>{1} : std::vector<int>{1, 3, 6};
+    for (int d : degrees) {
+        auto o = options.fit;
+        o.poly.fixed_degree = d;
+        if (Status ok = run(*sweep, o, "degree", "fixed " + std::to_string(d)); !ok)
+            return ok.error();
+    }
+    for (size_t i = 1; i < options.sweeps.size(); ++i) {
+        auto other = hdr::readSweep(options.sweeps[i]);
+        if (!other) return other.error();
+        std::ostringstream setting;
+        setting << other->header.capture.step_deg << " deg";
+        if (Status ok = run(*other, options.fit, "angular step", setting.str()); !ok)
+            return ok.error();
+    }
+    return report;
+}
+
+void printFitBench(const FitBenchReport& r, std::ostream& out) {
+    if (!r.optimizers.empty()) {
+        out << "| angle (deg) | optimizer | ghosts | cost evaluations | time (ms) | initial cost | "
+               "final cost | rel L2 vs truth, start | fitted |\n|---|---|---|---|---|---|---|---|---|\n";
+        for (const auto& o : r.optimizers)
+            out << "| " << std::fixed << std::setprecision(1) << o.angle_deg << " | " << o.optimizer
+                << " | " << o.ghosts << " | " << o.evaluations << " | " << std::setprecision(0)
+                << o.time_ms << " | " << std::setprecision(1) << o.initial_cost << " | "
+                << o.final_cost << " | " << std::setprecision(4) << o.initial_rel_l2 << " | "
+                << o.rel_l2 << " |\n"
+                << std::defaultfloat;
+        out << "\n";
+    }
+    if (!r.trade.empty()) {
+        const double base_time = r.trade.front().fit_s;
+        out << "| knob | setting | ghosts | fit time (s) | time / baseline | held-out rel L2 median | "
+               "worst | fitted angles median |\n|---|---|---|---|---|---|---|---|\n";
+        for (const auto& t : r.trade)
+            out << "| " << t.knob << " | " << t.setting << " | " << t.ghosts << " | " << std::fixed
+                << std::setprecision(1) << t.fit_s << " | " << std::setprecision(2)
+                << (base_time > 0.0 ? t.fit_s / base_time : 0.0) << " | " << std::setprecision(4)
+                << t.heldout_median << " | " << t.heldout_worst << " | " << t.fit_median << " |\n"
+                << std::defaultfloat;
+    }
+}
+
+std::string fitBenchJson(const FitBenchReport& r) {
+    nlohmann::json j;
+    j["optimizers"] = nlohmann::json::array();
+    for (const auto& o : r.optimizers)
+        j["optimizers"].push_back({{"angle_deg", o.angle_deg},
+                                   {"optimizer", o.optimizer},
+                                   {"ghosts", o.ghosts},
+                                   {"evaluations", o.evaluations},
+                                   {"time_ms", o.time_ms},
+                                   {"initial_cost", o.initial_cost},
+                                   {"final_cost", o.final_cost},
+                                   {"initial_rel_l2", o.initial_rel_l2},
+                                   {"rel_l2", o.rel_l2}});
+    j["trade"] = nlohmann::json::array();
+    for (const auto& t : r.trade)
+        j["trade"].push_back({{"knob", t.knob},
+                              {"setting", t.setting},
+                              {"ghosts", t.ghosts},
+                              {"fit_s", t.fit_s},
+                              {"heldout_median", t.heldout_median},
+                              {"heldout_worst", t.heldout_worst},
+                              {"fit_median", t.fit_median}});
+    return j.dump(2);
+}
+
+}  // namespace flarelab::bench

@@ -1,0 +1,23 @@
+// ============================================================================
+//  flarelab drivers: simulatedGhostTruth
+// ============================================================================
+//
+// Ground truth for scoring a model (fit/score.h): what the simulated camera of
+// `flarelab capture --sim` (SimCamera with its default options at the model's frame size) shows
+// of the ghosts alone at a head angle, noiseless, without the light's own image, the sky
+// background or dark current, in DN per second at unity gain, the unit of the merged frames the
+// model was fitted to; with where the light's own image lands. The camera renders with the same
+// settings as the capture did (simRenderDefaults), so nothing but the noise differs.
+#pragma once
+
+#include <cstdint>
+
+#include "fit/score.h"
+#include "optics/lens.h"
+
+namespace flarelab::drivers {
+
+// Errors: the frame size or lens the simulated camera refuses.
+Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens, int64_t width, int64_t height);
+
+}  // namespace flarelab::drivers

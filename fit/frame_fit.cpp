@@ -1,0 +1,683 @@
+#include "fit/frame_fit.h"
+
+#include <ceres/ceres.h>
+#include <ceres/jet.h>
+#include <tbb/parallel_for.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <array>
+#include <limits>
+#include <memory>
+#include <string>
+
+#include "fit/model_eval.h"
+
+namespace flarelab::fit {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+constexpr int kMaxParams = 19;  // 9 shape + 2 x 3 intensities + 4 falloffs and exponents
+using Jet = ceres::Jet<double, kMaxParams>;
+
+double millisecondsSince(Clock::time_point start) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+// ---------------------------------------------------------------------------
+// A ghost's parameter vector: shape with handle fractions, scaled intensities, falloffs
+// ---------------------------------------------------------------------------
+
+struct Layout {
+    int channels = 1;
+    int size() const { return 9 + 2 * channels + 4; }
+    int border(int c) const { return 9 + 2 * c; }
+    int inner(int c) const { return 10 + 2 * c; }
+    int innerFalloff() const { return 9 + 2 * channels; }
+    int outerFalloff() const { return innerFalloff() + 1; }
+    int innerExponent() const { return innerFalloff() + 2; }
+    int outerExponent() const { return innerFalloff() + 3; }
+};
+
+struct Bounds {
+    std::vector<double> lower, upper, scale;  // scale: a typical size of each parameter
+};
+
+// The vector of `state` (intensities over `intensity_scale`) and its bounds for a frame whose
+// pixels are `px_mm` wide and whose sensor diagonal is `diagonal_mm`.
+std::vector<double> packState(const GhostState& state, const Layout& layout, double intensity_scale) {
+    std::vector<double> v(static_cast<size_t>(layout.size()));
+    const GhostParameters p = ghostParameters(state);
+    for (int i = 0; i < 9; ++i) v[static_cast<size_t>(i)] = p[static_cast<size_t>(i)];
+    for (int c = 0; c < layout.channels; ++c) {
+        v[static_cast<size_t>(layout.border(c))] = state.shading.border_rgb[c] / intensity_scale;
+        v[static_cast<size_t>(layout.inner(c))] = state.shading.inner_rgb[c] / intensity_scale;
+    }
+    v[static_cast<size_t>(layout.innerFalloff())] = state.shading.inner_falloff_mm;
+    v[static_cast<size_t>(layout.outerFalloff())] = state.shading.outer_falloff_mm;
+    v[static_cast<size_t>(layout.innerExponent())] = state.shading.inner_exponent;
+    v[static_cast<size_t>(layout.outerExponent())] = state.shading.outer_exponent;
+    return v;
+}
+
+GhostState unpackState(const double* v, const Layout& layout, double intensity_scale) {
+    GhostState s;
+    s.shape.centre_x_mm = v[0];
+    s.shape.centre_y_mm = v[1];
+    s.shape.half_height_mm = v[2];
+    s.shape.left_mm = v[3];
+    s.shape.right_mm = v[4];
+    s.shape.left_handle_x_mm = v[5] * v[3];
+    s.shape.left_handle_y_mm = v[6] * v[2];
+    s.shape.right_handle_x_mm = v[7] * v[4];
+    s.shape.right_handle_y_mm = v[8] * v[2];
+    for (int c = 0; c < 3; ++c) {
+        const int k = std::min(c, layout.channels - 1);  // one fitted channel: all three equal
+        s.shading.border_rgb[c] = std::max(0.0, v[layout.border(k)] * intensity_scale);
+        s.shading.inner_rgb[c] = std::max(0.0, v[layout.inner(k)] * intensity_scale);
+    }
+    s.shading.inner_falloff_mm = v[layout.innerFalloff()];
+    s.shading.outer_falloff_mm = v[layout.outerFalloff()];
+    s.shading.inner_exponent = v[layout.innerExponent()];
+    s.shading.outer_exponent = v[layout.outerExponent()];
+    return s;
+}
+
+// Box bounds for a ghost starting at `start`: besides validity, its centre and extents may move
+// by at most `reach_mm` (the trust region that keeps it inside its crop).
+Bounds makeBounds(const Layout& layout,
+                  double px_mm,
+                  double diagonal_mm,
+                  double size_mm,
+                  const GhostState& start,
+                  double reach_mm) {
+    Bounds b;
+    const size_t n = static_cast<size_t>(layout.size());
+    b.lower.assign(n, 0.0);
+    b.upper.assign(n, 1.0);
+    b.scale.assign(n, 1.0);
+    const double far = 10.0 * diagonal_mm;
+    const double centre[2] = {start.shape.centre_x_mm, start.shape.centre_y_mm};
+    for (int i : {0, 1}) {
+        b.lower[static_cast<size_t>(i)] = std::max(-far, centre[i] - reach_mm);
+        b.upper[static_cast<size_t>(i)] = std::min(far, centre[i] + reach_mm);
+        b.scale[static_cast<size_t>(i)] = size_mm;
+    }
+    const double extent[3] = {start.shape.half_height_mm, start.shape.left_mm, start.shape.right_mm};
+    for (int i : {2, 3, 4}) {
+        b.lower[static_cast<size_t>(i)] = std::max(0.5 * px_mm, extent[i - 2] - reach_mm);
+        b.upper[static_cast<size_t>(i)] =
+            std::max(b.lower[static_cast<size_t>(i)], std::min(4.0 * diagonal_mm, extent[i - 2] + reach_mm));
+        b.scale[static_cast<size_t>(i)] = size_mm;
+    }
+    for (int c = 0; c < layout.channels; ++c) {
+        b.upper[static_cast<size_t>(layout.border(c))] = 1e4;
+        b.upper[static_cast<size_t>(layout.inner(c))] = 1e4;
+    }
+    for (int i : {layout.innerFalloff(), layout.outerFalloff()}) {
+        b.lower[static_cast<size_t>(i)] = 0.25 * px_mm;
+        b.upper[static_cast<size_t>(i)] = 2.0 * diagonal_mm;
+        b.scale[static_cast<size_t>(i)] = size_mm;
+    }
+    for (int i : {layout.innerExponent(), layout.outerExponent()}) {
+        b.lower[static_cast<size_t>(i)] = 0.25;
+        b.upper[static_cast<size_t>(i)] = 4.0;
+    }
+    return b;
+}
+
+void clampInto(std::vector<double>& v, const Bounds& b) {
+    for (size_t i = 0; i < v.size(); ++i) v[i] = std::clamp(v[i], b.lower[i], b.upper[i]);
+}
+
+// ---------------------------------------------------------------------------
+// One ghost's crop and cost
+// ---------------------------------------------------------------------------
+
+// The Laplacian of Gaussian, zero-sum, on a (2 radius + 1)^2 grid.
+std::vector<double> logKernel(double sigma, int& radius) {
+    radius = std::max(1, static_cast<int>(std::ceil(3.0 * sigma)));
+    const int n = 2 * radius + 1;
+    std::vector<double> k(static_cast<size_t>(n * n));
+    double sum = 0.0;
+    for (int y = -radius; y <= radius; ++y)
+        for (int x = -radius; x <= radius; ++x) {
+            const double r2 = (x * x + y * y) / (sigma * sigma);
+            const double v = (r2 - 2.0) * std::exp(-0.5 * r2) / (sigma * sigma);
+            k[static_cast<size_t>((y + radius) * n + x + radius)] = v;
+            sum += v;
+        }
+    for (double& v : k) v -= sum / (n * n);
+    return k;
+}
+
+class GhostProblem {
+public:
+    GhostProblem(const Layout& layout, const CostOptions& options, double intensity_scale)
+        : layout_(layout), options_(options), intensity_scale_(intensity_scale) {}
+
+    // Samples the crop of `range` (inclusive pixels) from the frame, the others' model included.
+    void build(const FitFrame& frame,
+               const FrameDetection& detection,
+               int64_t x0,
+               int64_t y0,
+               int64_t x1,
+               int64_t y1,
+               std::span<const GhostState> others,
+               const std::array<double, 3>& transform_scale) {
+        const int64_t w = x1 - x0 + 1, h = y1 - y0 + 1;
+        const int64_t side = std::max(w, h);
+        stride_ = std::max<int64_t>(1, (side + options_.max_samples - 1) / options_.max_samples);
+        nx_ = static_cast<int>((w + stride_ - 1) / stride_);
+        ny_ = static_cast<int>((h + stride_ - 1) / stride_);
+        const size_t n = static_cast<size_t>(nx_) * static_cast<size_t>(ny_);
+        valid_.assign(n, 0);
+        qx_.resize(static_cast<size_t>(nx_));
+        qy_.resize(static_cast<size_t>(ny_));
+        const auto& m = frame.mapping;
+        for (int i = 0; i < nx_; ++i) {
+            const int64_t a = x0 + i * stride_, b = std::min(x1, a + stride_ - 1);
+            qx_[static_cast<size_t>(i)] = (0.5 * static_cast<double>(a + b + 1) - m.centre_x_px) / m.px_per_mm_x;
+        }
+        for (int j = 0; j < ny_; ++j) {
+            const int64_t a = y0 + j * stride_, b = std::min(y1, a + stride_ - 1);
+            qy_[static_cast<size_t>(j)] = (0.5 * static_cast<double>(a + b + 1) - m.centre_y_px) / m.px_per_mm_y;
+        }
+        for (int c = 0; c < layout_.channels; ++c) {
+            data_[c].assign(n, 0.0);
+            others_[c].assign(n, 0.0);
+            scale_[c] = transform_scale[c];
+        }
+        const int64_t width = frame.image.width;
+        for (int j = 0; j < ny_; ++j) {
+            for (int i = 0; i < nx_; ++i) {
+                const int64_t ax = x0 + i * stride_, bx = std::min(x1, ax + stride_ - 1);
+                const int64_t ay = y0 + j * stride_, by = std::min(y1, ay + stride_ - 1);
+                bool ok = true;
+                double sum[3] = {0.0, 0.0, 0.0};
+                for (int64_t y = ay; y <= by && ok; ++y)
+                    for (int64_t x = ax; x <= bx; ++x) {
+                        if (detection.excluded[static_cast<size_t>(y * width + x)]) {
+                            ok = false;
+                            break;
+                        }
+                        const float* p = frame.image.at(x, y);
+                        for (int c = 0; c < layout_.channels; ++c) sum[c] += p[c];
+                    }
+                if (!ok) continue;
+                const double count = static_cast<double>((bx - ax + 1) * (by - ay + 1));
+                const size_t s = static_cast<size_t>(j * nx_ + i);
+                valid_[s] = 1;
+                for (int c = 0; c < layout_.channels; ++c)
+                    data_[c][s] = sum[c] / count - detection.background[c];
+            }
+        }
+        // The other ghosts at the sample centres (only those whose range meets the crop).
+        for (const GhostState& g : others) {
+            const render::BezierLoop loop = render::toBezierLoop(g.shape);
+            double lo_x = 1e300, hi_x = -1e300, lo_y = 1e300, hi_y = -1e300;
+            for (const auto& p : loop.control_points_mm) {
+                lo_x = std::min(lo_x, p.x());
+                hi_x = std::max(hi_x, p.x());
+                lo_y = std::min(lo_y, p.y());
+                hi_y = std::max(hi_y, p.y());
+            }
+            const double grow = g.shading.outer_falloff_mm;
+            if (hi_x + grow < qx_.front() || lo_x - grow > qx_.back() ||
+                hi_y + grow < qy_.front() || lo_y - grow > qy_.back())
+                continue;
+            tbb::parallel_for(0, ny_, [&](int j) {
+                for (int i = 0; i < nx_; ++i) {
+                    const size_t s = static_cast<size_t>(j * nx_ + i);
+                    if (!valid_[s]) continue;
+                    const auto v = render::shadeGhost(loop, g.shading, {qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]},
+                                                      options_.distance);
+                    for (int c = 0; c < layout_.channels; ++c) others_[c][s] += v[c];
+                }
+            });
+        }
+        samples_ = 0;
+        for (uint8_t v : valid_) samples_ += v;
+        kernel_ = options_.edge_weight > 0.0 ? logKernel(options_.edge_sigma, radius_)
+                                             : std::vector<double>{};
+    }
+
+    int64_t samples() const { return samples_; }
+    int residualCount() const {
+        return static_cast<int>(samples_) * layout_.channels * (kernel_.empty() ? 1 : 2);
+    }
+
+    // Residuals (robust-transformed) and, when `jacobian` is not null, their row-major Jacobian.
+    bool evaluate(const double* params, double* residuals, double* jacobian) const {
+        ++evaluations_;
+        const int np = layout_.size();
+        const size_t n = static_cast<size_t>(nx_) * static_cast<size_t>(ny_);
+        // Control points and their derivatives with respect to the nine shape parameters.
+        std::array<Jet, 9> shape;
+        for (int i = 0; i < 9; ++i) shape[static_cast<size_t>(i)] = Jet(params[i], i);
+        std::array<Jet, 9> handles_mm = shape;
+        handles_mm[5] = shape[5] * shape[3];
+        handles_mm[6] = shape[6] * shape[2];
+        handles_mm[7] = shape[7] * shape[4];
+        handles_mm[8] = shape[8] * shape[2];
+        const auto points = render::ghostShapeControlPoints<Jet>(handles_mm.data());
+        render::BezierLoop loop;
+        loop.control_points_mm.resize(12);
+        for (int k = 0; k < 12; ++k)
+            loop.control_points_mm[static_cast<size_t>(k)] = {points[static_cast<size_t>(k)].x().a,
+                                                              points[static_cast<size_t>(k)].y().a};
+        // Per sample and channel: the plain residual r and its gradient (when asked).
+        residual_.assign(n * static_cast<size_t>(layout_.channels), 0.0);
+        if (jacobian) gradient_.assign(residual_.size() * static_cast<size_t>(np), 0.0);
+        Jet border[3], inner[3];
+        const Jet fi(params[layout_.innerFalloff()], layout_.innerFalloff());
+        const Jet fo(params[layout_.outerFalloff()], layout_.outerFalloff());
+        const Jet ei(params[layout_.innerExponent()], layout_.innerExponent());
+        const Jet eo(params[layout_.outerExponent()], layout_.outerExponent());
+        for (int c = 0; c < layout_.channels; ++c) {
+            border[c] = Jet(params[layout_.border(c)], layout_.border(c)) * intensity_scale_;
+            inner[c] = Jet(params[layout_.inner(c)], layout_.inner(c)) * intensity_scale_;
+        }
+        tbb::parallel_for(0, ny_, [&](int j) {
+            for (int i = 0; i < nx_; ++i) {
+                const size_t s = static_cast<size_t>(j * nx_ + i);
+                if (!valid_[s]) continue;
+                const Eigen::Vector2d q(qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]);
+                const render::ClosestPoint cp = render::closestPointFast(loop, q, options_.distance);
+                const double sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
+                const double d = sign * cp.distance_mm;
+                if (!jacobian) {
+                    for (int c = 0; c < layout_.channels; ++c) {
+                        const double m = render::transferIntensity<double>(
+                            d, border[c].a, inner[c].a, fi.a, fo.a, ei.a, eo.a);
+                        residual_[s * layout_.channels + c] =
+                            std::asinh((m + others_[c][s]) / scale_[c]) -
+                            std::asinh(data_[c][s] / scale_[c]);
+                    }
+                    continue;
+                }
+                // d(dist)/d(P_k) = -u B_k(t) at the closest point (envelope theorem).
+                Jet dj(d);
+                if (cp.distance_mm > 1e-12) {
+                    const Eigen::Vector2d u = (q - cp.point_mm) / cp.distance_mm;
+                    const double t = cp.t, mt = 1.0 - t;
+                    const double basis[4] = {mt * mt * mt, 3.0 * mt * mt * t, 3.0 * mt * t * t,
+                                             t * t * t};
+                    for (int b = 0; b < 4; ++b) {
+                        const auto& p = points[static_cast<size_t>((3 * cp.segment + b) % 12)];
+                        dj.v -= sign * basis[b] * (u.x() * p.x().v + u.y() * p.y().v);
+                    }
+                }
+                for (int c = 0; c < layout_.channels; ++c) {
+                    const Jet m = render::transferIntensity<Jet>(dj, border[c], inner[c], fi, fo,
+                                                                 ei, eo);
+                    const double total = m.a + others_[c][s];
+                    const size_t row = s * layout_.channels + c;
+                    residual_[row] = std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]);
+                    const double dt = 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
+                    for (int k = 0; k < np; ++k)
+                        gradient_[row * np + static_cast<size_t>(k)] = dt * m.v[k];
+                }
+            }
+        });
+        // Output: the data term, then the edge term, each robust-transformed.
+        const double c2 = options_.robust_scale * options_.robust_scale;
+        int out = 0;
+        const auto emit = [&](double r, const double* grad) {
+            const double s2 = r * r;
+            const double rho = c2 * std::log1p(s2 / c2);
+            const double rt = std::copysign(std::sqrt(rho), r);
+            if (!std::isfinite(rt)) return false;
+            residuals[out] = rt;
+            if (jacobian) {
+                // d rt / d theta = rho'(r^2) r / rt * dr / dtheta; the factor is 1 at r = 0.
+                const double factor = rt != 0.0 ? (1.0 / (1.0 + s2 / c2)) * r / rt : 1.0;
+                double* row = jacobian + static_cast<size_t>(out) * np;
+                for (int k = 0; k < np; ++k) row[k] = grad ? factor * grad[k] : 0.0;
+            }
+            ++out;
+            return true;
+        };
+        for (size_t s = 0; s < n; ++s) {
+            if (!valid_[s]) continue;
+            for (int c = 0; c < layout_.channels; ++c) {
+                const size_t row = s * layout_.channels + c;
+                if (!emit(residual_[row], jacobian ? &gradient_[row * np] : nullptr)) return false;
+            }
+        }
+        if (!kernel_.empty()) {
+            const int kn = 2 * radius_ + 1;
+            edge_.assign(residual_.size(), 0.0);
+            if (jacobian) edge_gradient_.assign(gradient_.size(), 0.0);
+            tbb::parallel_for(0, ny_, [&](int j) {
+                for (int i = 0; i < nx_; ++i) {
+                    const size_t s = static_cast<size_t>(j * nx_ + i);
+                    if (!valid_[s]) continue;
+                    for (int dy = -radius_; dy <= radius_; ++dy) {
+                        const int y = j + dy;
+                        if (y < 0 || y >= ny_) continue;
+                        for (int dx = -radius_; dx <= radius_; ++dx) {
+                            const int x = i + dx;
+                            if (x < 0 || x >= nx_) continue;
+                            const size_t t = static_cast<size_t>(y * nx_ + x);
+                            if (!valid_[t]) continue;
+                            const double k = options_.edge_weight *
+                                             kernel_[static_cast<size_t>((dy + radius_) * kn + dx + radius_)];
+                            for (int c = 0; c < layout_.channels; ++c) {
+                                const size_t row = s * layout_.channels + c;
+                                const size_t from = t * layout_.channels + c;
+                                edge_[row] += k * residual_[from];
+                                if (!jacobian) continue;
+                                double* g = &edge_gradient_[row * np];
+                                const double* h = &gradient_[from * np];
+                                for (int p = 0; p < np; ++p) g[p] += k * h[p];
+                            }
+                        }
+                    }
+                }
+            });
+            for (size_t s = 0; s < n; ++s) {
+                if (!valid_[s]) continue;
+                for (int c = 0; c < layout_.channels; ++c) {
+                    const size_t row = s * layout_.channels + c;
+                    if (!emit(edge_[row], jacobian ? &edge_gradient_[row * np] : nullptr))
+                        return false;
+                }
+            }
+        }
+        return out == residualCount();
+    }
+
+    // Half the sum of squared transformed residuals (Ceres' cost), or +inf when not finite.
+    double cost(const double* params) const {
+        std::vector<double> r(static_cast<size_t>(residualCount()));
+        if (!evaluate(params, r.data(), nullptr)) return std::numeric_limits<double>::infinity();
+        double sum = 0.0;
+        for (double v : r) sum += v * v;
+        return 0.5 * sum;
+    }
+
+    int64_t evaluations() const { return evaluations_; }
+
+private:
+    Layout layout_;
+    CostOptions options_;
+    double intensity_scale_ = 1.0;
+    int64_t stride_ = 1;
+    int nx_ = 0, ny_ = 0;
+    int64_t samples_ = 0;
+    std::vector<double> qx_, qy_;
+    std::vector<uint8_t> valid_;
+    std::vector<double> data_[3], others_[3];
+    double scale_[3] = {1.0, 1.0, 1.0};
+    std::vector<double> kernel_;
+    int radius_ = 0;
+    mutable std::vector<double> residual_, gradient_, edge_, edge_gradient_;
+    mutable int64_t evaluations_ = 0;
+};
+
+class GhostCostFunction final : public ceres::CostFunction {
+public:
+    GhostCostFunction(const GhostProblem& problem, int parameters) : problem_(problem) {
+        set_num_residuals(problem.residualCount());
+        mutable_parameter_block_sizes()->push_back(parameters);
+    }
+    bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
+        return problem_.evaluate(parameters[0], residuals, jacobians ? jacobians[0] : nullptr);
+    }
+
+private:
+    const GhostProblem& problem_;
+};
+
+// The thesis's optimizer (§7.2): central differences, a step and a learning rate per parameter,
+// the rate decaying per epoch, each parameter updated at once (online).
+void gradientDescent(const GhostProblem& problem,
+                     std::vector<double>& v,
+                     const Bounds& bounds,
+                     const FrameFitOptions& options,
+                     GhostFitReport& report) {
+    double current = problem.cost(v.data());
+    const double initial = std::max(current, 1e-300);
+    double rate = options.learning_rate;
+    for (int epoch = 0; epoch < options.max_iterations; ++epoch) {
+        const double before = current;
+        for (size_t k = 0; k < v.size(); ++k) {
+            const double h = options.difference_step * bounds.scale[k];
+            const double keep = v[k];
+            v[k] = std::min(keep + h, bounds.upper[k]);
+            const double up = problem.cost(v.data());
+            const double hi = v[k];
+            v[k] = std::max(keep - h, bounds.lower[k]);
+            const double down = problem.cost(v.data());
+            const double lo = v[k];
+            v[k] = keep;
+            if (!std::isfinite(up) || !std::isfinite(down) || hi == lo) continue;
+            const double gradient = (up - down) / (hi - lo);
+            const double step = rate * bounds.scale[k] * bounds.scale[k] * gradient / initial;
+            v[k] = std::clamp(keep - step, bounds.lower[k], bounds.upper[k]);
+        }
+        current = problem.cost(v.data());
+        report.iterations = epoch + 1;
+        rate *= options.learning_decay;
+        if (options.target_cost > 0.0 && current <= options.target_cost) break;
+        if (std::abs(before - current) <= options.function_tolerance * before) break;
+    }
+    report.final_cost = current;
+}
+
+}  // namespace
+
+const char* optimizerName(Optimizer optimizer) {
+    return optimizer == Optimizer::Ceres ? "ceres" : "gradient-descent";
+}
+
+Status checkFrameFitOptions(const FrameFitOptions& o) {
+    const auto bad = [](const std::string& what) {
+        return makeError(ErrorCode::InvalidArgument, "frame fit: " + what);
+    };
+    if (o.max_iterations < 1) return bad("max_iterations must be >= 1");
+    if (o.passes < 1) return bad("passes must be >= 1");
+    if (!(o.function_tolerance >= 0.0)) return bad("function_tolerance must be >= 0");
+    if (o.cost.max_samples < 4 || o.cost.max_samples > 4096)
+        return bad("cost.max_samples must lie in 4..4096");
+    if (!(o.cost.margin > 0.0) || o.cost.margin > 100.0) return bad("cost.margin must lie in (0, 100]");
+    if (!(o.cost.transform_fraction >= 0.0) || o.cost.transform_fraction > 1e6)
+        return bad("cost.transform_fraction must be >= 0");
+    if (!(o.cost.transform_sigmas > 0.0) || !std::isfinite(o.cost.transform_sigmas))
+        return bad("cost.transform_sigmas must be > 0");
+    if (!(o.cost.edge_weight >= 0.0) || !std::isfinite(o.cost.edge_weight))
+        return bad("cost.edge_weight must be >= 0");
+    if (!(o.cost.edge_sigma > 0.0) || o.cost.edge_sigma > 32.0)
+        return bad("cost.edge_sigma must lie in (0, 32]");
+    if (!(o.cost.robust_scale > 0.0) || !std::isfinite(o.cost.robust_scale))
+        return bad("cost.robust_scale must be > 0");
+    if (o.cost.distance.iterations < 0 || o.cost.distance.iterations > 64)
+        return bad("cost.distance.iterations must lie in 0..64");
+    if (o.cost.distance.seeds_per_segment < 1 || o.cost.distance.seeds_per_segment > 64)
+        return bad("cost.distance.seeds_per_segment must lie in 1..64");
+    if (!(o.learning_rate > 0.0) || !std::isfinite(o.learning_rate))
+        return bad("learning_rate must be > 0");
+    if (!(o.learning_decay > 0.0) || o.learning_decay > 1.0)
+        return bad("learning_decay must lie in (0, 1]");
+    if (!(o.difference_step > 0.0) || !std::isfinite(o.difference_step))
+        return bad("difference_step must be > 0");
+    if (!std::isfinite(o.target_cost)) return bad("target_cost must be finite");
+    return Ok{};
+}
+
+Result<FrameFitReport> fitFrame(const FitFrame& frame,
+                                const FrameDetection& detection,
+                                std::vector<GhostState>& ghosts,
+                                const FrameFitOptions& options) {
+    if (Status ok = checkFrameFitOptions(options); !ok) return ok.error();
+    const int64_t width = frame.image.width, height = frame.image.height;
+    if (width < 1 || height < 1)
+        return makeError(ErrorCode::InvalidArgument, "frame fit: the frame is empty");
+    if (detection.excluded.size() != static_cast<size_t>(width * height))
+        return makeError(ErrorCode::InvalidArgument,
+                         "frame fit: the detection's excluded mask does not match the frame size");
+    for (int c = 0; c < 3; ++c)
+        if (!(detection.noise_sigma[c] > 0.0) || !std::isfinite(detection.background[c]))
+            return makeError(ErrorCode::InvalidArgument,
+                             "frame fit: the detection's noise sigma must be > 0 and its "
+                             "background finite");
+    for (size_t g = 0; g < ghosts.size(); ++g) {
+        if (Status ok = render::validateGhostShape(ghosts[g].shape); !ok)
+            return makeError(ErrorCode::InvalidArgument,
+                             "frame fit: ghost " + std::to_string(g) + ": " + ok.error().message);
+        if (Status ok = render::validateShading(ghosts[g].shading); !ok)
+            return makeError(ErrorCode::InvalidArgument,
+                             "frame fit: ghost " + std::to_string(g) + ": " + ok.error().message);
+    }
+    const auto start = Clock::now();
+    FrameFitReport report;
+    report.ghosts.assign(ghosts.size(), GhostFitReport{});
+    const Layout layout{frame.channels == 1 ? 1 : 3};
+    const double px_mm = std::max(1.0 / frame.mapping.px_per_mm_x, 1.0 / frame.mapping.px_per_mm_y);
+    const double diagonal_mm = std::hypot(static_cast<double>(width) / frame.mapping.px_per_mm_x,
+                                          static_cast<double>(height) / frame.mapping.px_per_mm_y);
+
+    // The scale of T per channel: the noise, or a fraction of the frame's bright level.
+    std::array<double, 3> transform_scale{};
+    {
+        const int64_t total = width * height;
+        const int64_t step = std::max<int64_t>(1, total / 50000);
+        for (int c = 0; c < layout.channels; ++c) {
+            std::vector<double> values;
+            values.reserve(static_cast<size_t>(total / step + 1));
+            for (int64_t i = 0; i < total; i += step)
+                if (!detection.excluded[static_cast<size_t>(i)])
+                    values.push_back(frame.image.pixels[static_cast<size_t>(3 * i + c)] -
+                                     detection.background[static_cast<size_t>(c)]);
+            double bright = 0.0;
+            if (!values.empty()) {
+                const size_t k = static_cast<size_t>(0.99 * static_cast<double>(values.size() - 1));
+                std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k),
+                                 values.end());
+                bright = std::max(0.0, values[k]);
+            }
+            transform_scale[static_cast<size_t>(c)] =
+                std::max(options.cost.transform_sigmas * detection.noise_sigma[static_cast<size_t>(c)],
+                         options.cost.transform_fraction * bright);
+        }
+    }
+
+    // Gauss-Seidel: each ghost is fitted against the others' latest states, brightest first.
+    // (Fitted at once from the same state, overlapping ghosts would each fill the same residual
+    // and overshoot together.) The cores share each ghost's cost evaluation instead.
+    std::vector<size_t> order(ghosts.size());
+    for (size_t g = 0; g < order.size(); ++g) order[g] = g;
+    const auto peak = [&](size_t g) {
+        double v = 0.0;
+        for (int c = 0; c < 3; ++c)
+            v = std::max({v, ghosts[g].shading.border_rgb[c], ghosts[g].shading.inner_rgb[c]});
+        return v;
+    };
+    std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return peak(a) > peak(b); });
+    for (int pass = 0; pass < options.passes; ++pass) {
+        const auto fit_one = [&](size_t g) {
+            GhostFitReport& gr = report.ghosts[g];
+            const GhostState state = ghosts[g];
+            const auto& s = state.shape;
+            const double size_mm = std::max({s.half_height_mm, s.left_mm, s.right_mm});
+            const double grow = state.shading.outer_falloff_mm + options.cost.margin * size_mm;
+            const auto& m = frame.mapping;
+            const Eigen::Vector2d a = m.toPixels(s.centre_x_mm - s.left_mm - grow,
+                                                 s.centre_y_mm - s.half_height_mm - grow);
+            const Eigen::Vector2d b = m.toPixels(s.centre_x_mm + s.right_mm + grow,
+                                                 s.centre_y_mm + s.half_height_mm + grow);
+            const int64_t x0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(a.x())));
+            const int64_t y0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(a.y())));
+            const int64_t x1 = std::min<int64_t>(width - 1, static_cast<int64_t>(std::floor(b.x())));
+            const int64_t y1 = std::min<int64_t>(height - 1, static_cast<int64_t>(std::floor(b.y())));
+            if (x0 > x1 || y0 > y1) {
+                gr.samples = 0;
+                return;
+            }
+            std::vector<GhostState> others;
+            others.reserve(ghosts.size());
+            for (size_t k = 0; k < ghosts.size(); ++k)
+                if (k != g) others.push_back(ghosts[k]);
+            double intensity_scale = 0.0;
+            for (int c = 0; c < 3; ++c)
+                intensity_scale = std::max({intensity_scale, state.shading.border_rgb[c],
+                                            state.shading.inner_rgb[c], detection.noise_sigma[c]});
+            GhostProblem problem(layout, options.cost, intensity_scale);
+            problem.build(frame, detection, x0, y0, x1, y1, others, transform_scale);
+            gr.samples = problem.samples();
+            if (problem.samples() < layout.size()) return;  // not enough data: keep the state
+            const Bounds bounds = makeBounds(layout, px_mm, diagonal_mm, size_mm, state,
+                                             0.5 * options.cost.margin * size_mm);
+            std::vector<double> v = packState(state, layout, intensity_scale);
+            clampInto(v, bounds);
+            const double initial = problem.cost(v.data());
+            if (pass == 0) gr.initial_cost = initial;
+            if (!std::isfinite(initial)) {
+                gr.ok = false;
+                return;
+            }
+            if (options.optimizer == Optimizer::Ceres) {
+                ceres::Problem cp;
+                cp.AddResidualBlock(new GhostCostFunction(problem, layout.size()), nullptr, v.data());
+                for (int k = 0; k < layout.size(); ++k) {
+                    cp.SetParameterLowerBound(v.data(), k, bounds.lower[static_cast<size_t>(k)]);
+                    cp.SetParameterUpperBound(v.data(), k, bounds.upper[static_cast<size_t>(k)]);
+                }
+                ceres::Solver::Options so;
+                so.linear_solver_type = ceres::DENSE_QR;
+                so.max_num_iterations = options.max_iterations;
+                so.function_tolerance = options.function_tolerance;
+                so.num_threads = 1;
+                so.logging_type = ceres::SILENT;
+                so.minimizer_progress_to_stdout = false;
+                ceres::Solver::Summary summary;
+                ceres::Solve(so, &cp, &summary);
+                if (summary.termination_type == ceres::FAILURE || !summary.IsSolutionUsable()) {
+                    gr.ok = false;
+                    return;
+                }
+                gr.iterations += static_cast<int>(summary.iterations.size());
+                gr.final_cost = problem.cost(v.data());
+            } else {
+                GhostFitReport local;
+                gradientDescent(problem, v, bounds, options, local);
+                gr.iterations += local.iterations;
+                gr.final_cost = local.final_cost;
+            }
+            gr.evaluations += problem.evaluations();
+            clampInto(v, bounds);
+            GhostState fitted = unpackState(v.data(), layout, intensity_scale);
+            if (render::validateGhostShape(fitted.shape) && render::validateShading(fitted.shading))
+                ghosts[g] = fitted;
+            else
+                gr.ok = false;
+        };
+        for (const size_t g : order) fit_one(g);
+    }
+    for (const auto& gr : report.ghosts) {
+        report.initial_cost += gr.initial_cost;
+        report.final_cost += gr.final_cost;
+        report.evaluations += gr.evaluations;
+    }
+    report.time_ms = millisecondsSince(start);
+    return report;
+}
+
+render::ImageRGB drawFrameModel(const FitFrame& frame,
+                                const FrameDetection& detection,
+                                const std::vector<GhostState>& ghosts,
+                                const render::FastDistanceOptions& distance) {
+    ModelRenderOptions options;
+    options.distance = distance;
+    render::ImageRGB image =
+        renderGhostStates(ghosts, frame.mapping, frame.image.width, frame.image.height, options);
+    for (size_t i = 0; i < image.pixels.size(); i += 3)
+        for (int c = 0; c < 3; ++c)
+            image.pixels[i + static_cast<size_t>(c)] += static_cast<float>(
+                detection.background[static_cast<size_t>(frame.channels == 1 ? 0 : c)]);
+    return image;
+}
+
+}  // namespace flarelab::fit

@@ -1,0 +1,105 @@
+// ============================================================================
+//  flarelab fit: GhostParameterInfo, ghostParameters, ghostStateFromParameters, modelGhostsAt,
+//                ModelRenderOptions, renderModel, renderGhostStates, renderRotatedGhostStates
+// ============================================================================
+//
+// What a model ghost's parameters are, and a model evaluated and drawn at any constellation.
+//
+// A ghost has kGhostParameterCount parameters, stored under these names in model files, each a
+// smooth function of the angle that its Chebyshev pieces follow well:
+//   centre_x_mm, centre_y_mm, half_height_mm, left_mm, right_mm    the shape (render/ghost_shape.h)
+//   left_handle_x_fraction ... right_handle_y_fraction              handles over their extents,
+//                                                                   in [0, 1]: any value between
+//                                                                   two valid ones is valid
+//   ln_border_rgb[c], ln_inner_rgb[c]                               natural logs of the border and
+//                                                                   inner intensity (the frame's
+//                                                                   unit): intensities span
+//                                                                   decades, and stay >= 0
+//   inner_falloff_mm, outer_falloff_mm, inner_exponent, outer_exponent
+// Evaluated between fitted angles, a value may leave its bounds; ghostStateFromParameters clamps
+// it back (extents and falloffs to at least kMinExtentMm, fractions to [0, 1], exponents to
+// [0.25, 4]), so any evaluation gives a valid ghost.
+//
+// Constellation (DESIGN.md): a model fitted to a sweep at roll r0 is drawn for a light at
+// (theta, phi) by evaluating it at theta and rotating the ghosts about the optical axis by
+// phi - r0. The sweep's angle is the head angle; a negative head angle is the light on the other
+// side, which for a rotationally symmetric lens equals theta = |angle| rotated by 180 degrees.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <span>
+#include <utility>
+#include <vector>
+
+#include "common/result.h"
+#include "fit/frame.h"
+#include "fit/model_file.h"
+#include "render/image.h"
+#include "render/tiles.h"
+
+namespace flarelab::fit {
+
+inline constexpr int kGhostParameterCount = 19;
+inline constexpr double kMinExtentMm = 1e-4;
+
+struct GhostParameterInfo {
+    const char* name;
+    const char* unit;  // "mm", "1", "ln(frame unit)"
+    std::optional<double> lower_bound;
+    std::optional<double> upper_bound;
+};
+const GhostParameterInfo& ghostParameterInfo(int index);  // 0 <= index < kGhostParameterCount
+
+using GhostParameters = std::array<double, kGhostParameterCount>;
+
+// A state's parameters in the order and form above. ln intensities are floored at ln_floor (at
+// least kMinLnIntensity, which reads back as 0): a series through a ghost's frames should floor
+// them near its own noise, not at -80, or one black frame swings the polynomial.
+inline constexpr double kMinLnIntensity = -80.0;
+GhostParameters ghostParameters(const GhostState& state, double ln_floor = kMinLnIntensity);
+// The state the parameters describe, clamped into bounds. InvalidArgument for a non-finite value.
+Result<GhostState> ghostStateFromParameters(std::span<const double> values);
+
+struct ModelGhostAt {
+    int64_t id = 0;
+    GhostState state;  // rotated to the requested roll
+};
+
+// The ghosts of `model` defined at head angle `angle_deg`, rotated by roll_deg - capture roll.
+// InvalidArgument for an angle outside the model's valid range or non-finite input.
+Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
+                                                double angle_deg,
+                                                double roll_deg);
+
+struct ModelRenderOptions {
+    render::FastDistanceOptions distance{4, 4};
+    render::TileOptions tiles;
+    double intensity_scale = 1.0;  // multiplies every intensity (another light's power), >= 0
+};
+
+// The model's ghosts at (angle_deg, roll_deg) drawn by the tile engine into a width x height image
+// of the model's sensor (ModelLens sensor size), in the frame unit of the sweep it was fitted to.
+Result<render::ImageRGB> renderModel(const FlareModel& model,
+                                     double angle_deg,
+                                     double roll_deg,
+                                     int64_t width,
+                                     int64_t height,
+                                     const ModelRenderOptions& options = {});
+
+// The same for states already evaluated: each ghost prepared as a tile-engine primitive.
+render::ImageRGB renderGhostStates(std::span<const GhostState> ghosts,
+                                   const render::SensorToImage& mapping,
+                                   int64_t width,
+                                   int64_t height,
+                                   const ModelRenderOptions& options = {});
+// ... with every ghost's loop rotated by rotation_deg about the optical axis.
+render::ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
+                                          double rotation_deg,
+                                          const render::SensorToImage& mapping,
+                                          int64_t width,
+                                          int64_t height,
+                                          const ModelRenderOptions& options = {});
+
+}  // namespace flarelab::fit

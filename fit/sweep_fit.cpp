@@ -1,0 +1,659 @@
+#include "fit/sweep_fit.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <ctime>
+#include <limits>
+#include <numeric>
+#include <optional>
+#include <sstream>
+#include <utility>
+
+#include "fit/model_eval.h"
+
+namespace flarelab::fit {
+namespace {
+
+Error invalid(const std::string& message) {
+    return makeError(ErrorCode::InvalidArgument, "sweep fit: " + message);
+}
+
+double ghostRadius(const GhostState& state) {
+    return std::max({state.shape.half_height_mm, state.shape.left_mm, state.shape.right_mm});
+}
+
+// Two ghosts that describe the same thing: centres and extents within 2% of the larger ghost's
+// size, plus half a pixel.
+bool sameGhost(const GhostState& a, const GhostState& b, double half_pixel_mm) {
+    const double tolerance = 0.02 * std::max(ghostRadius(a), ghostRadius(b)) + half_pixel_mm;
+    return std::abs(a.shape.centre_x_mm - b.shape.centre_x_mm) <= tolerance &&
+           std::abs(a.shape.centre_y_mm - b.shape.centre_y_mm) <= tolerance &&
+           std::abs(a.shape.half_height_mm - b.shape.half_height_mm) <= tolerance &&
+           std::abs(a.shape.left_mm - b.shape.left_mm) <= tolerance &&
+           std::abs(a.shape.right_mm - b.shape.right_mm) <= tolerance;
+}
+
+// A ghost whose border and inner intensities are all below this many noise sigmas has faded.
+constexpr double kFadedSigmas = 2.0;
+
+// Whether a fitted state is a plausible outcome of a fit started at `from`: the centre moved by
+// at most `move` of from's radius, each extent changed by at most a factor `factor` (both plus
+// `slack_mm`). A fit that runs off (a diverged optimizer, a ghost pulled onto a neighbour) is not
+// taken as a sample.
+bool plausibleFit(
+    const GhostState& from, const GhostState& fitted, double move, double factor, double slack_mm) {
+    const auto& a = from.shape;
+    const auto& b = fitted.shape;
+    if (std::hypot(b.centre_x_mm - a.centre_x_mm, b.centre_y_mm - a.centre_y_mm) >
+        move * ghostRadius(from) + slack_mm)
+        return false;
+    const auto within = [&](double x, double y) {
+        return y <= factor * x + slack_mm && x <= factor * y + slack_mm;
+    };
+    return within(a.half_height_mm, b.half_height_mm) && within(a.left_mm, b.left_mm) &&
+           within(a.right_mm, b.right_mm);
+}
+
+struct Track {
+    int64_t id = 0;
+    std::vector<TrackSample> samples;  // in the order fitted; sorted at the end
+    int missed = 0;
+    bool live = false;
+    int born_frame = 0;
+    int born_direction = 0;  // +1 in the forward pass, -1 in the backward pass, 0 at the start
+};
+
+// A track's sample in a frame.
+struct FrameEntry {
+    size_t track = 0;
+    size_t sample = 0;
+};
+
+// The state a track predicts at `angle_deg`: per parameter, the least-squares polynomial of
+// degree min(degree, n - 1) through its `history` samples nearest the angle (all on one side: a
+// track is followed away from what it has), evaluated there.
+// Guards against wild extrapolation from noisy samples: ln intensities are floored at
+// ln_floor (a channel fitted to 0 has ln -80, which would swing the polynomial), and each predicted
+// parameter stays within the history's range widened by that range on either side (a smooth
+// parameter moves on by about one step of the history's span).
+GhostState predictState(
+    const Track& track, double angle_deg, int history, int degree, double ln_floor) {
+    const auto& samples = track.samples;
+    std::vector<size_t> order(samples.size());
+    std::iota(order.begin(), order.end(), size_t{0});
+    std::sort(order.begin(), order.end(), [&](size_t a, size_t b) {
+        return std::abs(samples[a].angle_deg - angle_deg) <
+               std::abs(samples[b].angle_deg - angle_deg);
+    });
+    const size_t m = std::min(order.size(), static_cast<size_t>(history));
+    const GhostState& nearest = samples[order[0]].state;
+    if (m <= 1) return nearest;
+    const int d = std::min(degree, static_cast<int>(m) - 1);
+    double scale = 0.0;
+    for (size_t r = 0; r < m; ++r)
+        scale = std::max(scale, std::abs(samples[order[r]].angle_deg - angle_deg));
+    if (!(scale > 0.0)) return nearest;
+    Eigen::MatrixXd a(static_cast<Eigen::Index>(m), d + 1);
+    Eigen::MatrixXd b(static_cast<Eigen::Index>(m), kGhostParameterCount);
+    for (size_t r = 0; r < m; ++r) {
+        const auto& sample = samples[order[r]];
+        const double t = (sample.angle_deg - angle_deg) / scale;
+        double power = 1.0;
+        for (int k = 0; k <= d; ++k, power *= t) a(static_cast<Eigen::Index>(r), k) = power;
+        const GhostParameters values = ghostParameters(sample.state, ln_floor);
+        for (int p = 0; p < kGhostParameterCount; ++p)
+            b(static_cast<Eigen::Index>(r), p) = values[p];
+    }
+    const Eigen::MatrixXd x = a.colPivHouseholderQr().solve(b);
+    GhostParameters predicted{};
+    for (int p = 0; p < kGhostParameterCount; ++p) {
+        const double lo = b.col(p).minCoeff(), hi = b.col(p).maxCoeff();
+        predicted[p] = std::clamp(x(0, p), lo - (hi - lo), hi + (hi - lo));  // the value at t = 0
+    }
+    auto state = ghostStateFromParameters(predicted);
+    return state ? *state : nearest;
+}
+
+std::string nowUtc() {
+    const std::time_t now = std::time(nullptr);
+    std::tm tm{};
+    gmtime_r(&now, &tm);
+    char text[32];
+    std::strftime(text, sizeof text, "%Y-%m-%dT%H:%M:%SZ", &tm);
+    return text;
+}
+
+class SweepFitter {
+public:
+    SweepFitter(const FrameSource& frames,
+                const SweepFitOptions& options,
+                const std::function<void(const SweepFitProgress&)>& progress)
+        : frames_(frames), options_(options), progress_(progress) {}
+
+    Result<SweepFitResult> run();
+
+private:
+    Result<int> chooseStart();
+    // Fits frame j: the live tracks (predicted; updated to those still live afterwards), new
+    // tracks from unexplained detections when allow_new, and with `extend` the ghosts stored at j
+    // for the other tracks as context (fitted too, not ended).
+    Status processFrame(
+        size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend);
+
+    const FrameSource& frames_;
+    const SweepFitOptions& options_;
+    const std::function<void(const SweepFitProgress&)>& progress_;
+    std::vector<Track> tracks_;
+    std::vector<std::vector<FrameEntry>> at_frame_;
+    SweepFitResult result_;
+    int64_t frames_total_ = 0;
+};
+
+Result<int> SweepFitter::chooseStart() {
+    const int n = static_cast<int>(frames_.angles_deg.size());
+    if (options_.start_frame >= 0) return options_.start_frame;
+    const int probes = std::min(options_.start_probes, n);
+    std::vector<int> indices;
+    if (probes == 1) {
+        indices.push_back((n - 1) / 2);
+    } else {
+        for (int i = 0; i < probes; ++i) {
+            const int index =
+                static_cast<int>(std::lround(static_cast<double>(i) * (n - 1) / (probes - 1)));
+            if (indices.empty() || indices.back() != index) indices.push_back(index);
+        }
+    }
+    int best = indices.front();
+    size_t best_count = 0;
+    bool first = true;
+    for (const int index : indices) {
+        auto frame = frames_.load(static_cast<size_t>(index));
+        if (!frame) return frame.error().withContext("frame " + std::to_string(index));
+        auto detection = detectGhosts(*frame, options_.detect);
+        if (!detection) return detection.error();
+        const size_t count = detection->candidates.size();
+        const auto off_middle = [&](int k) { return std::abs(2 * k - (n - 1)); };
+        if (first || count > best_count ||
+            (count == best_count && off_middle(index) < off_middle(best))) {
+            best = index;
+            best_count = count;
+            first = false;
+        }
+    }
+    return best;
+}
+
+Status SweepFitter::processFrame(
+    size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend) {
+    auto frame = frames_.load(j);
+    if (!frame) return frame.error().withContext("frame " + std::to_string(j));
+    auto detection = detectGhosts(*frame, options_.detect);
+    if (!detection) return detection.error();
+    const double angle = frames_.angles_deg[j];
+    const auto& mapping = frame->mapping;
+    const double half_pixel_mm = 0.5 / std::max(mapping.px_per_mm_x, mapping.px_per_mm_y);
+    const double pixel_mm = 2.0 * half_pixel_mm;
+    const int channels = std::clamp(frame->channels, 1, 3);
+
+    // Context: the other tracks' ghosts stored at this frame.
+    std::vector<FrameEntry> context;
+    if (extend) {
+        for (const FrameEntry& entry : at_frame_[j])
+            if (std::find(live.begin(), live.end(), entry.track) == live.end())
+                context.push_back(entry);
+    }
+    double min_sigma = std::numeric_limits<double>::infinity();
+    for (int c = 0; c < channels; ++c) min_sigma = std::min(min_sigma, detection->noise_sigma[c]);
+    const double ln_floor = std::log(std::max(0.1 * min_sigma, 1e-30));
+    std::vector<GhostState> predicted(live.size());
+    for (size_t i = 0; i < live.size(); ++i)
+        predicted[i] = predictState(tracks_[live[i]], angle, options_.history,
+                                    options_.prediction_degree, ln_floor);
+
+    // Detections in mm.
+    const auto& candidates = detection->candidates;
+    std::vector<Eigen::Vector2d> centroid_mm(candidates.size());
+    for (size_t c = 0; c < candidates.size(); ++c)
+        centroid_mm[c] = {
+            (candidates[c].centroid_px.x() - mapping.centre_x_px) / mapping.px_per_mm_x,
+            (candidates[c].centroid_px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
+    const auto normalisedDistance = [&](const GhostState& state, size_t c) {
+        const double radius = std::max(ghostRadius(state), 2.0 * pixel_mm);
+        // The box's centre: what a detection's centroid estimates.
+        const double box_x =
+            state.shape.centre_x_mm + 0.5 * (state.shape.right_mm - state.shape.left_mm);
+        return std::hypot(centroid_mm[c].x() - box_x,
+                          centroid_mm[c].y() - state.shape.centre_y_mm) /
+               radius;
+    };
+
+    // The brightest of the ghost's border and inner intensities, in noise sigmas.
+    const auto peakSigmas = [&](const GhostState& s) {
+        double peak = 0.0;
+        for (int c = 0; c < channels; ++c) {
+            const double sigma = std::max(detection->noise_sigma[c], 1e-30);
+            peak =
+                std::max(peak, std::max(s.shading.border_rgb[c], s.shading.inner_rgb[c]) / sigma);
+        }
+        return peak;
+    };
+
+    const double frame_diagonal_mm =
+        std::hypot(static_cast<double>(frame->image.width) / mapping.px_per_mm_x,
+                   static_cast<double>(frame->image.height) / mapping.px_per_mm_y);
+
+    // Greedy matching by normalised distance.
+    struct Pair {
+        double distance;
+        size_t track;
+        size_t candidate;
+    };
+    std::vector<Pair> pairs;
+    for (size_t i = 0; i < live.size(); ++i)
+        for (size_t c = 0; c < candidates.size(); ++c) {
+            const double d = normalisedDistance(predicted[i], c);
+            if (d <= options_.match_radius) pairs.push_back({d, i, c});
+        }
+    std::sort(pairs.begin(), pairs.end(),
+              [](const Pair& a, const Pair& b) { return a.distance < b.distance; });
+    std::vector<bool> matched(live.size(), false), used(candidates.size(), false);
+    for (const Pair& pair : pairs) {
+        if (matched[pair.track] || used[pair.candidate]) continue;
+        matched[pair.track] = true;
+        used[pair.candidate] = true;
+    }
+
+    // New tracks from detections that no ghost explains.
+    std::vector<size_t> born;
+    std::vector<GhostState> born_states;
+    if (allow_new) {
+        for (size_t c = 0; c < candidates.size(); ++c) {
+            if (used[c]) continue;
+            if (static_cast<int>(live.size() + born.size()) >= options_.max_ghosts) break;
+            // A blob centred off the image, or one that would count as faded at birth, is not a
+            // ghost to follow.
+            const auto& centroid = candidates[c].centroid_px;
+            if (!(centroid.x() >= 0.0 && centroid.x() <= static_cast<double>(frame->image.width) &&
+                  centroid.y() >= 0.0 && centroid.y() <= static_cast<double>(frame->image.height)))
+                continue;
+            if (peakSigmas(candidates[c].initial) < kFadedSigmas) continue;
+            if (ghostRadius(candidates[c].initial) > frame_diagonal_mm) continue;
+            bool explained = false;
+            for (const auto& state : predicted)
+                explained = explained || normalisedDistance(state, c) <= options_.match_radius;
+            for (const auto& entry : context)
+                explained = explained ||
+                            normalisedDistance(tracks_[entry.track].samples[entry.sample].state,
+                                               c) <= options_.match_radius;
+            for (const auto& state : born_states)
+                explained = explained || normalisedDistance(state, c) <= options_.match_radius;
+            if (explained) continue;
+            Track track;
+            track.id = static_cast<int64_t>(tracks_.size());
+            track.live = true;
+            track.born_frame = static_cast<int>(j);
+            track.born_direction = direction;
+            tracks_.push_back(std::move(track));
+            born.push_back(tracks_.size() - 1);
+            born_states.push_back(candidates[c].initial);
+        }
+    }
+
+    // Fit them all together.
+    std::vector<GhostState> ghosts;
+    for (const auto& entry : context)
+        ghosts.push_back(tracks_[entry.track].samples[entry.sample].state);
+    ghosts.insert(ghosts.end(), predicted.begin(), predicted.end());
+    ghosts.insert(ghosts.end(), born_states.begin(), born_states.end());
+    FrameFitReport report;
+    if (!ghosts.empty()) {
+        auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame);
+        if (!fitted)
+            return fitted.error().withContext("frame " + std::to_string(j) + " (" +
+                                              std::to_string(angle) + " deg)");
+        report = std::move(*fitted);
+        ++result_.frames_fitted;
+        result_.evaluations += report.evaluations;
+    }
+    const auto ghostCost = [&](size_t k) {
+        return k < report.ghosts.size() ? report.ghosts[k].final_cost : 0.0;
+    };
+    const auto ghostFitted = [&](size_t k) {
+        return k < report.ghosts.size() && report.ghosts[k].ok && report.ghosts[k].samples > 0;
+    };
+    for (size_t k = 0; k < context.size(); ++k) {
+        auto& sample = tracks_[context[k].track].samples[context[k].sample];
+        if (!ghostFitted(k) || !plausibleFit(sample.state, ghosts[k], 0.5, 2.0, 2.0 * pixel_mm)) {
+            ghosts[k] = sample.state;
+            continue;
+        }
+        sample.state = ghosts[k];
+        sample.cost = ghostCost(k);
+    }
+
+    // The frame's extent in mm, for "left the frame".
+    const double frame_x0 = -mapping.centre_x_px / mapping.px_per_mm_x;
+    const double frame_x1 =
+        (static_cast<double>(frame->image.width) - mapping.centre_x_px) / mapping.px_per_mm_x;
+    const double frame_y0 = -mapping.centre_y_px / mapping.px_per_mm_y;
+    const double frame_y1 =
+        (static_cast<double>(frame->image.height) - mapping.centre_y_px) / mapping.px_per_mm_y;
+    const auto outside = [&](const GhostState& s) {
+        return s.shape.centre_x_mm + s.shape.right_mm < frame_x0 ||
+               s.shape.centre_x_mm - s.shape.left_mm > frame_x1 ||
+               s.shape.centre_y_mm + s.shape.half_height_mm < frame_y0 ||
+               s.shape.centre_y_mm - s.shape.half_height_mm > frame_y1;
+    };
+
+    // The tracks fitted here (live, then born): their samples and their ends.
+    std::vector<size_t> fitted_tracks = live;
+    fitted_tracks.insert(fitted_tracks.end(), born.begin(), born.end());
+    std::vector<bool> has_sample(fitted_tracks.size(), false);
+    for (size_t i = 0; i < fitted_tracks.size(); ++i) {
+        const size_t k = context.size() + i;
+        Track& track = tracks_[fitted_tracks[i]];
+        const bool is_born = i >= live.size();
+        const bool plausible =
+            ghostFitted(k) &&
+            (is_born ? plausibleFit(born_states[i - live.size()], ghosts[k], 1.0, 3.0, pixel_mm)
+                     : plausibleFit(predicted[i], ghosts[k], std::max(0.5, options_.match_radius),
+                                    2.0, pixel_mm)) &&
+            ghostRadius(ghosts[k]) <= 2.0 * frame_diagonal_mm;
+        if (!plausible) {
+            // Nothing to fit it to here: a miss, and a new track is dropped.
+            if (is_born || ++track.missed > options_.max_missed) track.live = false;
+            continue;
+        }
+        const GhostState& state = ghosts[k];
+        const double peak = peakSigmas(state);
+        // Faded, gone out of the frame, or collapsed to a speck no ghost is.
+        if (peak < kFadedSigmas || outside(state) || ghostRadius(state) < 1.5 * pixel_mm) {
+            track.live = false;
+            continue;
+        }
+        track.samples.push_back({angle, state, ghostCost(k)});
+        has_sample[i] = true;
+        const bool seen = is_born || matched[i] || peak >= options_.detect.threshold_sigmas;
+        track.missed = seen ? 0 : track.missed + 1;
+        if (track.missed > options_.max_missed) track.live = false;
+    }
+
+    // Duplicates: of two ghosts that converged to the same state, the younger ends (a context
+    // ghost never does).
+    struct Present {
+        size_t track;
+        size_t fitted_index;  // into fitted_tracks, or npos for context
+    };
+    constexpr size_t npos = std::numeric_limits<size_t>::max();
+    std::vector<Present> present;
+    for (const auto& entry : context) present.push_back({entry.track, npos});
+    for (size_t i = 0; i < fitted_tracks.size(); ++i)
+        if (has_sample[i]) present.push_back({fitted_tracks[i], i});
+    const auto stateOf = [&](const Present& p) -> const GhostState& {
+        const Track& track = tracks_[p.track];
+        if (p.fitted_index == npos) {
+            for (const auto& entry : context)
+                if (entry.track == p.track) return track.samples[entry.sample].state;
+        }
+        return track.samples.back().state;
+    };
+    const auto gone = [&](const Present& p) {
+        return p.fitted_index != npos && !has_sample[p.fitted_index];
+    };
+    for (size_t a = 0; a < present.size(); ++a) {
+        for (size_t b = a + 1; b < present.size(); ++b) {
+            if (gone(present[a])) break;
+            if (gone(present[b])) continue;
+            if (!sameGhost(stateOf(present[a]), stateOf(present[b]), half_pixel_mm)) continue;
+            const bool a_endable = present[a].fitted_index != npos;
+            const bool b_endable = present[b].fitted_index != npos;
+            if (!a_endable && !b_endable) continue;
+            size_t victim;
+            if (a_endable && b_endable)
+                victim = tracks_[present[a].track].id > tracks_[present[b].track].id ? a : b;
+            else
+                victim = a_endable ? a : b;
+            Track& track = tracks_[present[victim].track];
+            track.samples.pop_back();
+            track.live = false;
+            has_sample[present[victim].fitted_index] = false;
+        }
+    }
+
+    // What this frame holds now, and who lives on.
+    std::vector<FrameEntry> entries = context;
+    std::vector<size_t> still_live;
+    for (size_t i = 0; i < fitted_tracks.size(); ++i) {
+        Track& track = tracks_[fitted_tracks[i]];
+        if (has_sample[i]) entries.push_back({fitted_tracks[i], track.samples.size() - 1});
+        if (track.live) still_live.push_back(fitted_tracks[i]);
+    }
+    at_frame_[j] = std::move(entries);
+    live = std::move(still_live);
+
+    if (progress_) {
+        SweepFitProgress p;
+        p.frames_done = result_.frames_fitted;
+        p.frames_total = std::max(frames_total_, result_.frames_fitted);
+        p.angle_deg = angle;
+        p.live_ghosts = static_cast<int>(live.size());
+        progress_(p);
+    }
+    return Ok{};
+}
+
+Result<SweepFitResult> SweepFitter::run() {
+    const auto t0 = std::chrono::steady_clock::now();
+    const size_t n = frames_.angles_deg.size();
+    at_frame_.assign(n, {});
+    frames_total_ = static_cast<int64_t>(n);
+    auto start = chooseStart();
+    if (!start) return start.error();
+    const size_t s = static_cast<size_t>(*start);
+    result_.start_frame = *start;
+    result_.frame_count = static_cast<int64_t>(n);
+
+    // Forward from the start.
+    std::vector<size_t> live;
+    for (size_t j = s; j < n; ++j) {
+        auto status = processFrame(j, live, true, j == s ? 0 : +1, false);
+        if (!status) return status.error();
+    }
+    // Backward from the start, with the tracks the start frame holds.
+    live.clear();
+    for (const FrameEntry& entry : at_frame_[s]) {
+        tracks_[entry.track].live = true;
+        tracks_[entry.track].missed = 0;
+        live.push_back(entry.track);
+    }
+    for (size_t j = s; j-- > 0;) {
+        auto status = processFrame(j, live, true, -1, false);
+        if (!status) return status.error();
+    }
+    // Tracks born away from the start, followed back from where they were born.
+    const size_t born_count = tracks_.size();
+    for (size_t t = 0; t < born_count; ++t) {
+        if (tracks_[t].born_direction == 0 || tracks_[t].samples.empty()) continue;
+        const int step = -tracks_[t].born_direction;
+        tracks_[t].live = true;
+        tracks_[t].missed = 0;
+        std::vector<size_t> extended = {t};
+        for (int64_t j = tracks_[t].born_frame + step;
+             j >= 0 && j < static_cast<int64_t>(n) && !extended.empty(); j += step) {
+            ++frames_total_;
+            auto status = processFrame(static_cast<size_t>(j), extended, false, 0, true);
+            if (!status) return status.error();
+        }
+    }
+
+    for (Track& track : tracks_) {
+        if (track.samples.empty()) continue;
+        std::sort(
+            track.samples.begin(), track.samples.end(),
+            [](const TrackSample& a, const TrackSample& b) { return a.angle_deg < b.angle_deg; });
+        result_.tracks.push_back({track.id, std::move(track.samples)});
+    }
+    result_.time_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    return std::move(result_);
+}
+
+}  // namespace
+
+Status checkSweepFitOptions(const SweepFitOptions& options) {
+    if (options.history < 1) return invalid("history must be >= 1");
+    if (options.prediction_degree < 0 || options.prediction_degree > 3)
+        return invalid("prediction_degree must be in 0..3");
+    if (!(options.match_radius > 0.0) || !std::isfinite(options.match_radius))
+        return invalid("match_radius must be finite and > 0");
+    if (options.max_missed < 0) return invalid("max_missed must be >= 0");
+    if (options.min_track_frames < 1) return invalid("min_track_frames must be >= 1");
+    if (options.start_frame < -1) return invalid("start_frame must be -1 (automatic) or a frame");
+    if (options.start_probes < 1) return invalid("start_probes must be >= 1");
+    if (options.max_ghosts < 1) return invalid("max_ghosts must be >= 1");
+    if (auto status = checkFrameFitOptions(options.frame); !status)
+        return status.error().withContext("sweep fit: frame");
+    if (auto status = checkPolyFitOptions(options.poly); !status)
+        return status.error().withContext("sweep fit: poly");
+    // The detection options, on a tiny black frame (detectGhosts refuses only options).
+    FitFrame probe;
+    probe.image = render::ImageRGB(8, 8);
+    probe.mapping.px_per_mm_x = probe.mapping.px_per_mm_y = 1.0;
+    probe.mapping.centre_x_px = probe.mapping.centre_y_px = 4.0;
+    probe.channels = 1;
+    if (auto detection = detectGhosts(probe, options.detect); !detection)
+        return detection.error().withContext("sweep fit: detect");
+    return Ok{};
+}
+
+Result<SweepFitResult> fitSweepFrames(
+    const FrameSource& frames,
+    const SweepFitOptions& options,
+    const std::function<void(const SweepFitProgress&)>& progress) {
+    if (auto status = checkSweepFitOptions(options); !status) return status.error();
+    const size_t n = frames.angles_deg.size();
+    if (n == 0) return invalid("the sweep has no frames");
+    if (!frames.load) return invalid("the frame source has no loader");
+    for (size_t i = 0; i < n; ++i) {
+        if (!std::isfinite(frames.angles_deg[i]))
+            return invalid("angles_deg[" + std::to_string(i) + "] is not finite");
+        if (i > 0 && !(frames.angles_deg[i] > frames.angles_deg[i - 1]))
+            return invalid("angles_deg[" + std::to_string(i) + "] is not above the one before");
+    }
+    if (options.start_frame >= static_cast<int64_t>(n))
+        return invalid("start_frame " + std::to_string(options.start_frame) +
+                       " is past the last of " + std::to_string(n) + " frames");
+    SweepFitter fitter(frames, options, progress);
+    return fitter.run();
+}
+
+Result<FlareModel> buildModel(const SweepFitResult& result,
+                              FlareModel model,
+                              const SweepFitOptions& options) {
+    if (auto status = checkPolyFitOptions(options.poly); !status)
+        return status.error().withContext("sweep fit: poly");
+    if (options.min_track_frames < 1) return invalid("min_track_frames must be >= 1");
+    int64_t min_frames = options.min_track_frames;
+    if (result.frame_count > 0) min_frames = std::min(min_frames, result.frame_count);
+    model.ghosts.clear();
+    for (const GhostTrack& track : result.tracks) {
+        const size_t n = track.samples.size();
+        if (n == 0 || static_cast<int64_t>(n) < min_frames) continue;
+        if (model.ghosts.size() >= kModelMaxGhosts) break;
+        // ln intensities are floored at a thousandth of the track's brightest: below that a
+        // ghost is invisible next to itself, and a black frame must not swing the series.
+        double brightest = 0.0;
+        for (const TrackSample& sample : track.samples)
+            for (int c = 0; c < 3; ++c)
+                brightest = std::max({brightest, sample.state.shading.border_rgb[c],
+                                      sample.state.shading.inner_rgb[c]});
+        const double ln_floor = brightest > 0.0 ? std::log(1e-3 * brightest) : kMinLnIntensity;
+        std::vector<double> angles(n);
+        std::vector<GhostParameters> values(n);
+        for (size_t i = 0; i < n; ++i) {
+            angles[i] = track.samples[i].angle_deg;
+            values[i] = ghostParameters(track.samples[i].state, ln_floor);
+        }
+        ModelGhost ghost;
+        ghost.id = track.id;
+        ghost.name = "track " + std::to_string(track.id);
+        ghost.fit.frames_fitted = static_cast<int64_t>(n);
+        ghost.fit.first_angle_deg = angles.front();
+        ghost.fit.last_angle_deg = angles.back();
+        for (int p = 0; p < kGhostParameterCount; ++p) {
+            const GhostParameterInfo& info = ghostParameterInfo(p);
+            ModelParameter parameter;
+            parameter.name = info.name;
+            parameter.unit = info.unit;
+            parameter.lower_bound = info.lower_bound;
+            parameter.upper_bound = info.upper_bound;
+            std::vector<double> series(n);
+            for (size_t i = 0; i < n; ++i) series[i] = values[i][p];
+            if (n == 1) {
+                parameter.pieces.push_back({angles[0], angles[0], {series[0]}, 0.0, 0.0, 1});
+            } else {
+                auto fit = fitPolynomial(angles, series, options.poly);
+                if (!fit)
+                    return fit.error().withContext("sweep fit: track " + std::to_string(track.id) +
+                                                   ", " + info.name);
+                for (const PolyPiece& piece : fit->pieces)
+                    parameter.pieces.push_back({piece.angle_min_deg, piece.angle_max_deg,
+                                                piece.coefficients, piece.rms_residual,
+                                                piece.max_abs_residual, piece.sample_count});
+            }
+            ghost.parameters.push_back(std::move(parameter));
+        }
+        model.ghosts.push_back(std::move(ghost));
+    }
+    if (auto status = validateModel(model); !status) return status.error();
+    return model;
+}
+
+Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
+                            double sensor_width_mm,
+                            double sensor_height_mm,
+                            const SweepFitOptions& options,
+                            const std::function<void(const SweepFitProgress&)>& progress,
+                            SweepFitResult* result) {
+    if (sweep.frames.empty() || !(sweep.frames.back().angle_deg > sweep.frames.front().angle_deg))
+        return invalid("sweep " + sweep.directory + " has " + std::to_string(sweep.frames.size()) +
+                       " frame(s) at one angle; a model needs at least two angles");
+    std::array<double, 2> given{sensor_width_mm, sensor_height_mm};
+    auto sensor =
+        sweepSensorSize(sweep, sensor_width_mm > 0.0 || sensor_height_mm > 0.0 ? &given : nullptr);
+    if (!sensor) return sensor.error();
+    const double width_mm = (*sensor)[0], height_mm = (*sensor)[1];
+
+    FrameSource source;
+    for (const auto& frame : sweep.frames) source.angles_deg.push_back(frame.angle_deg);
+    source.load = [&](size_t index) { return loadFitFrame(sweep, index, width_mm, height_mm); };
+    auto fitted = fitSweepFrames(source, options, progress);
+    if (!fitted) return fitted.error();
+
+    const auto& header = sweep.header;
+    FlareModel model;
+    model.software_version = "flarelab fit";
+    model.created_utc = nowUtc();
+    model.lens.description = header.lens.description;
+    model.lens.f_number = header.lens.f_number;
+    model.lens.focal_length_mm = header.lens.focal_length_mm;
+    model.lens.sensor_width_mm = width_mm;
+    model.lens.sensor_height_mm = height_mm;
+    model.capture.from_deg = std::min(header.capture.from_deg, sweep.frames.front().angle_deg);
+    model.capture.to_deg = std::max(header.capture.to_deg, sweep.frames.back().angle_deg);
+    model.capture.step_deg = header.capture.step_deg;
+    model.capture.roll_deg = header.capture.roll_deg;
+    model.capture.exposure_times_s = header.capture.exposure_times_s;
+    model.capture.width_px = header.capture.width_px;
+    model.capture.height_px = header.capture.height_px;
+    model.capture.camera = header.camera.description;
+    model.valid_from_deg = sweep.frames.front().angle_deg;
+    model.valid_to_deg = sweep.frames.back().angle_deg;
+    auto built = buildModel(*fitted, std::move(model), options);
+    if (result) *result = std::move(*fitted);
+    return built;
+}
+
+}  // namespace flarelab::fit

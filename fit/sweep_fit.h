@@ -1,0 +1,110 @@
+// ============================================================================
+//  flarelab fit: SweepFitOptions, TrackSample, GhostTrack, SweepFitProgress, SweepFitResult,
+//                FrameSource, fitSweepFrames, buildModel, fitSweep
+// ============================================================================
+//
+// A whole sweep fitted with no human input (chapters 7.3 and 10.3 of the thesis, automated):
+//   1. Start: detect ghosts in a few frames spread over the sweep and start where the most are
+//      found apart (at small angles the ghosts are concentric and merge into one blob).
+//   2. Forward from the start to the last frame, then backward from the start to the first (the
+//      reverse pass): in each frame, predict every live track's parameters by a low-order least
+//      squares polynomial through its last `history` fitted frames (§7.3), match the predictions
+//      to the frame's detections, start new tracks from unmatched detections that no live ghost
+//      explains, fit all of them together (fitFrame), and end tracks whose ghost has faded into
+//      the noise, left the frame or gone unmatched for max_missed frames.
+//   3. Tracks born after the start are also followed back from where they were born (a ghost
+//      that separates from another was there before it was detected).
+//   4. Compression (buildModel): each parameter of each track as a Chebyshev series of the angle
+//      (polyfit.h), its degree chosen by cross-validation unless fixed; tracks with fewer than
+//      min_track_frames frames are noise and are not modelled.
+// Only one frame is held in memory at a time, whatever the sweep's length.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "common/result.h"
+#include "fit/detect.h"
+#include "fit/frame.h"
+#include "fit/frame_fit.h"
+#include "fit/model_file.h"
+#include "fit/polyfit.h"
+#include "hdr/sweep.h"
+
+namespace flarelab::fit {
+
+struct SweepFitOptions {
+    DetectOptions detect;
+    FrameFitOptions frame;
+    PolyFitOptions poly;
+    int history = 6;            // fitted frames a prediction uses, >= 1
+    int prediction_degree = 2;  // of the prediction polynomial, 0..3 (capped by the history)
+    double match_radius = 0.6;  // a detection matches a prediction within this many ghost radii
+    int max_missed = 3;         // frames a track may go undetected before it ends, >= 0
+    int min_track_frames = 3;   // shorter tracks are not modelled (capped by the sweep length)
+    int start_frame = -1;       // -1: chosen automatically
+    int start_probes = 9;       // frames detected to choose the start, >= 1
+    int max_ghosts = 64;        // live tracks at most, >= 1
+};
+
+struct TrackSample {
+    double angle_deg = 0.0;
+    GhostState state;
+    double cost = 0.0;  // the ghost's final cost in that frame
+};
+
+struct GhostTrack {
+    int64_t id = 0;
+    std::vector<TrackSample> samples;  // ascending angle, one per frame
+};
+
+struct SweepFitProgress {
+    int64_t frames_done = 0;
+    int64_t frames_total = 0;  // frames fitted, including reverse passes (may grow)
+    double angle_deg = 0.0;
+    int live_ghosts = 0;
+};
+
+struct SweepFitResult {
+    std::vector<GhostTrack> tracks;  // by id
+    int start_frame = 0;
+    int64_t frame_count = 0;    // frames in the sweep (caps min_track_frames in buildModel)
+    int64_t frames_fitted = 0;  // fitFrame calls
+    int64_t evaluations = 0;
+    double time_ms = 0.0;
+};
+
+// Where frames come from: their count, angles (strictly increasing) and loader.
+struct FrameSource {
+    std::vector<double> angles_deg;
+    std::function<Result<FitFrame>(size_t)> load;
+};
+
+Status checkSweepFitOptions(const SweepFitOptions& options);
+
+// Steps 1 to 3. A progress callback (may be empty) is called after every fitted frame.
+Result<SweepFitResult> fitSweepFrames(
+    const FrameSource& frames,
+    const SweepFitOptions& options,
+    const std::function<void(const SweepFitProgress&)>& progress = {});
+
+// Step 4: the model of the tracks, with `model`'s metadata (lens, capture, valid range) kept and
+// its ghosts replaced. InvalidArgument when the metadata does not validate.
+Result<FlareModel> buildModel(const SweepFitResult& result,
+                              FlareModel model,
+                              const SweepFitOptions& options);
+
+// All of it for a sweep on disk: frames loaded one at a time, the metadata from the manifest
+// (lens, capture, sensor size, camera), the valid range the sweep's angles. The sensor size is
+// the one given; both <= 0 means the manifest's pixel pitch (sweepSensorSize). InvalidArgument
+// for a sweep whose frames do not span two angles (a model needs at least two).
+Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
+                            double sensor_width_mm,
+                            double sensor_height_mm,
+                            const SweepFitOptions& options,
+                            const std::function<void(const SweepFitProgress&)>& progress = {},
+                            SweepFitResult* result = nullptr);
+
+}  // namespace flarelab::fit

@@ -1,0 +1,150 @@
+#include "fit/frame_fit.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+#include "fit/model_eval.h"
+
+namespace flarelab::fit {
+namespace {
+
+constexpr double kSensorW = 36.0, kSensorH = 24.0;
+
+GhostState disc(double x_mm, double y_mm, double r_mm, double border, double inner) {
+    GhostState g;
+    g.shape = render::circleGhostShape(x_mm, y_mm, r_mm);
+    g.shading.border_rgb = {border, border, border};
+    g.shading.inner_rgb = {inner, inner, inner};
+    g.shading.inner_falloff_mm = 0.3 * r_mm;
+    g.shading.outer_falloff_mm = 0.4;
+    g.shading.inner_exponent = 1.0;
+    g.shading.outer_exponent = 1.0;
+    return g;
+}
+
+// A frame of the given ghosts over a background, with seeded Gaussian noise.
+FitFrame makeFrame(const std::vector<GhostState>& ghosts,
+                   int64_t width,
+                   int64_t height,
+                   double background,
+                   double noise,
+                   uint32_t seed) {
+    render::SensorToImage m;
+    m.px_per_mm_x = static_cast<double>(width) / kSensorW;
+    m.px_per_mm_y = static_cast<double>(height) / kSensorH;
+    m.centre_x_px = 0.5 * static_cast<double>(width);
+    m.centre_y_px = 0.5 * static_cast<double>(height);
+    render::ImageRGB image = renderGhostStates(ghosts, m, width, height);
+    std::mt19937 rng(seed);
+    std::normal_distribution<double> gauss(0.0, noise);
+    for (size_t i = 0; i < image.pixels.size(); i += 3) {
+        const double v = std::max(0.0, image.pixels[i] + background + gauss(rng));
+        for (int c = 0; c < 3; ++c) image.pixels[i + static_cast<size_t>(c)] = static_cast<float>(v);
+    }
+    auto frame = frameFromImage(std::move(image), 0.0, kSensorW, kSensorH);
+    EXPECT_TRUE(frame.has_value());
+    return std::move(*frame);
+}
+
+FrameDetection plainDetection(const FitFrame& frame, double background, double noise) {
+    FrameDetection d;
+    d.background = {background, background, background};
+    d.noise_sigma = {noise, noise, noise};
+    d.excluded.assign(static_cast<size_t>(frame.image.width * frame.image.height), 0);
+    return d;
+}
+
+double relativeL2(const std::vector<GhostState>& fitted,
+                  const std::vector<GhostState>& truth,
+                  const FitFrame& frame) {
+    const auto a = renderGhostStates(fitted, frame.mapping, frame.image.width, frame.image.height);
+    const auto b = renderGhostStates(truth, frame.mapping, frame.image.width, frame.image.height);
+    double num = 0.0, den = 0.0;
+    for (size_t i = 0; i < a.pixels.size(); ++i) {
+        num += (a.pixels[i] - b.pixels[i]) * (a.pixels[i] - b.pixels[i]);
+        den += b.pixels[i] * b.pixels[i];
+    }
+    return std::sqrt(num / den);
+}
+
+GhostState perturbed(const GhostState& g, double dx, double dr, double scale) {
+    GhostState p = g;
+    p.shape = render::circleGhostShape(g.shape.centre_x_mm + dx, g.shape.centre_y_mm - 0.5 * dx,
+                                       g.shape.left_mm + dr);
+    for (int c = 0; c < 3; ++c) {
+        p.shading.border_rgb[c] *= scale;
+        p.shading.inner_rgb[c] *= scale;
+    }
+    p.shading.inner_falloff_mm *= 1.3;
+    p.shading.outer_falloff_mm *= 0.7;
+    return p;
+}
+
+TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
+    const std::vector<GhostState> truth = {disc(-4.0, 1.0, 5.0, 400.0, 150.0),
+                                           disc(1.5, -0.5, 3.0, 900.0, 600.0)};
+    const FitFrame frame = makeFrame(truth, 160, 107, 5.0, 2.0, 1);
+    const FrameDetection detection = plainDetection(frame, 5.0, 2.0);
+    std::vector<GhostState> ghosts = {perturbed(truth[0], 0.6, 0.5, 0.7),
+                                      perturbed(truth[1], -0.4, -0.3, 1.4)};
+    FrameFitOptions options;
+    options.passes = 3;
+    auto report = fitFrame(frame, detection, ghosts, options);
+    ASSERT_TRUE(report.has_value()) << report.error().message;
+    EXPECT_LT(report->final_cost, 0.5 * report->initial_cost);
+    for (size_t g = 0; g < truth.size(); ++g) {
+        EXPECT_NEAR(ghosts[g].shape.centre_x_mm, truth[g].shape.centre_x_mm, 0.1) << g;
+        EXPECT_NEAR(ghosts[g].shape.centre_y_mm, truth[g].shape.centre_y_mm, 0.1) << g;
+    }
+    // Extents and falloffs trade against each other at the border; the image is what counts.
+    EXPECT_LT(relativeL2(ghosts, truth, frame), 0.08);
+}
+
+TEST(FrameFit, GradientDescentBaselineLowersTheSameCost) {
+    const std::vector<GhostState> truth = {disc(2.0, 0.0, 4.0, 500.0, 200.0)};
+    const FitFrame frame = makeFrame(truth, 120, 80, 5.0, 2.0, 2);
+    const FrameDetection detection = plainDetection(frame, 5.0, 2.0);
+    std::vector<GhostState> start = {perturbed(truth[0], 0.4, 0.3, 0.8)};
+    FrameFitOptions options;
+    options.passes = 1;
+    options.optimizer = Optimizer::GradientDescent;
+    options.max_iterations = 10;
+    std::vector<GhostState> gd = start;
+    auto r = fitFrame(frame, detection, gd, options);
+    ASSERT_TRUE(r.has_value());
+    EXPECT_LT(r->final_cost, r->initial_cost);
+    EXPECT_GT(r->evaluations, 10 * 2 * 15);  // two evaluations per parameter per epoch
+}
+
+TEST(FrameFit, ExcludedPixelsAndABlackCropLeaveTheStateFinite) {
+    const std::vector<GhostState> truth = {disc(0.0, 0.0, 4.0, 500.0, 200.0)};
+    const FitFrame frame = makeFrame(truth, 120, 80, 5.0, 2.0, 3);
+    FrameDetection detection = plainDetection(frame, 5.0, 2.0);
+    std::fill(detection.excluded.begin(), detection.excluded.end(), 1);  // nothing usable
+    std::vector<GhostState> ghosts = truth;
+    auto r = fitFrame(frame, detection, ghosts, {});
+    ASSERT_TRUE(r.has_value());
+    EXPECT_EQ(r->ghosts[0].samples, 0);
+    EXPECT_EQ(ghosts[0], truth[0]);
+}
+
+TEST(FrameFit, RefusesBadInput) {
+    const FitFrame frame = makeFrame({}, 40, 30, 5.0, 2.0, 4);
+    FrameDetection detection = plainDetection(frame, 5.0, 2.0);
+    std::vector<GhostState> ghosts;
+    FrameFitOptions options;
+    options.cost.robust_scale = 0.0;
+    EXPECT_FALSE(fitFrame(frame, detection, ghosts, options).has_value());
+    detection.excluded.resize(3);
+    EXPECT_FALSE(fitFrame(frame, detection, ghosts, {}).has_value());
+    detection = plainDetection(frame, 5.0, 2.0);
+    GhostState broken = disc(0.0, 0.0, 2.0, 1.0, 1.0);
+    broken.shape.left_mm = -1.0;
+    ghosts = {broken};
+    EXPECT_FALSE(fitFrame(frame, detection, ghosts, {}).has_value());
+}
+
+}  // namespace
+}  // namespace flarelab::fit

@@ -1,0 +1,438 @@
+#include "fit/sweep_fit.h"
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <functional>
+#include <random>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "fit/model_eval.h"
+#include "hdr/sweep.h"
+
+namespace flarelab::fit {
+namespace {
+
+constexpr int64_t kWidth = 160;
+constexpr int64_t kHeight = 107;
+constexpr double kSensorW = 36.0;
+constexpr double kSensorH = 24.0;
+constexpr double kBackground = 10.0;
+constexpr double kNoise = 1.0;
+
+// A synthetic ghost: a disc on y = 0 moving along x linearly with the angle, its border
+// intensity linear in the angle too (clamped at 0: a ghost with border 0 is absent).
+struct TrueGhost {
+    double x0_mm, x_rate;  // centre x = x0 + rate * angle
+    double radius_mm;
+    double border0, border_rate;  // border intensity = border0 + rate * angle
+};
+
+GhostState trueState(const TrueGhost& g, double angle) {
+    GhostState state;
+    state.shape = render::circleGhostShape(g.x0_mm + g.x_rate * angle, 0.0, g.radius_mm);
+    const double border = std::max(0.0, g.border0 + g.border_rate * angle);
+    state.shading.border_rgb = {border, border, border};
+    state.shading.inner_rgb = {0.6 * border, 0.6 * border, 0.6 * border};
+    state.shading.inner_falloff_mm = 1.0;
+    state.shading.outer_falloff_mm = 0.4;
+    state.shading.inner_exponent = 1.0;
+    state.shading.outer_exponent = 1.0;
+    return state;
+}
+
+// The centre of a ghost's box: its centre_x alone is not determined, since the left and right
+// extents are free (a disc is also centre + d with left + d and right - d).
+double boxCentreX(const GhostState& s) {
+    return s.shape.centre_x_mm + 0.5 * (s.shape.right_mm - s.shape.left_mm);
+}
+
+bool present(const TrueGhost& g, double angle) { return g.border0 + g.border_rate * angle > 0.0; }
+
+render::SensorToImage testMapping() {
+    render::SensorToImage mapping;
+    mapping.px_per_mm_x = kWidth / kSensorW;
+    mapping.px_per_mm_y = kHeight / kSensorH;
+    mapping.centre_x_px = 0.5 * kWidth;
+    mapping.centre_y_px = 0.5 * kHeight;
+    return mapping;
+}
+
+// The frame at `angle`: the present ghosts, the background, seeded noise equal in R, G and B (a
+// monochrome frame, fitted in one channel) and, unless `light` is off, the light's small
+// saturated spot at the left edge.
+render::ImageRGB drawFrame(const std::vector<TrueGhost>& truth,
+                           double angle,
+                           uint64_t seed,
+                           bool light = true) {
+    std::vector<GhostState> states;
+    for (const auto& g : truth)
+        if (present(g, angle)) states.push_back(trueState(g, angle));
+    render::ImageRGB image = renderGhostStates(states, testMapping(), kWidth, kHeight);
+    std::mt19937_64 rng(seed);
+    std::normal_distribution<double> noise(0.0, kNoise);
+    const Eigen::Vector2d light_px = testMapping().toPixels(-16.0 + 0.2 * angle, 0.0);
+    for (int64_t y = 0; y < kHeight; ++y) {
+        for (int64_t x = 0; x < kWidth; ++x) {
+            float* p = image.at(x, y);
+            double v = p[0] + kBackground + noise(rng);
+            if (light && std::hypot(x + 0.5 - light_px.x(), y + 0.5 - light_px.y()) < 2.0) v = 5e4;
+            v = std::max(v, 0.0);
+            p[0] = p[1] = p[2] = static_cast<float>(v);
+        }
+    }
+    return image;
+}
+
+FrameSource syntheticSource(const std::vector<TrueGhost>& truth,
+                            std::vector<double> angles,
+                            bool light = true,
+                            std::shared_ptr<std::atomic<int>> loads = {}) {
+    FrameSource source;
+    source.angles_deg = std::move(angles);
+    const std::vector<double> a = source.angles_deg;
+    source.load = [truth, a, light, loads](size_t i) -> Result<FitFrame> {
+        if (loads) ++*loads;
+        return frameFromImage(drawFrame(truth, a[i], 1000 + i, light), a[i], kSensorW, kSensorH);
+    };
+    return source;
+}
+
+std::vector<double> angleRange(double from, double step, int n) {
+    std::vector<double> out(n);
+    for (int i = 0; i < n; ++i) out[i] = from + step * i;
+    return out;
+}
+
+// Options that keep the test quick.
+SweepFitOptions quickOptions() {
+    SweepFitOptions options;
+    if (std::getenv("SWEEP_FIT_DEFAULTS")) return options;
+    options.frame.max_iterations = 15;
+    options.frame.cost.max_samples = 32;
+    return options;
+}
+
+// Which true ghost a fitted state is (nearest centre), or -1.
+int nearestTruth(const std::vector<TrueGhost>& truth, const GhostState& state, double angle) {
+    int best = -1;
+    double best_d = 1e9;
+    for (size_t g = 0; g < truth.size(); ++g) {
+        if (!present(truth[g], angle)) continue;
+        const double d = std::abs(trueState(truth[g], angle).shape.centre_x_mm - boxCentreX(state));
+        if (d < best_d) {
+            best_d = d;
+            best = static_cast<int>(g);
+        }
+    }
+    return best;
+}
+
+// The tracks in a line each, for failure messages.
+std::string describe(const SweepFitResult& result) {
+    std::ostringstream out;
+    out << "start frame " << result.start_frame << "\n";
+    for (const auto& track : result.tracks) {
+        out << "track " << track.id << ":";
+        for (const auto& s : track.samples)
+            out << " " << s.angle_deg << ":(" << boxCentreX(s.state) << " r"
+                << s.state.shape.right_mm << " b" << s.state.shading.border_rgb[0] << " i"
+                << s.state.shading.inner_rgb[0] << " f" << s.state.shading.inner_falloff_mm << "/"
+                << s.state.shading.outer_falloff_mm << " e" << s.state.shading.inner_exponent << "/"
+                << s.state.shading.outer_exponent << " c" << s.cost << ")";
+        out << "\n";
+    }
+    return out.str();
+}
+
+FlareModel modelShell(double from, double to) {
+    FlareModel model;
+    model.software_version = "test";
+    model.lens.sensor_width_mm = kSensorW;
+    model.lens.sensor_height_mm = kSensorH;
+    model.capture.from_deg = from;
+    model.capture.to_deg = to;
+    model.capture.step_deg = 0.5;
+    model.capture.width_px = kWidth;
+    model.capture.height_px = kHeight;
+    model.valid_from_deg = from;
+    model.valid_to_deg = to;
+    return model;
+}
+
+// Two separate discs moving right at different rates, one brightening, one dimming.
+const std::vector<TrueGhost> kTwoGhosts = {
+    {-10.0, 1.0, 3.0, 60.0, -5.0},  // x -10 .. -4 over 0..6 deg, border 60 .. 30
+    {3.0, 1.0, 4.0, 12.0, 2.0},     // x 3 .. 9, border 12 .. 24
+};
+
+TEST(SweepFit, TracksTwoGhostsAndBuildsModel) {
+    const auto angles = angleRange(0.0, 0.5, 13);
+    auto loads = std::make_shared<std::atomic<int>>(0);
+    const FrameSource source = syntheticSource(kTwoGhosts, angles, true, loads);
+    const SweepFitOptions options = quickOptions();
+    int64_t progress_calls = 0;
+    auto result = fitSweepFrames(source, options, [&](const SweepFitProgress& p) {
+        ++progress_calls;
+        EXPECT_LE(p.frames_done, p.frames_total);
+    });
+    ASSERT_TRUE(result) << result.error().message;
+    ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
+    EXPECT_EQ(result->frame_count, 13);
+    EXPECT_GE(result->frames_fitted, 13);
+    EXPECT_EQ(progress_calls, result->frames_fitted);
+    EXPECT_GT(result->evaluations, 0);
+    EXPECT_GT(result->time_ms, 0.0);
+    std::vector<bool> seen(2, false);
+    for (const auto& track : result->tracks) {
+        EXPECT_EQ(track.samples.size(), angles.size());
+        const int g = nearestTruth(kTwoGhosts, track.samples.front().state, angles.front());
+        ASSERT_GE(g, 0);
+        EXPECT_FALSE(seen[g]);
+        seen[g] = true;
+        for (size_t i = 1; i < track.samples.size(); ++i)
+            EXPECT_GT(track.samples[i].angle_deg, track.samples[i - 1].angle_deg);
+        for (const auto& sample : track.samples) {
+            const GhostState truth = trueState(kTwoGhosts[g], sample.angle_deg);
+            EXPECT_NEAR(boxCentreX(sample.state), truth.shape.centre_x_mm, 0.1)
+                << "ghost " << g << " at " << sample.angle_deg;
+            EXPECT_NEAR(sample.state.shape.centre_y_mm, 0.0, 0.1);
+        }
+    }
+
+    auto model = buildModel(*result, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(model) << model.error().message;
+    ASSERT_EQ(model->ghosts.size(), 2u);
+    EXPECT_TRUE(validateModel(*model));
+    for (const auto& ghost : model->ghosts) {
+        EXPECT_EQ(ghost.parameters.size(), static_cast<size_t>(kGhostParameterCount));
+        EXPECT_EQ(ghost.fit.frames_fitted, 13);
+    }
+    const double held_out = 2.25;  // between frames
+    auto at = modelGhostsAt(*model, held_out, 0.0);
+    ASSERT_TRUE(at) << at.error().message;
+    ASSERT_EQ(at->size(), 2u);
+    for (const auto& ghost : *at) {
+        const int g = nearestTruth(kTwoGhosts, ghost.state, held_out);
+        ASSERT_GE(g, 0);
+        const GhostState truth = trueState(kTwoGhosts[g], held_out);
+        EXPECT_NEAR(boxCentreX(ghost.state), truth.shape.centre_x_mm, 0.2);
+        EXPECT_NEAR(ghost.state.shape.centre_y_mm, 0.0, 0.2);
+    }
+}
+
+TEST(SweepFit, GhostLeavingTheFrameEndsItsTrack) {
+    // Ghost 0 moves right: its disc (radius 3) is wholly past the right edge (18 mm) from centre
+    // x 21 on, that is from 3.5 deg. Ghost 1 stays.
+    const std::vector<TrueGhost> truth = {{14.0, 2.0, 3.0, 40.0, 0.0}, {-8.0, 0.3, 3.0, 30.0, 0.0}};
+    const auto angles = angleRange(0.0, 0.4, 12);  // 0 .. 4.4
+    SweepFitOptions options = quickOptions();
+    options.start_frame = 0;
+    auto result = fitSweepFrames(syntheticSource(truth, angles), options);
+    ASSERT_TRUE(result) << result.error().message;
+    // Every sample on ghost 0's side lies before it left; ghost 1 is followed in (nearly) every
+    // frame. (A frame fit that goes wrong may split a track, so track counts are not checked.)
+    int samples_of_0 = 0;
+    std::vector<bool> covered_1(angles.size(), false);
+    for (const auto& track : result->tracks) {
+        for (const auto& sample : track.samples) {
+            const double x = boxCentreX(sample.state);
+            if (x > 0.0) {
+                EXPECT_LT(sample.angle_deg, 3.5) << describe(*result);
+                ++samples_of_0;
+            } else if (std::abs(x - trueState(truth[1], sample.angle_deg).shape.centre_x_mm) <
+                       0.3) {
+                covered_1[static_cast<size_t>(std::lround(sample.angle_deg / 0.4))] = true;
+            }
+        }
+    }
+    EXPECT_GE(samples_of_0, 5) << describe(*result);
+    EXPECT_GE(std::count(covered_1.begin(), covered_1.end(), true), 10) << describe(*result);
+}
+
+TEST(SweepFit, GhostFadingInIsPickedUpAndFollowedBack) {
+    // Ghost 1 appears at 2 deg (border 0 there, 16 at 6 deg). Starting at the first frame, it is
+    // born during the forward pass and then followed back towards where it faded in.
+    const std::vector<TrueGhost> truth = {{-9.0, 0.5, 3.0, 40.0, 0.0}, {4.0, 0.5, 3.5, -8.0, 4.0}};
+    const auto angles = angleRange(0.0, 0.5, 13);
+    SweepFitOptions options = quickOptions();
+    options.start_frame = 0;
+    auto result = fitSweepFrames(syntheticSource(truth, angles), options);
+    ASSERT_TRUE(result) << result.error().message;
+    ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
+    for (const auto& track : result->tracks) {
+        const int g =
+            nearestTruth(truth, track.samples.back().state, track.samples.back().angle_deg);
+        ASSERT_GE(g, 0);
+        if (g == 0) {
+            EXPECT_EQ(track.samples.size(), angles.size());
+        } else {
+            EXPECT_EQ(track.samples.back().angle_deg, angles.back());
+            EXPECT_LE(track.samples.front().angle_deg, 3.5);  // border 6 = 6 noise sigmas
+            EXPECT_GT(track.samples.front().angle_deg, 2.0);  // not before it exists
+        }
+        for (const auto& sample : track.samples)
+            EXPECT_NEAR(boxCentreX(sample.state),
+                        trueState(truth[g], sample.angle_deg).shape.centre_x_mm, 0.3)
+                << "ghost " << g << " at " << sample.angle_deg;
+    }
+}
+
+TEST(SweepFit, ThreeFramesAndOneFrame) {
+    const auto angles = angleRange(1.0, 0.5, 3);
+    const SweepFitOptions options = quickOptions();
+    auto result = fitSweepFrames(syntheticSource(kTwoGhosts, angles), options);
+    ASSERT_TRUE(result) << result.error().message;
+    ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
+    for (const auto& track : result->tracks) EXPECT_EQ(track.samples.size(), 3u);
+    auto model = buildModel(*result, modelShell(1.0, 2.0), options);
+    ASSERT_TRUE(model) << model.error().message;
+    EXPECT_EQ(model->ghosts.size(), 2u);
+
+    auto single = fitSweepFrames(syntheticSource(kTwoGhosts, {2.0}), options);
+    ASSERT_TRUE(single) << single.error().message;
+    ASSERT_EQ(single->tracks.size(), 2u);
+    EXPECT_EQ(single->start_frame, 0);
+    auto one = buildModel(*single, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(one) << one.error().message;
+    ASSERT_EQ(one->ghosts.size(), 2u);  // min_track_frames is capped by the sweep's length
+    for (const auto& parameter : one->ghosts[0].parameters) {
+        ASSERT_EQ(parameter.pieces.size(), 1u);
+        EXPECT_EQ(parameter.pieces[0].angle_from_deg, 2.0);
+        EXPECT_EQ(parameter.pieces[0].angle_to_deg, 2.0);
+    }
+}
+
+TEST(SweepFit, NoGhostsGiveNoTracks) {
+    const auto angles = angleRange(0.0, 1.0, 4);
+    const SweepFitOptions options = quickOptions();
+    for (const bool light : {false, true}) {
+        auto result = fitSweepFrames(syntheticSource({}, angles, light), options);
+        ASSERT_TRUE(result) << result.error().message;
+        EXPECT_TRUE(result->tracks.empty());
+        auto model = buildModel(*result, modelShell(0.0, 3.0), options);
+        ASSERT_TRUE(model) << model.error().message;
+        EXPECT_TRUE(model->ghosts.empty());
+    }
+    // A black frame.
+    FrameSource black;
+    black.angles_deg = {0.0, 1.0};
+    black.load = [](size_t i) {
+        return frameFromImage(render::ImageRGB(kWidth, kHeight), static_cast<double>(i), kSensorW,
+                              kSensorH);
+    };
+    auto result = fitSweepFrames(black, options);
+    ASSERT_TRUE(result) << result.error().message;
+    EXPECT_TRUE(result->tracks.empty());
+}
+
+TEST(SweepFit, RefusesOptionsOutOfRange) {
+    EXPECT_TRUE(checkSweepFitOptions({}));
+    const auto refused = [](const std::function<void(SweepFitOptions&)>& change) {
+        SweepFitOptions options;
+        change(options);
+        auto status = checkSweepFitOptions(options);
+        return !status && status.error().code == ErrorCode::InvalidArgument;
+    };
+    EXPECT_TRUE(refused([](auto& o) { o.history = 0; }));
+    EXPECT_TRUE(refused([](auto& o) { o.prediction_degree = -1; }));
+    EXPECT_TRUE(refused([](auto& o) { o.prediction_degree = 4; }));
+    EXPECT_TRUE(refused([](auto& o) { o.match_radius = 0.0; }));
+    EXPECT_TRUE(refused([](auto& o) { o.match_radius = std::nan(""); }));
+    EXPECT_TRUE(refused([](auto& o) { o.max_missed = -1; }));
+    EXPECT_TRUE(refused([](auto& o) { o.min_track_frames = 0; }));
+    EXPECT_TRUE(refused([](auto& o) { o.start_frame = -2; }));
+    EXPECT_TRUE(refused([](auto& o) { o.start_probes = 0; }));
+    EXPECT_TRUE(refused([](auto& o) { o.max_ghosts = 0; }));
+    EXPECT_TRUE(refused([](auto& o) { o.frame.passes = 0; }));
+    EXPECT_TRUE(refused([](auto& o) { o.poly.min_samples_per_piece = 1; }));
+    EXPECT_TRUE(refused([](auto& o) { o.detect.threshold_sigmas = 0.0; }));
+
+    const SweepFitOptions options;
+    const FrameSource source = syntheticSource(kTwoGhosts, {0.0, 1.0});
+    SweepFitOptions bad;
+    bad.start_frame = 2;  // past the last of two frames
+    EXPECT_FALSE(fitSweepFrames(source, bad));
+    bad.history = 0;
+    EXPECT_FALSE(fitSweepFrames(source, bad));
+    EXPECT_FALSE(fitSweepFrames(syntheticSource(kTwoGhosts, {}), options));
+    EXPECT_FALSE(fitSweepFrames(syntheticSource(kTwoGhosts, {1.0, 1.0}), options));
+    EXPECT_FALSE(fitSweepFrames(syntheticSource(kTwoGhosts, {1.0, 0.5}), options));
+    FrameSource no_loader;
+    no_loader.angles_deg = {0.0};
+    EXPECT_FALSE(fitSweepFrames(no_loader, options));
+    // A loader's error comes back.
+    FrameSource failing;
+    failing.angles_deg = {0.0, 1.0};
+    failing.load = [](size_t) -> Result<FitFrame> {
+        return makeError(ErrorCode::IoError, "no such frame");
+    };
+    auto failed = fitSweepFrames(failing, options);
+    ASSERT_FALSE(failed);
+    EXPECT_EQ(failed.error().code, ErrorCode::IoError);
+}
+
+// fitSweep on sweeps written to disk: the metadata comes from the manifest; one angle is refused.
+TEST(SweepFit, FitSweepOnDisk) {
+    namespace fs = std::filesystem;
+    const fs::path root =
+        fs::temp_directory_path() / ("flarelab_sweep_fit_test_" + std::to_string(::getpid()));
+    fs::remove_all(root);
+    const auto write = [&](const std::string& name, const std::vector<double>& angles) {
+        hdr::SweepHeader header;
+        header.software_version = "test";
+        header.lens.description = "test lens";
+        header.lens.f_number = 4.0;
+        header.lens.focal_length_mm = 50.0;
+        header.camera.description = "test camera";
+        header.capture.from_deg = angles.front();
+        header.capture.to_deg = angles.back();
+        header.capture.step_deg = 0.5;
+        header.capture.width_px = kWidth;
+        header.capture.height_px = kHeight;
+        auto writer = hdr::SweepWriter::create((root / name).string(), header);
+        EXPECT_TRUE(writer) << writer.error().message;
+        for (size_t i = 0; i < angles.size(); ++i) {
+            hdr::SweepFrame frame;
+            frame.angle_deg = angles[i];
+            auto added = writer->addFrame(drawFrame(kTwoGhosts, angles[i], 7 + i), frame);
+            EXPECT_TRUE(added) << added.error().message;
+        }
+        return writer->sweep();
+    };
+    const hdr::Sweep three = write("three", {1.0, 1.5, 2.0});
+    SweepFitResult result;
+    auto model = fitSweep(three, kSensorW, kSensorH, quickOptions(), {}, &result);
+    ASSERT_TRUE(model) << model.error().message;
+    EXPECT_EQ(result.tracks.size(), 2u);
+    EXPECT_EQ(model->ghosts.size(), 2u);
+    EXPECT_EQ(model->lens.description, "test lens");
+    EXPECT_EQ(model->lens.f_number, 4.0);
+    EXPECT_EQ(model->lens.sensor_width_mm, kSensorW);
+    EXPECT_EQ(model->capture.camera, "test camera");
+    EXPECT_EQ(model->capture.width_px, kWidth);
+    EXPECT_EQ(model->valid_from_deg, 1.0);
+    EXPECT_EQ(model->valid_to_deg, 2.0);
+    EXPECT_EQ(model->software_version, "flarelab fit");
+    EXPECT_FALSE(model->created_utc.empty());
+    EXPECT_TRUE(validateModel(*model));
+    // The manifest records no pixel pitch: without a sensor size it is refused.
+    EXPECT_FALSE(fitSweep(three, 0.0, 0.0, quickOptions()));
+
+    const hdr::Sweep one = write("one", {1.0});
+    auto refused = fitSweep(one, kSensorW, kSensorH, quickOptions());
+    ASSERT_FALSE(refused);
+    EXPECT_EQ(refused.error().code, ErrorCode::InvalidArgument);
+    EXPECT_NE(refused.error().message.find("two angles"), std::string::npos);
+    fs::remove_all(root);
+}
+
+}  // namespace
+}  // namespace flarelab::fit
