@@ -115,7 +115,8 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     fit->add_option("--optimizer-frames", fit_options->optimizer_frames,
                     "frames of the optimizer table")
         ->capture_default_str();
-    fit->add_flag("!--no-trade", fit_options->trade, "only the optimizer table");
+    fit->add_flag("!--no-trade", fit_options->trade, "skip the trade table");
+    fit->add_flag("!--no-frames", fit_options->frames, "skip the per-frame table");
     fit->add_flag("--quick", fit_options->quick, "fewer settings and angles (a smoke test)");
     fit->add_option("--json", *fit_json_path, "also write the results as JSON here");
     fit->callback([fit_options, fit_json_path, &out, &err, &exit_code] {

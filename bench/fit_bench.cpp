@@ -10,6 +10,8 @@
 #include "fit/model_eval.h"
 #include "fit/score.h"
 #include "optics/prescription.h"
+#include "render/preview.h"
+#include <cstdlib>
 
 namespace flarelab::bench {
 namespace {
@@ -113,6 +115,15 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
             auto fitted = fit::fitFrame(*frame, *detection, ghosts, fo);
             if (!fitted) return fitted.error();
             if (optimizer == fit::Optimizer::Ceres) target = fitted->final_cost;
+            if (const char* dump = std::getenv("FLARELAB_BENCH_DUMP"); dump && optimizer == fit::Optimizer::Ceres) {
+                render::ToneMapOptions tm;
+                tm.exposure_stops = -6.0;
+                const std::string base = std::string(dump) + "/" + std::to_string(index);
+                (void)render::writePng(fit::renderGhostStates(ghosts, frame->mapping, frame->image.width, frame->image.height), base + "-fit.png", tm);
+                (void)render::writePng(fit::renderGhostStates(start, frame->mapping, frame->image.width, frame->image.height), base + "-start.png", tm);
+                (void)render::writePng(t->image, base + "-truth.png", tm);
+                (void)render::writePng(frame->image, base + "-data.png", tm);
+            }
             const auto drawn = fit::renderGhostStates(ghosts, frame->mapping, frame->image.width,
                                                       frame->image.height);
             auto s = fit::compareImages(drawn, t->image, t->light_px, mask);
@@ -132,6 +143,38 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
                 << row.time_ms << " ms, cost " << row.initial_cost << " -> " << row.final_cost
                 << ", rel L2 " << row.initial_rel_l2 << " -> " << row.rel_l2 << "\n";
             report.optimizers.push_back(row);
+        }
+    }
+    if (options.frames) {
+        fit::FrameSource source;
+        for (const auto& f : sweep->frames) source.angles_deg.push_back(f.angle_deg);
+        const hdr::Sweep& sw_ref = *sweep;
+        source.load = [&sw_ref, sw, sh](size_t i) { return fit::loadFitFrame(sw_ref, i, sw, sh); };
+        auto result = fit::fitSweepFrames(source, options.fit);
+        if (!result) return result.error();
+        const double mask = 0.03 * std::hypot(static_cast<double>(sweep->header.capture.width_px),
+                                              static_cast<double>(sweep->header.capture.height_px));
+        const size_t step = std::max<size_t>(1, n / 30);
+        for (size_t i = 0; i < n; i += step) {
+            const double angle = sweep->frames[i].angle_deg;
+            std::vector<fit::GhostState> states;
+            for (const auto& track : result->tracks)
+                for (const auto& sample : track.samples)
+                    if (sample.angle_deg == angle) states.push_back(sample.state);
+            auto t = (*truth)(angle);
+            if (!t) return t.error();
+            render::SensorToImage m;
+            m.px_per_mm_x = static_cast<double>(t->image.width) / sw;
+            m.px_per_mm_y = static_cast<double>(t->image.height) / sh;
+            m.centre_x_px = 0.5 * static_cast<double>(t->image.width);
+            m.centre_y_px = 0.5 * static_cast<double>(t->image.height);
+            auto s = fit::compareImages(
+                fit::renderGhostStates(states, m, t->image.width, t->image.height), t->image,
+                t->light_px, mask);
+            if (!s) return s.error();
+            report.frames.push_back({angle, static_cast<int>(states.size()), s->rel_l2});
+            log << "bench fit: per-frame fit at " << angle << " deg: " << states.size()
+                << " ghosts, rel L2 " << s->rel_l2 << "\n";
         }
     }
     if (!options.trade) return report;

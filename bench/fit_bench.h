@@ -32,6 +32,7 @@ struct FitBenchOptions {
     std::string lens_file;
     int optimizer_frames = 5;  // frames of the main sweep for the optimizer table, >= 0
     bool trade = true;
+    bool frames = true;  // the per-frame table (one sweep fit)
     bool quick = false;  // the trade over fewer settings and angles (a smoke test)
     fit::SweepFitOptions fit;  // the defaults the trade varies from
 };
@@ -58,8 +59,16 @@ struct TradeRow {
     double fit_median = 0.0;
 };
 
+// The per-frame fits of a whole sweep (its tracks' samples, before compression) against truth.
+struct FrameRow {
+    double angle_deg = 0.0;
+    int ghosts = 0;
+    double rel_l2 = 0.0;
+};
+
 struct FitBenchReport {
     std::vector<OptimizerRow> optimizers;
+    std::vector<FrameRow> frames;
     std::vector<TradeRow> trade;
 };
 

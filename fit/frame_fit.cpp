@@ -137,7 +137,7 @@ void clampInto(std::vector<double>& v, const Bounds& b) {
 
 // The Laplacian of Gaussian, zero-sum, on a (2 radius + 1)^2 grid.
 std::vector<double> logKernel(double sigma, int& radius) {
-    radius = std::max(1, static_cast<int>(std::ceil(3.0 * sigma)));
+    radius = std::max(1, static_cast<int>(std::ceil(2.0 * sigma)));  // the LoG is small beyond 2 sigma
     const int n = 2 * radius + 1;
     std::vector<double> k(static_cast<size_t>(n * n));
     double sum = 0.0;
@@ -245,7 +245,19 @@ public:
 
     int64_t samples() const { return samples_; }
     int residualCount() const {
-        return static_cast<int>(samples_) * layout_.channels * (kernel_.empty() ? 1 : 2);
+        return static_cast<int>(samples_) * layout_.channels * (kernel_.empty() ? 1 : 2) +
+               (prior_ ? 9 : 0);
+    }
+
+    // A prior on the shape (the tracker's prediction): rows (v - prior) / tolerance for the nine
+    // shape values, tolerance `fraction` of `size_mm` for centre and extents, 0.2 for the handle
+    // fractions. It holds what the frame does not show (a ghost's edge outside the frame).
+    void setPrior(const GhostState& prior, double size_mm, double fraction) {
+        const GhostParameters p = ghostParameters(prior);
+        prior_values_.assign(p.begin(), p.begin() + 9);
+        prior_tolerance_.assign(9, 0.2);
+        for (int i = 0; i < 5; ++i) prior_tolerance_[static_cast<size_t>(i)] = fraction * size_mm;
+        prior_ = true;
     }
 
     // Residuals (robust-transformed) and, when `jacobian` is not null, their row-major Jacobian.
@@ -386,6 +398,18 @@ public:
                 }
             }
         }
+        if (prior_) {
+            for (int i = 0; i < 9; ++i) {
+                residuals[out] = (params[i] - prior_values_[static_cast<size_t>(i)]) /
+                                 prior_tolerance_[static_cast<size_t>(i)];
+                if (jacobian) {
+                    double* row = jacobian + static_cast<size_t>(out) * np;
+                    for (int k = 0; k < np; ++k) row[k] = 0.0;
+                    row[i] = 1.0 / prior_tolerance_[static_cast<size_t>(i)];
+                }
+                ++out;
+            }
+        }
         return out == residualCount();
     }
 
@@ -413,6 +437,8 @@ private:
     double scale_[3] = {1.0, 1.0, 1.0};
     std::vector<double> kernel_;
     int radius_ = 0;
+    bool prior_ = false;
+    std::vector<double> prior_values_, prior_tolerance_;
     mutable std::vector<double> residual_, gradient_, edge_, edge_gradient_;
     mutable int64_t evaluations_ = 0;
 };
@@ -504,13 +530,17 @@ Status checkFrameFitOptions(const FrameFitOptions& o) {
     if (!(o.difference_step > 0.0) || !std::isfinite(o.difference_step))
         return bad("difference_step must be > 0");
     if (!std::isfinite(o.target_cost)) return bad("target_cost must be finite");
+    if (!(o.prior_tolerance >= 0.0) || !std::isfinite(o.prior_tolerance))
+        return bad("prior_tolerance must be >= 0");
     return Ok{};
 }
 
 Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                 const FrameDetection& detection,
                                 std::vector<GhostState>& ghosts,
-                                const FrameFitOptions& options) {
+                                const FrameFitOptions& options,
+                                std::span<const GhostState> priors,
+                                std::span<const GhostState> fixed) {
     if (Status ok = checkFrameFitOptions(options); !ok) return ok.error();
     const int64_t width = frame.image.width, height = frame.image.height;
     if (width < 1 || height < 1)
@@ -597,7 +627,8 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                 return;
             }
             std::vector<GhostState> others;
-            others.reserve(ghosts.size());
+            others.reserve(ghosts.size() + fixed.size());
+            others.insert(others.end(), fixed.begin(), fixed.end());
             for (size_t k = 0; k < ghosts.size(); ++k)
                 if (k != g) others.push_back(ghosts[k]);
             double intensity_scale = 0.0;
@@ -606,6 +637,8 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                             state.shading.inner_rgb[c], detection.noise_sigma[c]});
             GhostProblem problem(layout, options.cost, intensity_scale);
             problem.build(frame, detection, x0, y0, x1, y1, others, transform_scale);
+            if (g < priors.size() && options.prior_tolerance > 0.0)
+                problem.setPrior(priors[g], size_mm, options.prior_tolerance);
             gr.samples = problem.samples();
             if (problem.samples() < layout.size()) return;  // not enough data: keep the state
             const Bounds bounds = makeBounds(layout, px_mm, diagonal_mm, size_mm, state,

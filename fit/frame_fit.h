@@ -42,6 +42,7 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include "common/result.h"
@@ -54,19 +55,19 @@ enum class Optimizer { Ceres, GradientDescent };
 const char* optimizerName(Optimizer optimizer);  // "ceres", "gradient-descent"
 
 struct CostOptions {
-    int max_samples = 48;          // crop samples per side, >= 4 (the resolution knob)
+    int max_samples = 32;          // crop samples per side, >= 4 (the resolution knob)
     double margin = 0.6;            // crop grows by this fraction of the ghost's size, > 0
     double transform_sigmas = 3.0;  // s of T in noise sigmas, > 0
     double transform_fraction = 0.05;  // s of T relative to the frame's bright level, >= 0
     double edge_weight = 0.5;      // >= 0; 0 leaves the edge term out
     double edge_sigma = 1.0;       // of the LoG, in samples, > 0
     double robust_scale = 3.0;     // Cauchy c in units of T, > 0
-    render::FastDistanceOptions distance{4, 4};
+    render::FastDistanceOptions distance{4, 2};  // Newton steps, seeds per segment
 };
 
 struct FrameFitOptions {
     Optimizer optimizer = Optimizer::Ceres;
-    int max_iterations = 20;  // per ghost and pass: LM iterations or descent epochs, >= 1
+    int max_iterations = 10;  // per ghost and pass: LM iterations or descent epochs, >= 1
     int passes = 2;           // >= 1
     double function_tolerance = 1e-5;  // relative cost change that ends a ghost's fit
     CostOptions cost;
@@ -77,6 +78,10 @@ struct FrameFitOptions {
     // Stop a ghost's descent once its cost is at or below this (the bench's "same final cost");
     // <= 0: never.
     double target_cost = 0.0;
+    // With priors (fitFrame's last argument, one per ghost: the tracker's predictions), the
+    // shape may leave its prior by about this fraction of the ghost's size before the prior
+    // weighs as much as one sample's residual of 1; 0: priors are ignored. See fitFrame.
+    double prior_tolerance = 0.05;
 };
 
 struct GhostFitReport {
@@ -102,10 +107,19 @@ Status checkFrameFitOptions(const FrameFitOptions& options);
 // The detection supplies background, noise and the excluded pixels. InvalidArgument for options
 // out of range, an invalid state or a detection that does not match the frame's size. A ghost whose
 // crop holds no usable sample keeps its state (report: samples 0).
+//
+// Fixed ghosts (optional) are part of every ghost's model but are not fitted: the context of a
+// frame whose other ghosts are already known.
+// Priors (optional; the first priors.size() ghosts get one): nine more residuals per ghost,
+// (shape value - prior) / tolerance, so that what the frame does not constrain (an edge outside
+// the frame, a rim hidden under a brighter ghost) stays where the track predicts it instead of
+// drifting; where the data speaks, its thousands of samples outweigh the nine.
 Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                 const FrameDetection& detection,
                                 std::vector<GhostState>& ghosts,
-                                const FrameFitOptions& options = {});
+                                const FrameFitOptions& options = {},
+                                std::span<const GhostState> priors = {},
+                                std::span<const GhostState> fixed = {});
 
 // The frame's model: the ghosts drawn at every pixel centre (through the tile engine) plus the
 // background, in the frame's unit, with the frame's channel count.

@@ -161,7 +161,12 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
                 span > 0.0 ? std::clamp(2.0 * (angle_deg - piece->angle_from_deg) / span - 1.0,
                                         -1.0, 1.0)
                            : 0.0;
-            values[static_cast<size_t>(i)] = chebyshevValue(piece->coefficients, x);
+            double value = chebyshevValue(piece->coefficients, x);
+            // The model's own bounds for this ghost (the fitter writes the range its frames
+            // spanned): a series never leaves them.
+            if (parameter->lower_bound) value = std::max(value, *parameter->lower_bound);
+            if (parameter->upper_bound) value = std::min(value, *parameter->upper_bound);
+            values[static_cast<size_t>(i)] = value;
         }
         if (!known) continue;
         auto state = ghostStateFromParameters(values);

@@ -2,6 +2,8 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <cstdio>
+#include <cstdlib>
 #include <chrono>
 #include <cmath>
 #include <ctime>
@@ -149,6 +151,13 @@ private:
     std::vector<std::vector<FrameEntry>> at_frame_;
     SweepFitResult result_;
     int64_t frames_total_ = 0;
+    size_t start_ = 0;
+    // The sky: the lowest background of the probed frames. The camera and the sky do not change
+    // along a sweep, the ghosts only add light, so a frame whose own background lies above it
+    // holds a ghost larger than the frame (a veil with no edge in view).
+    std::array<double, 3> sky_ = {std::numeric_limits<double>::infinity(),
+                                  std::numeric_limits<double>::infinity(),
+                                  std::numeric_limits<double>::infinity()};
 };
 
 Result<int> SweepFitter::chooseStart() {
@@ -173,6 +182,8 @@ Result<int> SweepFitter::chooseStart() {
         if (!frame) return frame.error().withContext("frame " + std::to_string(index));
         auto detection = detectGhosts(*frame, options_.detect);
         if (!detection) return detection.error();
+        for (int c = 0; c < 3; ++c)
+            sky_[c] = std::min(sky_[c], detection->background[static_cast<size_t>(c)]);
         const size_t count = detection->candidates.size();
         const auto off_middle = [&](int k) { return std::abs(2 * k - (n - 1)); };
         if (first || count > best_count ||
@@ -189,10 +200,24 @@ Status SweepFitter::processFrame(
     size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend) {
     auto frame = frames_.load(j);
     if (!frame) return frame.error().withContext("frame " + std::to_string(j));
-    auto detection = detectGhosts(*frame, options_.detect);
+    DetectOptions detect = options_.detect;
+    const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));
+    if (!live.empty() && !extend && from_start % options_.detect_every != 0)
+        detect.circles = false;  // the predictions carry the fit; the cheap blobs still match
+    if (extend) detect.circles = false;
+    auto detection = detectGhosts(*frame, detect);
     if (!detection) return detection.error();
     const double angle = frames_.angles_deg[j];
     const auto& mapping = frame->mapping;
+    // Fit above the sky; what this frame's background holds beyond it is a frame-filling ghost.
+    std::array<double, 3> veil{};
+    bool veiled = false;
+    for (int c = 0; c < 3; ++c) {
+        if (!std::isfinite(sky_[c])) continue;
+        veil[c] = detection->background[c] - sky_[c];
+        detection->background[c] = sky_[c];
+        veiled = veiled || veil[c] > options_.detect.threshold_sigmas * detection->noise_sigma[c];
+    }
     const double half_pixel_mm = 0.5 / std::max(mapping.px_per_mm_x, mapping.px_per_mm_y);
     const double pixel_mm = 2.0 * half_pixel_mm;
     const int channels = std::clamp(frame->channels, 1, 3);
@@ -219,13 +244,16 @@ Status SweepFitter::processFrame(
         centroid_mm[c] = {
             (candidates[c].centroid_px.x() - mapping.centre_x_px) / mapping.px_per_mm_x,
             (candidates[c].centroid_px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
+    // How far a detection is from a ghost: centre and radius differences over the radius.
+    // Centres alone would call concentric discs of different sizes (every ghost at 0 degrees) one.
     const auto normalisedDistance = [&](const GhostState& state, size_t c) {
         const double radius = std::max(ghostRadius(state), 2.0 * pixel_mm);
         // The box's centre: what a detection's centroid estimates.
         const double box_x =
             state.shape.centre_x_mm + 0.5 * (state.shape.right_mm - state.shape.left_mm);
-        return std::hypot(centroid_mm[c].x() - box_x,
-                          centroid_mm[c].y() - state.shape.centre_y_mm) /
+        const double candidate_radius = ghostRadius(candidates[c].initial);
+        return (std::hypot(centroid_mm[c].x() - box_x, centroid_mm[c].y() - state.shape.centre_y_mm) +
+                std::abs(candidate_radius - radius)) /
                radius;
     };
 
@@ -265,74 +293,6 @@ Status SweepFitter::processFrame(
         used[pair.candidate] = true;
     }
 
-    // New tracks from detections that no ghost explains.
-    std::vector<size_t> born;
-    std::vector<GhostState> born_states;
-    if (allow_new) {
-        for (size_t c = 0; c < candidates.size(); ++c) {
-            if (used[c]) continue;
-            if (static_cast<int>(live.size() + born.size()) >= options_.max_ghosts) break;
-            // A blob centred off the image, or one that would count as faded at birth, is not a
-            // ghost to follow.
-            const auto& centroid = candidates[c].centroid_px;
-            if (!(centroid.x() >= 0.0 && centroid.x() <= static_cast<double>(frame->image.width) &&
-                  centroid.y() >= 0.0 && centroid.y() <= static_cast<double>(frame->image.height)))
-                continue;
-            if (peakSigmas(candidates[c].initial) < kFadedSigmas) continue;
-            if (ghostRadius(candidates[c].initial) > frame_diagonal_mm) continue;
-            bool explained = false;
-            for (const auto& state : predicted)
-                explained = explained || normalisedDistance(state, c) <= options_.match_radius;
-            for (const auto& entry : context)
-                explained = explained ||
-                            normalisedDistance(tracks_[entry.track].samples[entry.sample].state,
-                                               c) <= options_.match_radius;
-            for (const auto& state : born_states)
-                explained = explained || normalisedDistance(state, c) <= options_.match_radius;
-            if (explained) continue;
-            Track track;
-            track.id = static_cast<int64_t>(tracks_.size());
-            track.live = true;
-            track.born_frame = static_cast<int>(j);
-            track.born_direction = direction;
-            tracks_.push_back(std::move(track));
-            born.push_back(tracks_.size() - 1);
-            born_states.push_back(candidates[c].initial);
-        }
-    }
-
-    // Fit them all together.
-    std::vector<GhostState> ghosts;
-    for (const auto& entry : context)
-        ghosts.push_back(tracks_[entry.track].samples[entry.sample].state);
-    ghosts.insert(ghosts.end(), predicted.begin(), predicted.end());
-    ghosts.insert(ghosts.end(), born_states.begin(), born_states.end());
-    FrameFitReport report;
-    if (!ghosts.empty()) {
-        auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame);
-        if (!fitted)
-            return fitted.error().withContext("frame " + std::to_string(j) + " (" +
-                                              std::to_string(angle) + " deg)");
-        report = std::move(*fitted);
-        ++result_.frames_fitted;
-        result_.evaluations += report.evaluations;
-    }
-    const auto ghostCost = [&](size_t k) {
-        return k < report.ghosts.size() ? report.ghosts[k].final_cost : 0.0;
-    };
-    const auto ghostFitted = [&](size_t k) {
-        return k < report.ghosts.size() && report.ghosts[k].ok && report.ghosts[k].samples > 0;
-    };
-    for (size_t k = 0; k < context.size(); ++k) {
-        auto& sample = tracks_[context[k].track].samples[context[k].sample];
-        if (!ghostFitted(k) || !plausibleFit(sample.state, ghosts[k], 0.5, 2.0, 2.0 * pixel_mm)) {
-            ghosts[k] = sample.state;
-            continue;
-        }
-        sample.state = ghosts[k];
-        sample.cost = ghostCost(k);
-    }
-
     // The frame's extent in mm, for "left the frame".
     const double frame_x0 = -mapping.centre_x_px / mapping.px_per_mm_x;
     const double frame_x1 =
@@ -347,12 +307,136 @@ Status SweepFitter::processFrame(
                s.shape.centre_y_mm - s.shape.half_height_mm > frame_y1;
     };
 
+    // New tracks from detections that no ghost explains.
+    std::vector<size_t> born;
+    std::vector<GhostState> born_states;
+    if (allow_new) {
+        for (size_t c = 0; c < candidates.size(); ++c) {
+            if (used[c]) continue;
+            if (static_cast<int>(live.size() + born.size()) >= options_.max_ghosts) break;
+            // A detection's ghost may be centred off the frame (a circle's visible arc), but it
+            // must be in view, bright enough and of a plausible size.
+            if (outside(candidates[c].initial)) continue;
+            if (peakSigmas(candidates[c].initial) < kFadedSigmas) continue;
+            if (ghostRadius(candidates[c].initial) > 4.0 * frame_diagonal_mm) continue;
+            bool explained = false;
+            for (const auto& state : predicted)
+                explained = explained || normalisedDistance(state, c) <= options_.duplicate_radius;
+            for (const auto& entry : context)
+                explained = explained ||
+                            normalisedDistance(tracks_[entry.track].samples[entry.sample].state,
+                                               c) <= options_.duplicate_radius;
+            for (const auto& state : born_states)
+                explained = explained || normalisedDistance(state, c) <= options_.duplicate_radius;
+            if (explained) continue;
+            Track track;
+            track.id = static_cast<int64_t>(tracks_.size());
+            track.live = true;
+            track.born_frame = static_cast<int>(j);
+            track.born_direction = direction;
+            tracks_.push_back(std::move(track));
+            born.push_back(tracks_.size() - 1);
+            born_states.push_back(candidates[c].initial);
+        }
+        // A veil: light above the sky everywhere, from a ghost whose rim lies outside the frame.
+        // It is followed as a ghost centred on the axis, larger than the frame, unless a ghost
+        // already covers the whole frame.
+        const auto covers = [&](const GhostState& g) {
+            return g.shape.centre_x_mm - g.shape.left_mm <= frame_x0 &&
+                   g.shape.centre_x_mm + g.shape.right_mm >= frame_x1 &&
+                   g.shape.centre_y_mm - g.shape.half_height_mm <= frame_y0 &&
+                   g.shape.centre_y_mm + g.shape.half_height_mm >= frame_y1;
+        };
+        bool covered = false;
+        for (const auto& state : predicted) covered = covered || covers(state);
+        for (const auto& state : born_states) covered = covered || covers(state);
+        for (const auto& entry : context)
+            covered = covered || covers(tracks_[entry.track].samples[entry.sample].state);
+        if (veiled && !covered && static_cast<int>(live.size() + born.size()) < options_.max_ghosts) {
+            GhostState state;
+            state.shape = render::circleGhostShape(0.0, 0.0, 1.5 * frame_diagonal_mm);
+            for (int c = 0; c < 3; ++c) {
+                const double level = std::max(0.0, veil[channels == 1 ? 0 : c]);
+                state.shading.border_rgb[c] = level;
+                state.shading.inner_rgb[c] = level;
+            }
+            state.shading.inner_falloff_mm = 0.1 * frame_diagonal_mm;
+            state.shading.outer_falloff_mm = 4.0 * pixel_mm;
+            Track track;
+            track.id = static_cast<int64_t>(tracks_.size());
+            track.live = true;
+            track.born_frame = static_cast<int>(j);
+            track.born_direction = direction;
+            tracks_.push_back(std::move(track));
+            born.push_back(tracks_.size() - 1);
+            born_states.push_back(state);
+        }
+    }
+
+    // Fit the live and new ghosts; the context (ghosts stored at this frame by other tracks) is
+    // part of the model but stays as it was fitted.
+    std::vector<GhostState> fixed;
+    for (const auto& entry : context)
+        fixed.push_back(tracks_[entry.track].samples[entry.sample].state);
+    std::vector<GhostState> ghosts = predicted;
+    ghosts.insert(ghosts.end(), born_states.begin(), born_states.end());
+    FrameFitReport report;
+    if (!ghosts.empty()) {
+        // Priors: the live tracks' predictions; new ghosts have none (their detection is all
+        // there is).
+        auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame, predicted, fixed);
+        if (!fitted)
+            return fitted.error().withContext("frame " + std::to_string(j) + " (" +
+                                              std::to_string(angle) + " deg)");
+        report = std::move(*fitted);
+        ++result_.frames_fitted;
+        result_.evaluations += report.evaluations;
+    }
+    const auto ghostCost = [&](size_t k) {
+        return k < report.ghosts.size() ? report.ghosts[k].final_cost : 0.0;
+    };
+    const auto ghostFitted = [&](size_t k) {
+        return k < report.ghosts.size() && report.ghosts[k].ok && report.ghosts[k].samples > 0;
+    };
+
+    // The brightest the frame is above the sky outside the excluded pixels: no ghost's own
+    // intensity can exceed it by much (a fit that does has run off, usually on a ghost that is
+    // mostly out of view, where the data cannot hold its intensity).
+    double brightest_data = 0.0;
+    for (int64_t i = 0; i < frame->image.width * frame->image.height; ++i) {
+        if (detection->excluded[static_cast<size_t>(i)]) continue;
+        for (int c = 0; c < channels; ++c)
+            brightest_data = std::max(
+                brightest_data, frame->image.pixels[static_cast<size_t>(3 * i + c)] - detection->background[c]);
+    }
+    const auto tooBright = [&](const GhostState& g) {
+        for (int c = 0; c < channels; ++c)
+            if (std::max(g.shading.border_rgb[c], g.shading.inner_rgb[c]) > 2.0 * brightest_data)
+                return true;
+        return false;
+    };
+    // A ghost's light in the frame, roughly: its mean intensity over the part of its box in view.
+    const auto visibleEnergy = [&](const GhostState& g) {
+        const double w = std::max(0.0, std::min(frame_x1, g.shape.centre_x_mm + g.shape.right_mm) -
+                                           std::max(frame_x0, g.shape.centre_x_mm - g.shape.left_mm));
+        const double h =
+            std::max(0.0, std::min(frame_y1, g.shape.centre_y_mm + g.shape.half_height_mm) -
+                              std::max(frame_y0, g.shape.centre_y_mm - g.shape.half_height_mm));
+        double level = 0.0;
+        for (int c = 0; c < channels; ++c)
+            level += 0.5 * (g.shading.border_rgb[c] + g.shading.inner_rgb[c]);
+        return level * w * h;
+    };
+    double total_energy = 0.0;
+    for (const GhostState& g : ghosts) total_energy += visibleEnergy(g);
+    for (const GhostState& g : fixed) total_energy += visibleEnergy(g);
+
     // The tracks fitted here (live, then born): their samples and their ends.
     std::vector<size_t> fitted_tracks = live;
     fitted_tracks.insert(fitted_tracks.end(), born.begin(), born.end());
     std::vector<bool> has_sample(fitted_tracks.size(), false);
     for (size_t i = 0; i < fitted_tracks.size(); ++i) {
-        const size_t k = context.size() + i;
+        const size_t k = i;
         Track& track = tracks_[fitted_tracks[i]];
         const bool is_born = i >= live.size();
         const bool plausible =
@@ -360,7 +444,9 @@ Status SweepFitter::processFrame(
             (is_born ? plausibleFit(born_states[i - live.size()], ghosts[k], 1.0, 3.0, pixel_mm)
                      : plausibleFit(predicted[i], ghosts[k], std::max(0.5, options_.match_radius),
                                     2.0, pixel_mm)) &&
-            ghostRadius(ghosts[k]) <= 2.0 * frame_diagonal_mm;
+            ghostRadius(ghosts[k]) <= 2.0 * frame_diagonal_mm && !tooBright(ghosts[k]);
+        if (std::getenv("FLARELAB_TRACE"))
+            fprintf(stderr, "frame %zu track %ld born %d fitted %d plausible %d peak %.2f outside %d radius %.2f\n", j, (long)track.id, (int)is_born, (int)ghostFitted(k), (int)plausible, peakSigmas(ghosts[k]), (int)outside(ghosts[k]), ghostRadius(ghosts[k]));
         if (!plausible) {
             // Nothing to fit it to here: a miss, and a new track is dropped.
             if (is_born || ++track.missed > options_.max_missed) track.live = false;
@@ -368,8 +454,10 @@ Status SweepFitter::processFrame(
         }
         const GhostState& state = ghosts[k];
         const double peak = peakSigmas(state);
-        // Faded, gone out of the frame, or collapsed to a speck no ghost is.
-        if (peak < kFadedSigmas || outside(state) || ghostRadius(state) < 1.5 * pixel_mm) {
+        // Faded, gone out of the frame, collapsed to a speck no ghost is, or too faint to matter
+        // next to the others (culled: it changes nothing a user would measure).
+        if (peak < kFadedSigmas || outside(state) || ghostRadius(state) < 1.5 * pixel_mm ||
+            visibleEnergy(state) < options_.min_energy_fraction * total_energy) {
             track.live = false;
             continue;
         }
@@ -416,6 +504,7 @@ Status SweepFitter::processFrame(
             else
                 victim = a_endable ? a : b;
             Track& track = tracks_[present[victim].track];
+            if (std::getenv("FLARELAB_TRACE")) fprintf(stderr, "frame %zu track %ld duplicate\n", j, (long)track.id);
             track.samples.pop_back();
             track.live = false;
             has_sample[present[victim].fitted_index] = false;
@@ -452,6 +541,7 @@ Result<SweepFitResult> SweepFitter::run() {
     auto start = chooseStart();
     if (!start) return start.error();
     const size_t s = static_cast<size_t>(*start);
+    start_ = s;
     result_.start_frame = *start;
     result_.frame_count = static_cast<int64_t>(n);
 
@@ -480,8 +570,10 @@ Result<SweepFitResult> SweepFitter::run() {
         tracks_[t].live = true;
         tracks_[t].missed = 0;
         std::vector<size_t> extended = {t};
-        for (int64_t j = tracks_[t].born_frame + step;
-             j >= 0 && j < static_cast<int64_t>(n) && !extended.empty(); j += step) {
+        for (int64_t j = tracks_[t].born_frame + step, walked = 0;
+             j >= 0 && j < static_cast<int64_t>(n) && !extended.empty() &&
+             walked < options_.max_extension_frames;
+             j += step, ++walked) {
             ++frames_total_;
             auto status = processFrame(static_cast<size_t>(j), extended, false, 0, true);
             if (!status) return status.error();
@@ -509,10 +601,16 @@ Status checkSweepFitOptions(const SweepFitOptions& options) {
     if (!(options.match_radius > 0.0) || !std::isfinite(options.match_radius))
         return invalid("match_radius must be finite and > 0");
     if (options.max_missed < 0) return invalid("max_missed must be >= 0");
+    if (!(options.duplicate_radius > 0.0) || !std::isfinite(options.duplicate_radius))
+        return invalid("duplicate_radius must be finite and > 0");
     if (options.min_track_frames < 1) return invalid("min_track_frames must be >= 1");
     if (options.start_frame < -1) return invalid("start_frame must be -1 (automatic) or a frame");
     if (options.start_probes < 1) return invalid("start_probes must be >= 1");
     if (options.max_ghosts < 1) return invalid("max_ghosts must be >= 1");
+    if (!(options.min_energy_fraction >= 0.0) || options.min_energy_fraction >= 1.0)
+        return invalid("min_energy_fraction must lie in [0, 1)");
+    if (options.detect_every < 1) return invalid("detect_every must be >= 1");
+    if (options.max_extension_frames < 0) return invalid("max_extension_frames must be >= 0");
     if (auto status = checkFrameFitOptions(options.frame); !status)
         return status.error().withContext("sweep fit: frame");
     if (auto status = checkPolyFitOptions(options.poly); !status)
@@ -587,10 +685,21 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
             ModelParameter parameter;
             parameter.name = info.name;
             parameter.unit = info.unit;
-            parameter.lower_bound = info.lower_bound;
-            parameter.upper_bound = info.upper_bound;
             std::vector<double> series(n);
             for (size_t i = 0; i < n; ++i) series[i] = values[i][p];
+            // Bounds: the range the track's frames span, widened by a quarter of it on each side
+            // (and kept inside the parameter's own bounds). Evaluation clamps to them, so that no
+            // series, however it swings between or beyond its samples, draws a ghost brighter or
+            // larger than any seen.
+            const auto [lo, hi] = std::minmax_element(series.begin(), series.end());
+            const double spread = *hi - *lo;
+            const double pad = 0.25 * spread + 1e-9 * (1.0 + std::abs(*hi));
+            parameter.lower_bound = *lo - pad;
+            parameter.upper_bound = *hi + pad;
+            if (info.lower_bound) parameter.lower_bound = std::max(*parameter.lower_bound, *info.lower_bound);
+            if (info.upper_bound) parameter.upper_bound = std::min(*parameter.upper_bound, *info.upper_bound);
+            if (*parameter.lower_bound > *parameter.upper_bound)
+                parameter.lower_bound = parameter.upper_bound;
             if (n == 1) {
                 parameter.pieces.push_back({angles[0], angles[0], {series[0]}, 0.0, 0.0, 1});
             } else {
@@ -598,6 +707,31 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                 if (!fit)
                     return fit.error().withContext("sweep fit: track " + std::to_string(track.id) +
                                                    ", " + info.name);
+                // One frame whose fit went astray must not bend the series: samples more than
+                // four robust sigmas (1.4826 x the median absolute residual) off the first fit
+                // are given a weight of 1e-6 and the series is fitted again.
+                if (n >= 5) {
+                    std::vector<double> residual(n);
+                    for (size_t i = 0; i < n; ++i) {
+                        auto v = evaluatePolyFit(*fit, angles[i]);
+                        residual[i] = v ? std::abs(series[i] - *v) : 0.0;
+                    }
+                    std::vector<double> sorted = residual;
+                    std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2),
+                                     sorted.end());
+                    const double sigma = 1.4826 * sorted[n / 2];
+                    std::vector<double> weights(n, 1.0);
+                    bool any = false;
+                    for (size_t i = 0; i < n; ++i)
+                        if (residual[i] > 4.0 * sigma + 1e-12 * (1.0 + std::abs(series[i]))) {
+                            weights[i] = 1e-6;
+                            any = true;
+                        }
+                    if (any) {
+                        auto refit = fitPolynomial(angles, series, options.poly, weights);
+                        if (refit) fit = std::move(refit);
+                    }
+                }
                 for (const PolyPiece& piece : fit->pieces)
                     parameter.pieces.push_back({piece.angle_min_deg, piece.angle_max_deg,
                                                 piece.coefficients, piece.rms_residual,

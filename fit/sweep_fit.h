@@ -42,11 +42,23 @@ struct SweepFitOptions {
     int history = 6;            // fitted frames a prediction uses, >= 1
     int prediction_degree = 2;  // of the prediction polynomial, 0..3 (capped by the history)
     double match_radius = 0.6;  // a detection matches a prediction within this many ghost radii
+    // A detection starts no new track when a ghost lies within this (centre distance plus radius
+    // difference over the radius): overlapping ghosts of similar place and size are distinct.
+    double duplicate_radius = 0.12;
     int max_missed = 3;         // frames a track may go undetected before it ends, >= 0
-    int min_track_frames = 3;   // shorter tracks are not modelled (capped by the sweep length)
+    int min_track_frames = 5;   // shorter tracks are not modelled (capped by the sweep length)
     int start_frame = -1;       // -1: chosen automatically
     int start_probes = 9;       // frames detected to choose the start, >= 1
     int max_ghosts = 64;        // live tracks at most, >= 1
+    // A ghost whose light in a frame is below this fraction of all the ghosts' light there ends:
+    // it changes no figure a user measures, and the model stays small. 0 keeps every ghost.
+    double min_energy_fraction = 0.003;
+    // Full detection (overlapping circles included) in the start frame and every this many
+    // frames, and wherever no track is live; in between only the sky and the light are measured
+    // and the tracks' predictions carry the fit. >= 1.
+    int detect_every = 5;
+    // A track born away from the start is followed back at most this many frames, >= 0.
+    int max_extension_frames = 3;
 };
 
 struct TrackSample {
