@@ -104,8 +104,9 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     auto fit_options = std::make_shared<bench::FitBenchOptions>();
     auto fit_json_path = std::make_shared<std::string>();
     CLI::App* fit = bench->add_subcommand(
-        "fit", "the fitting backend: Ceres against the thesis's gradient descent, and the "
-               "speed/accuracy trade of its knobs, scored against the simulator");
+        "fit",
+        "the fitting backend: Ceres against the thesis's gradient descent, and the "
+        "speed/accuracy trade of its knobs, scored against the simulator");
     fit->add_option("--sweep", fit_options->sweeps,
                     "a simulated sweep (repeat: the first is the main one, the others the angular "
                     "step rows)")

@@ -140,7 +140,8 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     header.camera.serial = camera.identity().serial;
     header.camera.bit_depth = camera.capabilities().bit_depth;
     // The sensor's geometry and the lens settings, so that a fit maps pixels to sensor mm.
-    header.camera.pixel_pitch_um = 1000.0 * lens->camera().sensor_width_mm / static_cast<double>(s.width);
+    header.camera.pixel_pitch_um =
+        1000.0 * lens->camera().sensor_width_mm / static_cast<double>(s.width);
     if (lens->camera().f_number > 0.0) header.lens.f_number = lens->camera().f_number;
     if (lens->camera().focal_length_mm > 0.0)
         header.lens.focal_length_mm = lens->camera().focal_length_mm;

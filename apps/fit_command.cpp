@@ -116,9 +116,9 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     }
     const auto progress = [&](const fit::SweepFitProgress& p) {
         if (s.quiet) return;
-        err << "\rfit: frame " << p.frames_done << "/" << p.frames_total << "  "
-            << std::fixed << std::setprecision(2) << p.angle_deg << " deg  " << p.live_ghosts
-            << " ghosts   " << std::defaultfloat << std::flush;
+        err << "\rfit: frame " << p.frames_done << "/" << p.frames_total << "  " << std::fixed
+            << std::setprecision(2) << p.angle_deg << " deg  " << p.live_ghosts << " ghosts   "
+            << std::defaultfloat << std::flush;
     };
     fit::SweepFitResult result;
     auto model = fit::fitSweep(*sweep, (*size)[0], (*size)[1], options, progress, &result);
@@ -137,18 +137,18 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: fit: " << written.error().message << "\n";
         return 1;
     }
-    out << "fit: " << model->ghosts.size() << " ghosts from " << sweep->frames.size()
-        << " frames (" << result.frames_fitted << " frame fits, " << result.evaluations
-        << " cost evaluations) in " << std::fixed << std::setprecision(1)
-        << result.time_ms / 1000.0 << " s -> " << s.output << "\n";
+    out << "fit: " << model->ghosts.size() << " ghosts from " << sweep->frames.size() << " frames ("
+        << result.frames_fitted << " frame fits, " << result.evaluations << " cost evaluations) in "
+        << std::fixed << std::setprecision(1) << result.time_ms / 1000.0 << " s -> " << s.output
+        << "\n";
     return 0;
 }
 
 void printSummary(const char* name, const fit::ScoreSummary& s, std::ostream& out) {
     out << name << ": " << s.count << " angles, relative L2 median " << std::fixed
         << std::setprecision(4) << s.median << ", worst " << s.worst << " at "
-        << std::setprecision(3) << s.worst_angle_deg << " deg, median PSNR "
-        << std::setprecision(1) << s.median_psnr_db << " dB\n"
+        << std::setprecision(3) << s.worst_angle_deg << " deg, median PSNR " << std::setprecision(1)
+        << s.median_psnr_db << " dB\n"
         << std::defaultfloat;
 }
 
@@ -264,7 +264,8 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_option("--lens", fs->lens_file,
                     "the lens prescription, recorded in the model (gives the sensor size)");
     fit->add_option("--sensor-mm", fs->sensor, "sensor size WxH in mm (when nothing else says)");
-    fit->add_option("--optimizer", fs->optimizer, "ceres or gradient-descent")->capture_default_str();
+    fit->add_option("--optimizer", fs->optimizer, "ceres or gradient-descent")
+        ->capture_default_str();
     fit->add_option("--iterations", fs->iterations, "optimizer iterations per ghost and pass")
         ->capture_default_str();
     fit->add_option("--passes", fs->passes, "passes over a frame's ghosts")->capture_default_str();
@@ -281,7 +282,8 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
 
     auto ss = std::make_shared<ScoreState>();
     CLI::App* score = app.add_subcommand(
-        "score", "score a model against the simulator's noiseless ghosts at fitted and held-out angles");
+        "score",
+        "score a model against the simulator's noiseless ghosts at fitted and held-out angles");
     score->add_option("MODEL", ss->model, "model file")->required();
     score->add_option("--lens", ss->lens_file, "the lens prescription the sweep was simulated with")
         ->required();

@@ -6,9 +6,9 @@
 
 #include "apps/bench_command.h"
 #include "apps/capture_command.h"
+#include "apps/fit_command.h"
 #include "apps/lens_commands.h"
 #include "apps/merge_command.h"
-#include "apps/fit_command.h"
 #include "apps/model_command.h"
 #include "apps/simulate_command.h"
 #include "apps/sweep_command.h"

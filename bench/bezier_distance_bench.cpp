@@ -206,7 +206,8 @@ int run(int argc, char** argv) {
         std::vector<double> errors(queries.size());
         for (std::size_t i = 0; i < queries.size(); ++i) {
             const Query& q = queries[i];
-            errors[i] = std::abs(render::signedDistanceFast(loops[q.shape], q.point, fast) - exact[i]);
+            errors[i] =
+                std::abs(render::signedDistanceFast(loops[q.shape], q.point, fast) - exact[i]);
             worst[q.group] = std::max(worst[q.group], errors[i]);
         }
         const double fast_s = bestSecondsPerEvaluation(queries, options.runs, [&](const Query& q) {

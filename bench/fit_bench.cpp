@@ -10,8 +10,6 @@
 #include "fit/model_eval.h"
 #include "fit/score.h"
 #include "optics/prescription.h"
-#include "render/preview.h"
-#include <cstdlib>
 
 namespace flarelab::bench {
 namespace {
@@ -49,7 +47,8 @@ Result<TradeRow> fitAndScore(const hdr::Sweep& sweep,
     row.setting = setting;
     row.fit_s = secondsSince(start);
     row.ghosts = static_cast<int>(model->ghosts.size());
-    auto truth = drivers::simulatedGhostTruth(lens, model->capture.width_px, model->capture.height_px);
+    auto truth =
+        drivers::simulatedGhostTruth(lens, model->capture.width_px, model->capture.height_px);
     if (!truth) return truth.error();
     auto report = fit::scoreModel(*model, *truth, score);
     if (!report) return report.error().withContext(knob + " " + setting);
@@ -74,7 +73,8 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     if (!lens) return lens.error();
     auto sweep = hdr::readSweep(options.sweeps.front());
     if (!sweep) return sweep.error();
-    if (sweep->frames.empty()) return makeError(ErrorCode::InvalidArgument, "bench fit: empty sweep");
+    if (sweep->frames.empty())
+        return makeError(ErrorCode::InvalidArgument, "bench fit: empty sweep");
     const double sw = lens->camera().sensor_width_mm, sh = lens->camera().sensor_height_mm;
     auto truth = drivers::simulatedGhostTruth(*lens, sweep->header.capture.width_px,
                                               sweep->header.capture.height_px);
@@ -84,10 +84,11 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     // Optimizers on the same frames from the same start.
     const size_t n = sweep->frames.size();
     for (int k = 0; k < options.optimizer_frames; ++k) {
-        const size_t index = options.optimizer_frames == 1
-                                 ? n / 2
-                                 : static_cast<size_t>(std::llround(
-                                       (0.1 + 0.8 * k / (options.optimizer_frames - 1.0)) * (n - 1)));
+        const size_t index =
+            options.optimizer_frames == 1
+                ? n / 2
+                : static_cast<size_t>(
+                      std::llround((0.1 + 0.8 * k / (options.optimizer_frames - 1.0)) * (n - 1)));
         auto frame = fit::loadFitFrame(*sweep, index, sw, sh);
         if (!frame) return frame.error();
         auto detection = fit::detectGhosts(*frame, options.fit.detect);
@@ -103,7 +104,8 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
             t->image, t->light_px, mask);
         if (!initial) return initial.error();
         double target = 0.0;
-        for (const fit::Optimizer optimizer : {fit::Optimizer::Ceres, fit::Optimizer::GradientDescent}) {
+        for (const fit::Optimizer optimizer :
+             {fit::Optimizer::Ceres, fit::Optimizer::GradientDescent}) {
             fit::FrameFitOptions fo = options.fit.frame;
             fo.optimizer = optimizer;
             if (optimizer == fit::Optimizer::GradientDescent) {
@@ -115,15 +117,6 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
             auto fitted = fit::fitFrame(*frame, *detection, ghosts, fo);
             if (!fitted) return fitted.error();
             if (optimizer == fit::Optimizer::Ceres) target = fitted->final_cost;
-            if (const char* dump = std::getenv("FLARELAB_BENCH_DUMP"); dump && optimizer == fit::Optimizer::Ceres) {
-                render::ToneMapOptions tm;
-                tm.exposure_stops = -6.0;
-                const std::string base = std::string(dump) + "/" + std::to_string(index);
-                (void)render::writePng(fit::renderGhostStates(ghosts, frame->mapping, frame->image.width, frame->image.height), base + "-fit.png", tm);
-                (void)render::writePng(fit::renderGhostStates(start, frame->mapping, frame->image.width, frame->image.height), base + "-start.png", tm);
-                (void)render::writePng(t->image, base + "-truth.png", tm);
-                (void)render::writePng(frame->image, base + "-data.png", tm);
-            }
             const auto drawn = fit::renderGhostStates(ghosts, frame->mapping, frame->image.width,
                                                       frame->image.height);
             auto s = fit::compareImages(drawn, t->image, t->light_px, mask);
@@ -138,8 +131,8 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
             row.final_cost = fitted->final_cost;
             row.rel_l2 = s->rel_l2;
             row.initial_rel_l2 = initial->rel_l2;
-            log << "bench fit: " << row.optimizer << " at " << row.angle_deg << " deg: "
-                << row.ghosts << " ghosts, " << row.evaluations << " evaluations, "
+            log << "bench fit: " << row.optimizer << " at " << row.angle_deg
+                << " deg: " << row.ghosts << " ghosts, " << row.evaluations << " evaluations, "
                 << row.time_ms << " ms, cost " << row.initial_cost << " -> " << row.final_cost
                 << ", rel L2 " << row.initial_rel_l2 << " -> " << row.rel_l2 << "\n";
             report.optimizers.push_back(row);
@@ -186,15 +179,16 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
         score.random_angles = 1;
         score.fit_angles = 4;
     }
-    const auto run = [&](const hdr::Sweep& s, const fit::SweepFitOptions& o, const std::string& knob,
-                         const std::string& setting) -> Status {
+    const auto run = [&](const hdr::Sweep& s, const fit::SweepFitOptions& o,
+                         const std::string& knob, const std::string& setting) -> Status {
         auto row = fitAndScore(s, *lens, o, score, knob, setting, log);
         if (!row) return row.error();
         report.trade.push_back(*row);
         return Ok{};
     };
     if (Status ok = run(*sweep, options.fit, "baseline", "defaults"); !ok) return ok.error();
-    const std::vector<int> iterations = options.quick ? std::vector<int>{5} : std::vector<int>{3, 8, 40};
+    const std::vector<int> iterations =
+        options.quick ? std::vector<int>{5} : std::vector<int>{3, 8, 40};
     for (int it : iterations) {
         auto o = options.fit;
         o.frame.max_iterations = it;
@@ -207,14 +201,16 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
         if (Status ok = run(*sweep, o, "distance iterations", std::to_string(it)); !ok)
             return ok.error();
     }
-    const std::vector<int> samples = options.quick ? std::vector<int>{24} : std::vector<int>{16, 32, 96};
+    const std::vector<int> samples =
+        options.quick ? std::vector<int>{24} : std::vector<int>{16, 32, 96};
     for (int v : samples) {
         auto o = options.fit;
         o.frame.cost.max_samples = v;
         if (Status ok = run(*sweep, o, "samples per side", std::to_string(v)); !ok)
             return ok.error();
     }
-    const std::vector<int> degrees = options.quick ? std::vector<int>{1} : std::vector<int>{1, 3, 6};
+    const std::vector<int> degrees =
+        options.quick ? std::vector<int>{1} : std::vector<int>{1, 3, 6};
     for (int d : degrees) {
         auto o = options.fit;
         o.poly.fixed_degree = d;
@@ -235,7 +231,8 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
 void printFitBench(const FitBenchReport& r, std::ostream& out) {
     if (!r.optimizers.empty()) {
         out << "| angle (deg) | optimizer | ghosts | cost evaluations | time (ms) | initial cost | "
-               "final cost | rel L2 vs truth, start | fitted |\n|---|---|---|---|---|---|---|---|---|\n";
+               "final cost | rel L2 vs truth, start | fitted "
+               "|\n|---|---|---|---|---|---|---|---|---|\n";
         for (const auto& o : r.optimizers)
             out << "| " << std::fixed << std::setprecision(1) << o.angle_deg << " | " << o.optimizer
                 << " | " << o.ghosts << " | " << o.evaluations << " | " << std::setprecision(0)
@@ -247,7 +244,8 @@ void printFitBench(const FitBenchReport& r, std::ostream& out) {
     }
     if (!r.trade.empty()) {
         const double base_time = r.trade.front().fit_s;
-        out << "| knob | setting | ghosts | fit time (s) | time / baseline | held-out rel L2 median | "
+        out << "| knob | setting | ghosts | fit time (s) | time / baseline | held-out rel L2 "
+               "median | "
                "worst | fitted angles median |\n|---|---|---|---|---|---|---|---|\n";
         for (const auto& t : r.trade)
             out << "| " << t.knob << " | " << t.setting << " | " << t.ghosts << " | " << std::fixed

@@ -32,8 +32,8 @@ struct FitBenchOptions {
     std::string lens_file;
     int optimizer_frames = 5;  // frames of the main sweep for the optimizer table, >= 0
     bool trade = true;
-    bool frames = true;  // the per-frame table (one sweep fit)
-    bool quick = false;  // the trade over fewer settings and angles (a smoke test)
+    bool frames = true;        // the per-frame table (one sweep fit)
+    bool quick = false;        // the trade over fewer settings and angles (a smoke test)
     fit::SweepFitOptions fit;  // the defaults the trade varies from
 };
 

@@ -7,7 +7,9 @@
 
 namespace flarelab::drivers {
 
-Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens, int64_t width, int64_t height) {
+Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
+                                             int64_t width,
+                                             int64_t height) {
     SimCameraOptions options;
     options.width_px = width;
     options.height_px = height;
@@ -18,26 +20,26 @@ Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens, int64_t w
     if (!made) return made.error().withContext("ground truth");
     std::shared_ptr<SimCamera> camera(std::move(*made));
     const double to_dn = 1.0 / options.electrons_per_dn;
-    return fit::TruthSource([camera, lens, width, height,
-                             to_dn](double angle_deg) -> Result<fit::TruthFrame> {
-        auto rate = camera->meanRate_e_s(angle_deg);
-        if (!rate) return rate.error();
-        fit::TruthFrame t;
-        t.image = render::ImageRGB(width, height);
-        for (size_t i = 0; i < rate->size(); ++i)
-            for (int c = 0; c < 3; ++c)
-                t.image.pixels[3 * i + static_cast<size_t>(c)] =
-                    static_cast<float>((*rate)[i] * to_dn);
-        render::Light light;
-        light.theta_deg = std::abs(angle_deg);
-        light.phi_deg = angle_deg < 0.0 ? 180.0 : 0.0;
-        const SimLightSpot spot = simLightSpot(lens, light);
-        if (spot.placed) {
-            const auto m = render::sensorToImage(lens.camera(), width, height);
-            t.light_px = m.toPixels(spot.centre_mm.x(), spot.centre_mm.y());
-        }
-        return t;
-    });
+    return fit::TruthSource(
+        [camera, lens, width, height, to_dn](double angle_deg) -> Result<fit::TruthFrame> {
+            auto rate = camera->meanRate_e_s(angle_deg);
+            if (!rate) return rate.error();
+            fit::TruthFrame t;
+            t.image = render::ImageRGB(width, height);
+            for (size_t i = 0; i < rate->size(); ++i)
+                for (int c = 0; c < 3; ++c)
+                    t.image.pixels[3 * i + static_cast<size_t>(c)] =
+                        static_cast<float>((*rate)[i] * to_dn);
+            render::Light light;
+            light.theta_deg = std::abs(angle_deg);
+            light.phi_deg = angle_deg < 0.0 ? 180.0 : 0.0;
+            const SimLightSpot spot = simLightSpot(lens, light);
+            if (spot.placed) {
+                const auto m = render::sensorToImage(lens.camera(), width, height);
+                t.light_px = m.toPixels(spot.centre_mm.x(), spot.centre_mm.y());
+            }
+            return t;
+        });
 }
 
 }  // namespace flarelab::drivers

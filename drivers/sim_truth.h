@@ -18,6 +18,8 @@
 namespace flarelab::drivers {
 
 // Errors: the frame size or lens the simulated camera refuses.
-Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens, int64_t width, int64_t height);
+Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
+                                             int64_t width,
+                                             int64_t height);
 
 }  // namespace flarelab::drivers

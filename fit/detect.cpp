@@ -50,8 +50,8 @@ struct RobustLevel {
 // The q-quantile (0..1) of `values`, reordering them; 0 for none.
 double quantile(std::vector<float>& values, double q) {
     if (values.empty()) return 0.0;
-    const size_t k = std::min(values.size() - 1,
-                              static_cast<size_t>(q * static_cast<double>(values.size() - 1) + 0.5));
+    const size_t k = std::min(
+        values.size() - 1, static_cast<size_t>(q * static_cast<double>(values.size() - 1) + 0.5));
     std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k), values.end());
     return values[k];
 }
@@ -102,7 +102,7 @@ RobustLevel robustLevel(const render::ImageRGB& image, int channel) {
     // Scan up; `ahead` tracks the largest density within 3 h above i (a monotone deque would be
     // linear; the window rarely holds more than a few hundred values, and we stop at the first).
     size_t sky = 0;
-    size_t top = 0;  // one past the last value within 3 h above values[i]
+    size_t top = 0;             // one past the last value within 3 h above values[i]
     std::vector<size_t> queue;  // indices with decreasing density, the window's maxima
     size_t head = 0;
     for (size_t i = 0; i < m; ++i) {
@@ -284,15 +284,21 @@ struct Circle {
 
 // Points of a circle inside the frame and outside the excluded pixels, `step_px` apart.
 template <typename F>
-void forVisibleArc(const Circle& c, int64_t width, int64_t height,
-                   const std::vector<uint8_t>& excluded, double step_px, F&& f) {
-    const int n = static_cast<int>(std::clamp(std::ceil(2.0 * M_PI * c.radius_px / step_px), 16.0, 8192.0));
+void forVisibleArc(const Circle& c,
+                   int64_t width,
+                   int64_t height,
+                   const std::vector<uint8_t>& excluded,
+                   double step_px,
+                   F&& f) {
+    const int n =
+        static_cast<int>(std::clamp(std::ceil(2.0 * M_PI * c.radius_px / step_px), 16.0, 8192.0));
     for (int k = 0; k < n; ++k) {
         const double a = 2.0 * M_PI * (static_cast<double>(k) + 0.5) / n;
         const double ca = std::cos(a), sa = std::sin(a);
         const double x = c.centre_px.x() + c.radius_px * ca;
         const double y = c.centre_px.y() + c.radius_px * sa;
-        if (!(x >= 0.0 && y >= 0.0 && x < static_cast<double>(width) && y < static_cast<double>(height)))
+        if (!(x >= 0.0 && y >= 0.0 && x < static_cast<double>(width) &&
+              y < static_cast<double>(height)))
             continue;
         const auto ix = static_cast<int64_t>(x), iy = static_cast<int64_t>(y);
         if (excluded[static_cast<size_t>(iy * width + ix)]) continue;
@@ -328,8 +334,8 @@ std::vector<Circle> detectCircles(const cv::Mat& smoothed,  // CV_32F signal, sm
     cv::Mat excl(height, width, CV_8U, const_cast<uint8_t*>(excluded.data()));
     cv::Mat near_excl;
     cv::dilate(excl, near_excl,
-               cv::getStructuringElement(cv::MORPH_ELLIPSE,
-                                         cv::Size(2 * kExcludedMarginPx + 1, 2 * kExcludedMarginPx + 1)));
+               cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * kExcludedMarginPx + 1,
+                                                                     2 * kExcludedMarginPx + 1)));
     struct Edge {
         float x, y, gx, gy;  // position (pixel centre), unit gradient
     };
@@ -441,14 +447,14 @@ std::vector<Circle> detectCircles(const cv::Mat& smoothed,  // CV_32F signal, sm
             if (c.radius_px < options.min_circle_radius_px) continue;
             // Votes of the 3 x 3 window over the visible arc, in edge pixels (not sampled).
             double arc = 0.0;
-            forVisibleArc(c, width, height, excluded, 1.0, [&](double, double, int n) {
-                arc += 2.0 * M_PI * c.radius_px / n;
-            });
+            forVisibleArc(c, width, height, excluded, 1.0,
+                          [&](double, double, int n) { arc += 2.0 * M_PI * c.radius_px / n; });
             if (arc < kMinVisibleArcPx) continue;
             const double votes = 9.0 * v / fraction;
             if (votes < kMinCircleVotes) continue;
             c.support = votes / arc;
-            if (c.support >= options.min_circle_support && std::isfinite(c.support)) found.push_back(c);
+            if (c.support >= options.min_circle_support && std::isfinite(c.support))
+                found.push_back(c);
         }
     }
     std::sort(found.begin(), found.end(),
@@ -456,8 +462,10 @@ std::vector<Circle> detectCircles(const cv::Mat& smoothed,  // CV_32F signal, sm
     for (const Circle& c : found) {
         bool distinct = true;
         for (const Circle& k : circles)
-            if ((k.centre_px - c.centre_px).norm() < std::max(kCircleSeparationPx, 0.1 * k.radius_px) &&
-                std::abs(k.radius_px - c.radius_px) < std::max(kCircleSeparationPx, 0.1 * k.radius_px)) {
+            if ((k.centre_px - c.centre_px).norm() <
+                    std::max(kCircleSeparationPx, 0.1 * k.radius_px) &&
+                std::abs(k.radius_px - c.radius_px) <
+                    std::max(kCircleSeparationPx, 0.1 * k.radius_px)) {
                 distinct = false;
                 break;
             }
@@ -507,7 +515,8 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
                 finite = false;
                 break;
             }
-            largest[static_cast<size_t>(c)] = std::max(largest[static_cast<size_t>(c)], std::abs(d));
+            largest[static_cast<size_t>(c)] =
+                std::max(largest[static_cast<size_t>(c)], std::abs(d));
             s += d;
         }
         if (!finite) {
@@ -520,9 +529,10 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
     // level, a billionth of the largest excursion, at least the smallest normal double.
     for (int c = 0; c < 3; ++c) {
         const auto& level = levels[static_cast<size_t>(std::min(c, channels - 1))];
-        const double floor = std::max({1e-6 * std::abs(level.median),
-                                       1e-9 * largest[static_cast<size_t>(std::min(c, channels - 1))],
-                                       std::numeric_limits<double>::min()});
+        const double floor =
+            std::max({1e-6 * std::abs(level.median),
+                      1e-9 * largest[static_cast<size_t>(std::min(c, channels - 1))],
+                      std::numeric_limits<double>::min()});
         detection.background[static_cast<size_t>(c)] = level.median;
         detection.noise_sigma[static_cast<size_t>(c)] = std::max(level.sigma, floor);
     }
@@ -568,16 +578,16 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
     // Pixels by label (a counting sort), so each component's values can be ranked.
     std::vector<int64_t> first(static_cast<size_t>(label_count) + 1, 0);
     for (int l = 1; l < label_count; ++l)
-        first[static_cast<size_t>(l) + 1] = first[static_cast<size_t>(l)] +
-                                             stats.at<int>(l, cv::CC_STAT_AREA);
+        first[static_cast<size_t>(l) + 1] =
+            first[static_cast<size_t>(l)] + stats.at<int>(l, cv::CC_STAT_AREA);
     std::vector<int64_t> order(static_cast<size_t>(first[static_cast<size_t>(label_count)]));
     {
         std::vector<int64_t> next(first.begin(), first.end() - 1);
         for (int64_t y = 0; y < height; ++y) {
             const int* row = labels.ptr<int>(static_cast<int>(y));
             for (int64_t x = 0; x < width; ++x)
-                if (row[x] > 0) order[static_cast<size_t>(next[static_cast<size_t>(row[x])]++)] =
-                                    y * width + x;
+                if (row[x] > 0)
+                    order[static_cast<size_t>(next[static_cast<size_t>(row[x])]++)] = y * width + x;
         }
     }
 
@@ -663,8 +673,8 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
         // the centre's y is the middle of the vertical extent, not the centroid.
         auto& shape = cand.initial.shape;
         shape.centre_x_mm = (cx - map.centre_x_px) / map.px_per_mm_x;
-        shape.centre_y_mm = (cy + 0.5 * (cand.down_px - cand.up_px) - map.centre_y_px) /
-                            map.px_per_mm_y;
+        shape.centre_y_mm =
+            (cy + 0.5 * (cand.down_px - cand.up_px) - map.centre_y_px) / map.px_per_mm_y;
         shape.left_mm = cand.left_px / map.px_per_mm_x;
         shape.right_mm = cand.right_px / map.px_per_mm_x;
         shape.half_height_mm = 0.5 * (cand.up_px + cand.down_px) / map.px_per_mm_y;
@@ -683,20 +693,22 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
             values.clear();
             for (const int64_t* it = begin; it < end; it += step)
                 values.push_back(image.pixels[static_cast<size_t>(*it * 3 + c)]);
-            shading.border_rgb[static_cast<size_t>(c)] = std::max(
-                0.0, quantile(values, kBorderPercentile) - detection.background[static_cast<size_t>(c)]);
+            shading.border_rgb[static_cast<size_t>(c)] =
+                std::max(0.0, quantile(values, kBorderPercentile) -
+                                  detection.background[static_cast<size_t>(c)]);
             values.clear();
             const auto ix0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(cx - ax)));
             const auto ix1 = std::min(width - 1, static_cast<int64_t>(std::floor(cx + ax)));
             const auto iy0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(cy - ay)));
             const auto iy1 = std::min(height - 1, static_cast<int64_t>(std::floor(cy + ay)));
-            const int64_t grid = std::max<int64_t>(
-                1, static_cast<int64_t>(std::sqrt(static_cast<double>(step))));
+            const int64_t grid =
+                std::max<int64_t>(1, static_cast<int64_t>(std::sqrt(static_cast<double>(step))));
             for (int64_t y = iy0; y <= iy1; y += grid) {
                 const double ny = (static_cast<double>(y) + 0.5 - cy) / ay;
                 for (int64_t x = ix0; x <= ix1; x += grid) {
                     const double nx = (static_cast<double>(x) + 0.5 - cx) / ax;
-                    if (nx * nx + ny * ny > 1.0 || detection.excluded[static_cast<size_t>(y * width + x)])
+                    if (nx * nx + ny * ny > 1.0 ||
+                        detection.excluded[static_cast<size_t>(y * width + x)])
                         continue;
                     values.push_back(image.pixels[static_cast<size_t>((y * width + x) * 3 + c)]);
                 }
@@ -704,7 +716,8 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
             const double inner = values.empty() ? shading.border_rgb[static_cast<size_t>(c)]
                                                 : quantile(values, 0.5) -
                                                       detection.background[static_cast<size_t>(c)];
-            shading.inner_rgb[static_cast<size_t>(c)] = std::isfinite(inner) ? std::max(0.0, inner) : 0.0;
+            shading.inner_rgb[static_cast<size_t>(c)] =
+                std::isfinite(inner) ? std::max(0.0, inner) : 0.0;
         }
         for (int c = channels; c < 3; ++c) {
             shading.border_rgb[static_cast<size_t>(c)] = shading.border_rgb[0];
@@ -722,8 +735,8 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
 
     // 4. Circles: a component holding two or more of them (overlapping ghosts) is replaced by them.
     if (options.circles) {
-        const std::vector<Circle> circles = detectCircles(smoothed, smoothed_sigma, detection.excluded,
-                                                          detection.light, map, options);
+        const std::vector<Circle> circles = detectCircles(
+            smoothed, smoothed_sigma, detection.excluded, detection.light, map, options);
         const double offset = kRimOffsetPx + options.smoothing_px;
         std::vector<int> circle_label(circles.size(), 0);
         std::vector<int> circles_in(static_cast<size_t>(label_count), 0);
@@ -732,11 +745,12 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
             Circle inner = c;
             inner.radius_px = std::max(0.5, c.radius_px - offset);
             std::vector<int> votes(static_cast<size_t>(label_count), 0);
-            forVisibleArc(inner, width, height, detection.excluded, 2.0, [&](double ca, double sa, int) {
-                const auto x = static_cast<int>(inner.centre_px.x() + inner.radius_px * ca);
-                const auto y = static_cast<int>(inner.centre_px.y() + inner.radius_px * sa);
-                ++votes[static_cast<size_t>(labels.at<int>(y, x))];
-            });
+            forVisibleArc(
+                inner, width, height, detection.excluded, 2.0, [&](double ca, double sa, int) {
+                    const auto x = static_cast<int>(inner.centre_px.x() + inner.radius_px * ca);
+                    const auto y = static_cast<int>(inner.centre_px.y() + inner.radius_px * sa);
+                    ++votes[static_cast<size_t>(labels.at<int>(y, x))];
+                });
             votes[0] = 0;
             const auto best = std::max_element(votes.begin(), votes.end());
             if (*best > 0) {
@@ -752,24 +766,31 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
                 merged.push_back(std::move(detection.candidates[k]));
         for (size_t k = 0; k < circles.size(); ++k) {
             const int l = circle_label[k];
-            if (l == 0 || !kept_label[static_cast<size_t>(l)] || circles_in[static_cast<size_t>(l)] < 2)
+            if (l == 0 || !kept_label[static_cast<size_t>(l)] ||
+                circles_in[static_cast<size_t>(l)] < 2)
                 continue;
             const Circle& c = circles[k];
             GhostCandidate cand;
             cand.centroid_px = c.centre_px;
             const double r = c.radius_px;
-            cand.x0 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.x() - r)), 0, width - 1);
-            cand.x1 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.x() + r)), 0, width - 1);
-            cand.y0 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.y() - r)), 0, height - 1);
-            cand.y1 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.y() + r)), 0, height - 1);
+            cand.x0 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.x() - r)), 0,
+                                          width - 1);
+            cand.x1 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.x() + r)), 0,
+                                          width - 1);
+            cand.y0 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.y() - r)), 0,
+                                          height - 1);
+            cand.y1 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(c.centre_px.y() + r)), 0,
+                                          height - 1);
             int64_t area = 0;
             for (int64_t y = cand.y0; y <= cand.y1; ++y) {
                 const double dy = static_cast<double>(y) + 0.5 - c.centre_px.y();
                 const double h2 = r * r - dy * dy;
                 if (h2 < 0.0) continue;
                 const double h = std::sqrt(h2);
-                const int64_t xa = std::max<int64_t>(0, static_cast<int64_t>(std::ceil(c.centre_px.x() - h - 0.5)));
-                const int64_t xb = std::min<int64_t>(width - 1, static_cast<int64_t>(std::floor(c.centre_px.x() + h - 0.5)));
+                const int64_t xa = std::max<int64_t>(
+                    0, static_cast<int64_t>(std::ceil(c.centre_px.x() - h - 0.5)));
+                const int64_t xb = std::min<int64_t>(
+                    width - 1, static_cast<int64_t>(std::floor(c.centre_px.x() + h - 0.5)));
                 if (xb >= xa) area += xb - xa + 1;
             }
             cand.area_px = std::max<int64_t>(1, area);
@@ -779,27 +800,32 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
             std::array<double, 3> jump{};
             for (int ch = 0; ch < channels; ++ch) {
                 values.clear();
-                forVisibleArc(c, width, height, detection.excluded, 1.0, [&](double ca, double sa, int) {
-                    const double xi = c.centre_px.x() + (r - offset) * ca;
-                    const double yi = c.centre_px.y() + (r - offset) * sa;
-                    const double xo = c.centre_px.x() + (r + offset) * ca;
-                    const double yo = c.centre_px.y() + (r + offset) * sa;
-                    if (!(xi >= 0 && yi >= 0 && xo >= 0 && yo >= 0 && xi < width && xo < width &&
-                          yi < height && yo < height))
-                        return;
-                    const int64_t ii = static_cast<int64_t>(yi) * width + static_cast<int64_t>(xi);
-                    const int64_t io = static_cast<int64_t>(yo) * width + static_cast<int64_t>(xo);
-                    if (detection.excluded[static_cast<size_t>(ii)] || detection.excluded[static_cast<size_t>(io)])
-                        return;
-                    values.push_back(image.pixels[static_cast<size_t>(ii * 3 + ch)] -
-                                     image.pixels[static_cast<size_t>(io * 3 + ch)]);
-                });
+                forVisibleArc(c, width, height, detection.excluded, 1.0,
+                              [&](double ca, double sa, int) {
+                                  const double xi = c.centre_px.x() + (r - offset) * ca;
+                                  const double yi = c.centre_px.y() + (r - offset) * sa;
+                                  const double xo = c.centre_px.x() + (r + offset) * ca;
+                                  const double yo = c.centre_px.y() + (r + offset) * sa;
+                                  if (!(xi >= 0 && yi >= 0 && xo >= 0 && yo >= 0 && xi < width &&
+                                        xo < width && yi < height && yo < height))
+                                      return;
+                                  const int64_t ii =
+                                      static_cast<int64_t>(yi) * width + static_cast<int64_t>(xi);
+                                  const int64_t io =
+                                      static_cast<int64_t>(yo) * width + static_cast<int64_t>(xo);
+                                  if (detection.excluded[static_cast<size_t>(ii)] ||
+                                      detection.excluded[static_cast<size_t>(io)])
+                                      return;
+                                  values.push_back(image.pixels[static_cast<size_t>(ii * 3 + ch)] -
+                                                   image.pixels[static_cast<size_t>(io * 3 + ch)]);
+                              });
                 const double q = quantile(values, 0.5);
                 jump[static_cast<size_t>(ch)] = std::isfinite(q) ? std::max(0.0, q) : 0.0;
             }
             for (int ch = channels; ch < 3; ++ch) jump[static_cast<size_t>(ch)] = jump[0];
             for (int ch = 0; ch < 3; ++ch) {
-                cand.energy[static_cast<size_t>(ch)] = jump[static_cast<size_t>(ch)] * static_cast<double>(cand.area_px);
+                cand.energy[static_cast<size_t>(ch)] =
+                    jump[static_cast<size_t>(ch)] * static_cast<double>(cand.area_px);
                 cand.peak[static_cast<size_t>(ch)] = jump[static_cast<size_t>(ch)];
             }
             auto& shape = cand.initial.shape;
@@ -807,8 +833,10 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
             shape.centre_y_mm = (c.centre_px.y() - map.centre_y_px) / map.px_per_mm_y;
             shape.left_mm = shape.right_mm = r / map.px_per_mm_x;
             shape.half_height_mm = r / map.px_per_mm_y;
-            shape.left_handle_x_mm = shape.right_handle_x_mm = render::kCircleHandle * shape.left_mm;
-            shape.left_handle_y_mm = shape.right_handle_y_mm = render::kCircleHandle * shape.half_height_mm;
+            shape.left_handle_x_mm = shape.right_handle_x_mm =
+                render::kCircleHandle * shape.left_mm;
+            shape.left_handle_y_mm = shape.right_handle_y_mm =
+                render::kCircleHandle * shape.half_height_mm;
             auto& shading = cand.initial.shading;
             shading.border_rgb = jump;
             shading.inner_rgb = jump;
@@ -818,15 +846,12 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
             shading.outer_exponent = 1.0;
             merged.push_back(std::move(cand));
         }
-        if (std::getenv("DETECT_DEBUG"))
-            for (size_t k = 0; k < circles.size(); ++k)
-                std::fprintf(stderr, "circle (%.1f, %.1f) r %.1f support %.2f label %d\n",
-                             circles[k].centre_px.x(), circles[k].centre_px.y(), circles[k].radius_px,
-                             circles[k].support, circle_label[k]);
         detection.candidates = std::move(merged);
     }
 
-    auto totalEnergy = [](const GhostCandidate& g) { return g.energy[0] + g.energy[1] + g.energy[2]; };
+    auto totalEnergy = [](const GhostCandidate& g) {
+        return g.energy[0] + g.energy[1] + g.energy[2];
+    };
     std::stable_sort(detection.candidates.begin(), detection.candidates.end(),
                      [&](const GhostCandidate& a, const GhostCandidate& b) {
                          return totalEnergy(a) > totalEnergy(b);

@@ -38,7 +38,7 @@ struct DetectOptions {
     // A candidate's energy (sum over its pixels of value - background) must exceed this many
     // times the noise sigma times the square root of its area (its energy's own noise), > 0.
     double min_energy_sigmas = 10.0;
-    double light_margin_px = 3.0;   // added to the light's radius, >= 0
+    double light_margin_px = 3.0;  // added to the light's radius, >= 0
     double light_min_radius_px = 2.0;
     int max_candidates = 256;  // the brightest kept, >= 0
 
@@ -71,7 +71,7 @@ struct LightSpot {
 
 struct GhostCandidate {
     Eigen::Vector2d centroid_px = Eigen::Vector2d::Zero();  // energy-weighted
-    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;                // bounding box, inclusive pixels
+    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;               // bounding box, inclusive pixels
     int64_t area_px = 0;
     std::array<double, 3> energy{};  // sum of (value - background) over the component
     std::array<double, 3> peak{};    // largest value - background in it

@@ -31,8 +31,7 @@ Result<FitFrame> frameFromImage(render::ImageRGB image,
                                 double angle_deg,
                                 double sensor_width_mm,
                                 double sensor_height_mm) {
-    if (image.empty())
-        return makeError(ErrorCode::InvalidArgument, "frame: the image is empty");
+    if (image.empty()) return makeError(ErrorCode::InvalidArgument, "frame: the image is empty");
     if (!std::isfinite(angle_deg))
         return makeError(ErrorCode::InvalidArgument, "frame: the angle is not finite");
     if (!(sensor_width_mm > 0.0) || !(sensor_height_mm > 0.0) || !std::isfinite(sensor_width_mm) ||
@@ -45,8 +44,8 @@ Result<FitFrame> frameFromImage(render::ImageRGB image,
             for (int c = 0; c < 3; ++c) {
                 if (!std::isfinite(p[c]) || p[c] < 0.0f) {
                     std::ostringstream message;
-                    message << "frame: pixel (" << x << ", " << y << ") channel " << c
-                            << " holds " << p[c] << "; a linear image is finite and >= 0";
+                    message << "frame: pixel (" << x << ", " << y << ") channel " << c << " holds "
+                            << p[c] << "; a linear image is finite and >= 0";
                     return makeError(ErrorCode::InvalidArgument, message.str());
                 }
             }

@@ -5,9 +5,9 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
-#include <array>
 #include <limits>
 #include <memory>
 #include <string>
@@ -46,7 +46,9 @@ struct Bounds {
 
 // The vector of `state` (intensities over `intensity_scale`) and its bounds for a frame whose
 // pixels are `px_mm` wide and whose sensor diagonal is `diagonal_mm`.
-std::vector<double> packState(const GhostState& state, const Layout& layout, double intensity_scale) {
+std::vector<double> packState(const GhostState& state,
+                              const Layout& layout,
+                              double intensity_scale) {
     std::vector<double> v(static_cast<size_t>(layout.size()));
     const GhostParameters p = ghostParameters(state);
     for (int i = 0; i < 9; ++i) v[static_cast<size_t>(i)] = p[static_cast<size_t>(i)];
@@ -104,11 +106,12 @@ Bounds makeBounds(const Layout& layout,
         b.upper[static_cast<size_t>(i)] = std::min(far, centre[i] + reach_mm);
         b.scale[static_cast<size_t>(i)] = size_mm;
     }
-    const double extent[3] = {start.shape.half_height_mm, start.shape.left_mm, start.shape.right_mm};
+    const double extent[3] = {start.shape.half_height_mm, start.shape.left_mm,
+                              start.shape.right_mm};
     for (int i : {2, 3, 4}) {
         b.lower[static_cast<size_t>(i)] = std::max(0.5 * px_mm, extent[i - 2] - reach_mm);
-        b.upper[static_cast<size_t>(i)] =
-            std::max(b.lower[static_cast<size_t>(i)], std::min(4.0 * diagonal_mm, extent[i - 2] + reach_mm));
+        b.upper[static_cast<size_t>(i)] = std::max(
+            b.lower[static_cast<size_t>(i)], std::min(4.0 * diagonal_mm, extent[i - 2] + reach_mm));
         b.scale[static_cast<size_t>(i)] = size_mm;
     }
     for (int c = 0; c < layout.channels; ++c) {
@@ -137,7 +140,7 @@ void clampInto(std::vector<double>& v, const Bounds& b) {
 
 // The Laplacian of Gaussian, zero-sum, on a (2 radius + 1)^2 grid.
 std::vector<double> logKernel(double sigma, int& radius) {
-    radius = std::max(1, static_cast<int>(std::ceil(2.0 * sigma)));  // the LoG is small beyond 2 sigma
+    radius = std::max(1, static_cast<int>(std::ceil(3.0 * sigma)));
     const int n = 2 * radius + 1;
     std::vector<double> k(static_cast<size_t>(n * n));
     double sum = 0.0;
@@ -178,11 +181,13 @@ public:
         const auto& m = frame.mapping;
         for (int i = 0; i < nx_; ++i) {
             const int64_t a = x0 + i * stride_, b = std::min(x1, a + stride_ - 1);
-            qx_[static_cast<size_t>(i)] = (0.5 * static_cast<double>(a + b + 1) - m.centre_x_px) / m.px_per_mm_x;
+            qx_[static_cast<size_t>(i)] =
+                (0.5 * static_cast<double>(a + b + 1) - m.centre_x_px) / m.px_per_mm_x;
         }
         for (int j = 0; j < ny_; ++j) {
             const int64_t a = y0 + j * stride_, b = std::min(y1, a + stride_ - 1);
-            qy_[static_cast<size_t>(j)] = (0.5 * static_cast<double>(a + b + 1) - m.centre_y_px) / m.px_per_mm_y;
+            qy_[static_cast<size_t>(j)] =
+                (0.5 * static_cast<double>(a + b + 1) - m.centre_y_px) / m.px_per_mm_y;
         }
         for (int c = 0; c < layout_.channels; ++c) {
             data_[c].assign(n, 0.0);
@@ -231,8 +236,9 @@ public:
                 for (int i = 0; i < nx_; ++i) {
                     const size_t s = static_cast<size_t>(j * nx_ + i);
                     if (!valid_[s]) continue;
-                    const auto v = render::shadeGhost(loop, g.shading, {qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]},
-                                                      options_.distance);
+                    const auto v = render::shadeGhost(
+                        loop, g.shading, {qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]},
+                        options_.distance);
                     for (int c = 0; c < layout_.channels; ++c) others_[c][s] += v[c];
                 }
             });
@@ -296,7 +302,8 @@ public:
                 const size_t s = static_cast<size_t>(j * nx_ + i);
                 if (!valid_[s]) continue;
                 const Eigen::Vector2d q(qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]);
-                const render::ClosestPoint cp = render::closestPointFast(loop, q, options_.distance);
+                const render::ClosestPoint cp =
+                    render::closestPointFast(loop, q, options_.distance);
                 const double sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
                 const double d = sign * cp.distance_mm;
                 if (!jacobian) {
@@ -322,11 +329,12 @@ public:
                     }
                 }
                 for (int c = 0; c < layout_.channels; ++c) {
-                    const Jet m = render::transferIntensity<Jet>(dj, border[c], inner[c], fi, fo,
-                                                                 ei, eo);
+                    const Jet m =
+                        render::transferIntensity<Jet>(dj, border[c], inner[c], fi, fo, ei, eo);
                     const double total = m.a + others_[c][s];
                     const size_t row = s * layout_.channels + c;
-                    residual_[row] = std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]);
+                    residual_[row] =
+                        std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]);
                     const double dt = 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
                     for (int k = 0; k < np; ++k)
                         gradient_[row * np + static_cast<size_t>(k)] = dt * m.v[k];
@@ -374,8 +382,9 @@ public:
                             if (x < 0 || x >= nx_) continue;
                             const size_t t = static_cast<size_t>(y * nx_ + x);
                             if (!valid_[t]) continue;
-                            const double k = options_.edge_weight *
-                                             kernel_[static_cast<size_t>((dy + radius_) * kn + dx + radius_)];
+                            const double k =
+                                options_.edge_weight *
+                                kernel_[static_cast<size_t>((dy + radius_) * kn + dx + radius_)];
                             for (int c = 0; c < layout_.channels; ++c) {
                                 const size_t row = s * layout_.channels + c;
                                 const size_t from = t * layout_.channels + c;
@@ -449,7 +458,9 @@ public:
         set_num_residuals(problem.residualCount());
         mutable_parameter_block_sizes()->push_back(parameters);
     }
-    bool Evaluate(double const* const* parameters, double* residuals, double** jacobians) const override {
+    bool Evaluate(double const* const* parameters,
+                  double* residuals,
+                  double** jacobians) const override {
         return problem_.evaluate(parameters[0], residuals, jacobians ? jacobians[0] : nullptr);
     }
 
@@ -469,6 +480,7 @@ void gradientDescent(const GhostProblem& problem,
     double rate = options.learning_rate;
     for (int epoch = 0; epoch < options.max_iterations; ++epoch) {
         const double before = current;
+        const std::vector<double> kept = v;
         for (size_t k = 0; k < v.size(); ++k) {
             const double h = options.difference_step * bounds.scale[k];
             const double keep = v[k];
@@ -487,6 +499,15 @@ void gradientDescent(const GhostProblem& problem,
         current = problem.cost(v.data());
         report.iterations = epoch + 1;
         rate *= options.learning_decay;
+        if (current > before) {
+            // An epoch that raised the cost is undone and the rate halved (the thesis tuned its
+            // rates by hand; this keeps the baseline from diverging on frames it was not tuned
+            // for).
+            v = kept;
+            current = before;
+            rate *= 0.5;
+            continue;
+        }
         if (options.target_cost > 0.0 && current <= options.target_cost) break;
         if (std::abs(before - current) <= options.function_tolerance * before) break;
     }
@@ -508,7 +529,8 @@ Status checkFrameFitOptions(const FrameFitOptions& o) {
     if (!(o.function_tolerance >= 0.0)) return bad("function_tolerance must be >= 0");
     if (o.cost.max_samples < 4 || o.cost.max_samples > 4096)
         return bad("cost.max_samples must lie in 4..4096");
-    if (!(o.cost.margin > 0.0) || o.cost.margin > 100.0) return bad("cost.margin must lie in (0, 100]");
+    if (!(o.cost.margin > 0.0) || o.cost.margin > 100.0)
+        return bad("cost.margin must lie in (0, 100]");
     if (!(o.cost.transform_fraction >= 0.0) || o.cost.transform_fraction > 1e6)
         return bad("cost.transform_fraction must be >= 0");
     if (!(o.cost.transform_sigmas > 0.0) || !std::isfinite(o.cost.transform_sigmas))
@@ -588,9 +610,9 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                  values.end());
                 bright = std::max(0.0, values[k]);
             }
-            transform_scale[static_cast<size_t>(c)] =
-                std::max(options.cost.transform_sigmas * detection.noise_sigma[static_cast<size_t>(c)],
-                         options.cost.transform_fraction * bright);
+            transform_scale[static_cast<size_t>(c)] = std::max(
+                options.cost.transform_sigmas * detection.noise_sigma[static_cast<size_t>(c)],
+                options.cost.transform_fraction * bright);
         }
     }
 
@@ -605,7 +627,8 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
             v = std::max({v, ghosts[g].shading.border_rgb[c], ghosts[g].shading.inner_rgb[c]});
         return v;
     };
-    std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return peak(a) > peak(b); });
+    std::stable_sort(order.begin(), order.end(),
+                     [&](size_t a, size_t b) { return peak(a) > peak(b); });
     for (int pass = 0; pass < options.passes; ++pass) {
         const auto fit_one = [&](size_t g) {
             GhostFitReport& gr = report.ghosts[g];
@@ -620,8 +643,10 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                                  s.centre_y_mm + s.half_height_mm + grow);
             const int64_t x0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(a.x())));
             const int64_t y0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(a.y())));
-            const int64_t x1 = std::min<int64_t>(width - 1, static_cast<int64_t>(std::floor(b.x())));
-            const int64_t y1 = std::min<int64_t>(height - 1, static_cast<int64_t>(std::floor(b.y())));
+            const int64_t x1 =
+                std::min<int64_t>(width - 1, static_cast<int64_t>(std::floor(b.x())));
+            const int64_t y1 =
+                std::min<int64_t>(height - 1, static_cast<int64_t>(std::floor(b.y())));
             if (x0 > x1 || y0 > y1) {
                 gr.samples = 0;
                 return;
@@ -653,7 +678,8 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
             }
             if (options.optimizer == Optimizer::Ceres) {
                 ceres::Problem cp;
-                cp.AddResidualBlock(new GhostCostFunction(problem, layout.size()), nullptr, v.data());
+                cp.AddResidualBlock(new GhostCostFunction(problem, layout.size()), nullptr,
+                                    v.data());
                 for (int k = 0; k < layout.size(); ++k) {
                     cp.SetParameterLowerBound(v.data(), k, bounds.lower[static_cast<size_t>(k)]);
                     cp.SetParameterUpperBound(v.data(), k, bounds.upper[static_cast<size_t>(k)]);

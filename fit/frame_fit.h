@@ -55,25 +55,25 @@ enum class Optimizer { Ceres, GradientDescent };
 const char* optimizerName(Optimizer optimizer);  // "ceres", "gradient-descent"
 
 struct CostOptions {
-    int max_samples = 32;          // crop samples per side, >= 4 (the resolution knob)
-    double margin = 0.6;            // crop grows by this fraction of the ghost's size, > 0
-    double transform_sigmas = 3.0;  // s of T in noise sigmas, > 0
+    int max_samples = 32;              // crop samples per side, >= 4 (the resolution knob)
+    double margin = 0.6;               // crop grows by this fraction of the ghost's size, > 0
+    double transform_sigmas = 3.0;     // s of T in noise sigmas, > 0
     double transform_fraction = 0.05;  // s of T relative to the frame's bright level, >= 0
-    double edge_weight = 0.5;      // >= 0; 0 leaves the edge term out
-    double edge_sigma = 1.0;       // of the LoG, in samples, > 0
-    double robust_scale = 3.0;     // Cauchy c in units of T, > 0
+    double edge_weight = 0.5;          // >= 0; 0 leaves the edge term out
+    double edge_sigma = 1.0;           // of the LoG, in samples, > 0
+    double robust_scale = 3.0;         // Cauchy c in units of T, > 0
     render::FastDistanceOptions distance{4, 2};  // Newton steps, seeds per segment
 };
 
 struct FrameFitOptions {
     Optimizer optimizer = Optimizer::Ceres;
-    int max_iterations = 10;  // per ghost and pass: LM iterations or descent epochs, >= 1
-    int passes = 2;           // >= 1
+    int max_iterations = 10;           // per ghost and pass: LM iterations or descent epochs, >= 1
+    int passes = 2;                    // >= 1
     double function_tolerance = 1e-5;  // relative cost change that ends a ghost's fit
     CostOptions cost;
     // Gradient descent only.
-    double learning_rate = 0.05;  // initial, per parameter in units of its scale^2 / cost
-    double learning_decay = 0.95;  // per epoch, in (0, 1]
+    double learning_rate = 0.05;    // initial, per parameter in units of its scale^2 / cost
+    double learning_decay = 0.95;   // per epoch, in (0, 1]
     double difference_step = 1e-3;  // central difference step, times the parameter's scale
     // Stop a ghost's descent once its cost is at or below this (the bench's "same final cost");
     // <= 0: never.

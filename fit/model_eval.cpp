@@ -47,7 +47,8 @@ render::BezierLoop rotatedLoop(const GhostState& state, double angle) {
     render::BezierLoop loop = render::toBezierLoop(state.shape);
     if (angle == 0.0) return loop;
     const double c = std::cos(angle), s = std::sin(angle);
-    for (auto& p : loop.control_points_mm) p = Eigen::Vector2d(c * p.x() - s * p.y(), s * p.x() + c * p.y());
+    for (auto& p : loop.control_points_mm)
+        p = Eigen::Vector2d(c * p.x() - s * p.y(), s * p.x() + c * p.y());
     return loop;
 }
 
@@ -158,9 +159,9 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
                 if (angle_deg >= candidate.angle_from_deg) piece = &candidate;
             const double span = piece->angle_to_deg - piece->angle_from_deg;
             const double x =
-                span > 0.0 ? std::clamp(2.0 * (angle_deg - piece->angle_from_deg) / span - 1.0,
-                                        -1.0, 1.0)
-                           : 0.0;
+                span > 0.0
+                    ? std::clamp(2.0 * (angle_deg - piece->angle_from_deg) / span - 1.0, -1.0, 1.0)
+                    : 0.0;
             double value = chebyshevValue(piece->coefficients, x);
             // The model's own bounds for this ghost (the fitter writes the range its frames
             // spanned): a series never leaves them.
@@ -218,9 +219,10 @@ render::ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
                                                height, options.distance);
         if (p) primitives.push_back(std::move(*p));
     }
-    const Status drawn = render::renderTiled(image, {}, primitives, optics::ApertureShape{},
-                                             options.tiles);
-    FLARELAB_CHECK(drawn.has_value());  // ranges come from prepareGhostPrimitive, tiles from the caller
+    const Status drawn =
+        render::renderTiled(image, {}, primitives, optics::ApertureShape{}, options.tiles);
+    FLARELAB_CHECK(
+        drawn.has_value());  // ranges come from prepareGhostPrimitive, tiles from the caller
     return image;
 }
 

@@ -39,10 +39,11 @@ std::vector<double> spread(const std::vector<double>& v, int count) {
     if (static_cast<size_t>(count) >= v.size()) return v;
     std::vector<double> out;
     for (int i = 0; i < count; ++i) {
-        const size_t k = count == 1 ? v.size() / 2
-                                    : static_cast<size_t>(std::llround(
-                                          static_cast<double>(i) * static_cast<double>(v.size() - 1) /
-                                          static_cast<double>(count - 1)));
+        const size_t k = count == 1
+                             ? v.size() / 2
+                             : static_cast<size_t>(std::llround(static_cast<double>(i) *
+                                                                static_cast<double>(v.size() - 1) /
+                                                                static_cast<double>(count - 1)));
         if (out.empty() || out.back() != v[k]) out.push_back(v[k]);
     }
     return out;
@@ -50,13 +51,14 @@ std::vector<double> spread(const std::vector<double>& v, int count) {
 
 }  // namespace
 
-Result<std::pair<std::vector<double>, std::vector<double>>> scoreAngles(const FlareModel& model,
-                                                                       const ScoreOptions& options) {
+Result<std::pair<std::vector<double>, std::vector<double>>> scoreAngles(
+    const FlareModel& model, const ScoreOptions& options) {
     if (options.halfway_angles < 0 || options.random_angles < 0 || options.fit_angles < 0)
         return makeError(ErrorCode::InvalidArgument, "score: angle counts must be >= 0");
     const double from = model.valid_from_deg, to = model.valid_to_deg;
     const double step = model.capture.step_deg;
-    if (!(step > 0.0)) return makeError(ErrorCode::InvalidArgument, "score: the model's step is not > 0");
+    if (!(step > 0.0))
+        return makeError(ErrorCode::InvalidArgument, "score: the model's step is not > 0");
     std::vector<double> captured;
     for (int64_t i = 0;; ++i) {
         const double a = model.capture.from_deg + static_cast<double>(i) * step;
@@ -142,7 +144,8 @@ Result<ScoreReport> scoreModel(const FlareModel& model,
         const auto& list = pass == 0 ? angles->first : angles->second;
         for (double angle : list) {
             auto t = truth(angle);
-            if (!t) return t.error().withContext("score: truth at " + std::to_string(angle) + " deg");
+            if (!t)
+                return t.error().withContext("score: truth at " + std::to_string(angle) + " deg");
             if (t->image.width != w || t->image.height != h)
                 return makeError(ErrorCode::Internal, "score: the truth is not the capture's size");
             auto drawn = renderModel(model, angle, model.capture.roll_deg, w, h, options.render);

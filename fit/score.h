@@ -66,8 +66,8 @@ struct ScoreReport {
 };
 
 // The angles scoreModel uses: {captured (fit) angles, held-out angles}, each ascending.
-Result<std::pair<std::vector<double>, std::vector<double>>> scoreAngles(const FlareModel& model,
-                                                                       const ScoreOptions& options);
+Result<std::pair<std::vector<double>, std::vector<double>>> scoreAngles(
+    const FlareModel& model, const ScoreOptions& options);
 
 // Relative L2 and PSNR of `model` against `truth` (same size) outside a disc; InvalidArgument for
 // mismatched sizes. A truth that is zero everywhere scores rel_l2 = 0 when the model is zero too

@@ -2,8 +2,6 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
-#include <cstdio>
-#include <cstdlib>
 #include <chrono>
 #include <cmath>
 #include <ctime>
@@ -252,7 +250,8 @@ Status SweepFitter::processFrame(
         const double box_x =
             state.shape.centre_x_mm + 0.5 * (state.shape.right_mm - state.shape.left_mm);
         const double candidate_radius = ghostRadius(candidates[c].initial);
-        return (std::hypot(centroid_mm[c].x() - box_x, centroid_mm[c].y() - state.shape.centre_y_mm) +
+        return (std::hypot(centroid_mm[c].x() - box_x,
+                           centroid_mm[c].y() - state.shape.centre_y_mm) +
                 std::abs(candidate_radius - radius)) /
                radius;
     };
@@ -300,11 +299,18 @@ Status SweepFitter::processFrame(
     const double frame_y0 = -mapping.centre_y_px / mapping.px_per_mm_y;
     const double frame_y1 =
         (static_cast<double>(frame->image.height) - mapping.centre_y_px) / mapping.px_per_mm_y;
+    // Out of view: less than a tenth of the ghost's box lies in the frame (a ghost that is all
+    // but gone cannot be fitted: the data no longer holds its size or intensity).
     const auto outside = [&](const GhostState& s) {
-        return s.shape.centre_x_mm + s.shape.right_mm < frame_x0 ||
-               s.shape.centre_x_mm - s.shape.left_mm > frame_x1 ||
-               s.shape.centre_y_mm + s.shape.half_height_mm < frame_y0 ||
-               s.shape.centre_y_mm - s.shape.half_height_mm > frame_y1;
+        const double x0 = s.shape.centre_x_mm - s.shape.left_mm;
+        const double x1 = s.shape.centre_x_mm + s.shape.right_mm;
+        const double y0 = s.shape.centre_y_mm - s.shape.half_height_mm;
+        const double y1 = s.shape.centre_y_mm + s.shape.half_height_mm;
+        const double w = std::max(0.0, std::min(frame_x1, x1) - std::max(frame_x0, x0));
+        const double h = std::max(0.0, std::min(frame_y1, y1) - std::max(frame_y0, y0));
+        const double in_view =
+            std::min((x1 - x0) * (y1 - y0), (frame_x1 - frame_x0) * (frame_y1 - frame_y0));
+        return !(w * h >= 0.1 * in_view);
     };
 
     // New tracks from detections that no ghost explains.
@@ -352,7 +358,8 @@ Status SweepFitter::processFrame(
         for (const auto& state : born_states) covered = covered || covers(state);
         for (const auto& entry : context)
             covered = covered || covers(tracks_[entry.track].samples[entry.sample].state);
-        if (veiled && !covered && static_cast<int>(live.size() + born.size()) < options_.max_ghosts) {
+        if (veiled && !covered &&
+            static_cast<int>(live.size() + born.size()) < options_.max_ghosts) {
             GhostState state;
             state.shape = render::circleGhostShape(0.0, 0.0, 1.5 * frame_diagonal_mm);
             for (int c = 0; c < 3; ++c) {
@@ -406,8 +413,9 @@ Status SweepFitter::processFrame(
     for (int64_t i = 0; i < frame->image.width * frame->image.height; ++i) {
         if (detection->excluded[static_cast<size_t>(i)]) continue;
         for (int c = 0; c < channels; ++c)
-            brightest_data = std::max(
-                brightest_data, frame->image.pixels[static_cast<size_t>(3 * i + c)] - detection->background[c]);
+            brightest_data =
+                std::max(brightest_data, frame->image.pixels[static_cast<size_t>(3 * i + c)] -
+                                             detection->background[c]);
     }
     const auto tooBright = [&](const GhostState& g) {
         for (int c = 0; c < channels; ++c)
@@ -417,8 +425,9 @@ Status SweepFitter::processFrame(
     };
     // A ghost's light in the frame, roughly: its mean intensity over the part of its box in view.
     const auto visibleEnergy = [&](const GhostState& g) {
-        const double w = std::max(0.0, std::min(frame_x1, g.shape.centre_x_mm + g.shape.right_mm) -
-                                           std::max(frame_x0, g.shape.centre_x_mm - g.shape.left_mm));
+        const double w =
+            std::max(0.0, std::min(frame_x1, g.shape.centre_x_mm + g.shape.right_mm) -
+                              std::max(frame_x0, g.shape.centre_x_mm - g.shape.left_mm));
         const double h =
             std::max(0.0, std::min(frame_y1, g.shape.centre_y_mm + g.shape.half_height_mm) -
                               std::max(frame_y0, g.shape.centre_y_mm - g.shape.half_height_mm));
@@ -445,8 +454,6 @@ Status SweepFitter::processFrame(
                      : plausibleFit(predicted[i], ghosts[k], std::max(0.5, options_.match_radius),
                                     2.0, pixel_mm)) &&
             ghostRadius(ghosts[k]) <= 2.0 * frame_diagonal_mm && !tooBright(ghosts[k]);
-        if (std::getenv("FLARELAB_TRACE"))
-            fprintf(stderr, "frame %zu track %ld born %d fitted %d plausible %d peak %.2f outside %d radius %.2f\n", j, (long)track.id, (int)is_born, (int)ghostFitted(k), (int)plausible, peakSigmas(ghosts[k]), (int)outside(ghosts[k]), ghostRadius(ghosts[k]));
         if (!plausible) {
             // Nothing to fit it to here: a miss, and a new track is dropped.
             if (is_born || ++track.missed > options_.max_missed) track.live = false;
@@ -454,9 +461,12 @@ Status SweepFitter::processFrame(
         }
         const GhostState& state = ghosts[k];
         const double peak = peakSigmas(state);
-        // Faded, gone out of the frame, collapsed to a speck no ghost is, or too faint to matter
-        // next to the others (culled: it changes nothing a user would measure).
-        if (peak < kFadedSigmas || outside(state) || ghostRadius(state) < 1.5 * pixel_mm ||
+        // Faded, gone out of the frame, collapsed to a speck or sliver (under 2 pixels across) no
+        // ghost is, or too faint to matter next to the others (culled: it changes nothing a user
+        // would measure).
+        if (peak < kFadedSigmas || outside(state) ||
+            std::min(state.shape.left_mm + state.shape.right_mm, 2.0 * state.shape.half_height_mm) <
+                2.0 * pixel_mm ||
             visibleEnergy(state) < options_.min_energy_fraction * total_energy) {
             track.live = false;
             continue;
@@ -504,7 +514,6 @@ Status SweepFitter::processFrame(
             else
                 victim = a_endable ? a : b;
             Track& track = tracks_[present[victim].track];
-            if (std::getenv("FLARELAB_TRACE")) fprintf(stderr, "frame %zu track %ld duplicate\n", j, (long)track.id);
             track.samples.pop_back();
             track.live = false;
             has_sample[present[victim].fitted_index] = false;
@@ -696,8 +705,10 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
             const double pad = 0.25 * spread + 1e-9 * (1.0 + std::abs(*hi));
             parameter.lower_bound = *lo - pad;
             parameter.upper_bound = *hi + pad;
-            if (info.lower_bound) parameter.lower_bound = std::max(*parameter.lower_bound, *info.lower_bound);
-            if (info.upper_bound) parameter.upper_bound = std::min(*parameter.upper_bound, *info.upper_bound);
+            if (info.lower_bound)
+                parameter.lower_bound = std::max(*parameter.lower_bound, *info.lower_bound);
+            if (info.upper_bound)
+                parameter.upper_bound = std::min(*parameter.upper_bound, *info.upper_bound);
             if (*parameter.lower_bound > *parameter.upper_bound)
                 parameter.lower_bound = parameter.upper_bound;
             if (n == 1) {
@@ -717,7 +728,8 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                         residual[i] = v ? std::abs(series[i] - *v) : 0.0;
                     }
                     std::vector<double> sorted = residual;
-                    std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(n / 2),
+                    std::nth_element(sorted.begin(),
+                                     sorted.begin() + static_cast<std::ptrdiff_t>(n / 2),
                                      sorted.end());
                     const double sigma = 1.4826 * sorted[n / 2];
                     std::vector<double> weights(n, 1.0);

@@ -45,11 +45,11 @@ struct SweepFitOptions {
     // A detection starts no new track when a ghost lies within this (centre distance plus radius
     // difference over the radius): overlapping ghosts of similar place and size are distinct.
     double duplicate_radius = 0.12;
-    int max_missed = 3;         // frames a track may go undetected before it ends, >= 0
-    int min_track_frames = 5;   // shorter tracks are not modelled (capped by the sweep length)
-    int start_frame = -1;       // -1: chosen automatically
-    int start_probes = 9;       // frames detected to choose the start, >= 1
-    int max_ghosts = 64;        // live tracks at most, >= 1
+    int max_missed = 3;        // frames a track may go undetected before it ends, >= 0
+    int min_track_frames = 5;  // shorter tracks are not modelled (capped by the sweep length)
+    int start_frame = -1;      // -1: chosen automatically
+    int start_probes = 9;      // frames detected to choose the start, >= 1
+    int max_ghosts = 64;       // live tracks at most, >= 1
     // A ghost whose light in a frame is below this fraction of all the ghosts' light there ends:
     // it changes no figure a user measures, and the model stays small. 0 keeps every ghost.
     double min_energy_fraction = 0.003;

@@ -19,7 +19,8 @@ std::optional<GhostPrimitive> prepareGhostPrimitive(const BezierLoop& loop_mm,
         return std::nullopt;
     if (distance.iterations < 0 || distance.seeds_per_segment < 1) return std::nullopt;
     bool lit = false;
-    for (int c = 0; c < 3; ++c) lit = lit || shading.border_rgb[c] > 0.0 || shading.inner_rgb[c] > 0.0;
+    for (int c = 0; c < 3; ++c)
+        lit = lit || shading.border_rgb[c] > 0.0 || shading.inner_rgb[c] > 0.0;
     if (!lit) return std::nullopt;
 
     double lo_x = std::numeric_limits<double>::infinity(), hi_x = -lo_x;
@@ -57,7 +58,8 @@ std::optional<GhostPrimitive> prepareGhostPrimitive(const BezierLoop& loop_mm,
 }
 
 void addGhostRow(const GhostPrimitive& g, int64_t y, int64_t x0, int64_t x1, float* rgb) {
-    const double qy = (static_cast<double>(y) + 0.5 - g.mapping.centre_y_px) / g.mapping.px_per_mm_y;
+    const double qy =
+        (static_cast<double>(y) + 0.5 - g.mapping.centre_y_px) / g.mapping.px_per_mm_y;
     for (int64_t x = x0; x <= x1; ++x, rgb += 3) {
         const double qx =
             (static_cast<double>(x) + 0.5 - g.mapping.centre_x_px) / g.mapping.px_per_mm_x;

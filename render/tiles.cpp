@@ -54,9 +54,9 @@ Status renderTiled(ImageRGB& image,
         const GhostPrimitive& g = ghosts[i];
         if (g.x0 < 0 || g.y0 < 0 || g.x1 >= image.width || g.y1 >= image.height || g.x0 > g.x1 ||
             g.y0 > g.y1)
-            return makeError(ErrorCode::InvalidArgument,
-                             "tiles: model ghost " + std::to_string(i) +
-                                 " has a pixel range outside the image");
+            return makeError(
+                ErrorCode::InvalidArgument,
+                "tiles: model ghost " + std::to_string(i) + " has a pixel range outside the image");
     }
     // One index space: 0..n-1 are the quads, n.. the model ghosts.
     const size_t quad_count = primitives.size();

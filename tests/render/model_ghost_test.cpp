@@ -42,10 +42,12 @@ TEST(ModelGhostPrimitive, TilesDrawEachPixelOnceWithTheGhostsShading) {
         ASSERT_TRUE(p.has_value());
         ghosts.push_back(*p);
     }
-    for (const TileOptions tiles : {TileOptions{}, TileOptions{16, 4, true}, TileOptions{8, 8, false}}) {
+    for (const TileOptions tiles :
+         {TileOptions{}, TileOptions{16, 4, true}, TileOptions{8, 8, false}}) {
         ImageRGB image(w, h);
         TileStats stats;
-        ASSERT_TRUE(renderTiled(image, {}, ghosts, optics::ApertureShape{}, tiles, &stats).has_value());
+        ASSERT_TRUE(
+            renderTiled(image, {}, ghosts, optics::ApertureShape{}, tiles, &stats).has_value());
         EXPECT_EQ(stats.primitives, 2);
         for (int64_t y = 0; y < h; ++y) {
             for (int64_t x = 0; x < w; ++x) {
@@ -75,10 +77,13 @@ TEST(ModelGhostPrimitive, TilesDrawEachPixelOnceWithTheGhostsShading) {
 TEST(ModelGhostPrimitive, QuadsAndGhostsShareTheTiles) {
     const int64_t w = 64, h = 48;
     const SensorToImage m = mappingFor(w, h);
-    auto g = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 6.0)), shading(10.0, 5.0), m, w, h);
+    auto g = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 6.0)),
+                                   shading(10.0, 5.0), m, w, h);
     ASSERT_TRUE(g.has_value());
     ImageRGB only_ghost(w, h), both(w, h);
-    ASSERT_TRUE(renderTiled(only_ghost, {}, std::vector<GhostPrimitive>{*g}, optics::ApertureShape{}).has_value());
+    ASSERT_TRUE(
+        renderTiled(only_ghost, {}, std::vector<GhostPrimitive>{*g}, optics::ApertureShape{})
+            .has_value());
     // A bad quad range is still refused when ghosts come along.
     Primitive bad;
     bad.x0 = 0;
@@ -90,32 +95,38 @@ TEST(ModelGhostPrimitive, QuadsAndGhostsShareTheTiles) {
                      .has_value());
     GhostPrimitive outside = *g;
     outside.y1 = h;
-    EXPECT_FALSE(renderTiled(both, {}, std::vector<GhostPrimitive>{outside}, optics::ApertureShape{})
-                     .has_value());
+    EXPECT_FALSE(
+        renderTiled(both, {}, std::vector<GhostPrimitive>{outside}, optics::ApertureShape{})
+            .has_value());
 }
 
 TEST(ModelGhostPrimitive, RangesClipAndRefuseWhatCannotBeDrawn) {
     const int64_t w = 100, h = 80;
     const SensorToImage m = mappingFor(w, h);
     // Image-filling: the range is the whole image.
-    auto big = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 100.0)), shading(1.0, 1.0), m, w, h);
+    auto big = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 100.0)),
+                                     shading(1.0, 1.0), m, w, h);
     ASSERT_TRUE(big.has_value());
     EXPECT_EQ(big->x0, 0);
     EXPECT_EQ(big->y0, 0);
     EXPECT_EQ(big->x1, w - 1);
     EXPECT_EQ(big->y1, h - 1);
     // Tiny: a ghost smaller than a pixel still gets a range of at least its centre's pixel or none.
-    auto tiny = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.01, 0.01, 0.001)), shading(1.0, 1.0), m, w, h);
+    auto tiny = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.01, 0.01, 0.001)),
+                                      shading(1.0, 1.0), m, w, h);
     if (tiny) EXPECT_LE(tiny->x1 - tiny->x0, 2);
     // Off the image, black, non-finite or invalid: nothing to draw.
-    EXPECT_FALSE(prepareGhostPrimitive(toBezierLoop(circleGhostShape(100.0, 0.0, 2.0)), shading(1.0, 1.0), m, w, h));
-    EXPECT_FALSE(prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 2.0)), shading(0.0, 0.0), m, w, h));
+    EXPECT_FALSE(prepareGhostPrimitive(toBezierLoop(circleGhostShape(100.0, 0.0, 2.0)),
+                                       shading(1.0, 1.0), m, w, h));
+    EXPECT_FALSE(prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 2.0)),
+                                       shading(0.0, 0.0), m, w, h));
     BezierLoop nan_loop = toBezierLoop(circleGhostShape(0.0, 0.0, 2.0));
     nan_loop.control_points_mm[3].x() = std::numeric_limits<double>::quiet_NaN();
     EXPECT_FALSE(prepareGhostPrimitive(nan_loop, shading(1.0, 1.0), m, w, h));
     GhostShading negative = shading(1.0, 1.0);
     negative.outer_falloff_mm = -1.0;
-    EXPECT_FALSE(prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 2.0)), negative, m, w, h));
+    EXPECT_FALSE(
+        prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 2.0)), negative, m, w, h));
     EXPECT_FALSE(prepareGhostPrimitive(BezierLoop{}, shading(1.0, 1.0), m, w, h));
 }
 

@@ -1,0 +1,115 @@
+#include "apps/fit_command.h"
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "fit/model_file.h"
+#include "tests/apps/command_runner.h"
+#include "tests/test_paths.h"
+
+namespace flarelab::apps {
+namespace {
+
+namespace fs = std::filesystem;
+using testing::CommandRun;
+
+CommandRun run(const std::vector<std::string>& args) {
+    return testing::runCommand(addFitCommands, args);
+}
+
+std::string sweepDir() {
+    return std::string(FLARELAB_SOURCE_DIR) + "/tests/data/sweeps/heliar-raw";
+}
+std::string lensFile() { return flarelab::testing::lensPath("heliar-tronnier.csv"); }
+
+fs::path tempPath(const std::string& name) {
+    return fs::temp_directory_path() /
+           ("flarelab_fit_test_" + std::to_string(getpid()) + "_" + name);
+}
+
+// The recorded 160 x 107 Heliar sweep (0 to 2 deg, 5 frames) is fitted with no human input into a
+// model that records the lens, and `score` re-simulates it and reports both error summaries.
+TEST(FitCommand, FitsARecordedSweepAndScoresTheModel) {
+    const fs::path model = tempPath("heliar.flm");
+    const CommandRun fitted =
+        run({"fit", sweepDir(), "--lens", lensFile(), "-o", model.string(), "--quiet"});
+    ASSERT_EQ(fitted.code, 0) << fitted.err;
+    EXPECT_NE(fitted.out.find("ghosts from 5 frames"), std::string::npos) << fitted.out;
+    auto read = fit::readModel(model.string());
+    ASSERT_TRUE(read.has_value()) << read.error().message;
+    EXPECT_EQ(read->lens.prescription_sha256.size(), 64u);
+    EXPECT_EQ(read->capture.width_px, 160);
+    EXPECT_EQ(read->valid_from_deg, 0.0);
+    EXPECT_EQ(read->valid_to_deg, 2.0);
+
+    const CommandRun scored = run({"score", model.string(), "--lens", lensFile(), "--json",
+                                   "--halfway", "2", "--random", "1", "--fitted", "2"});
+    ASSERT_EQ(scored.code, 0) << scored.err;
+    const auto json = nlohmann::json::parse(scored.out);
+    for (const char* key : {"heldout_rel_l2", "fit_rel_l2"}) {
+        ASSERT_TRUE(json.contains(key)) << key;
+        EXPECT_TRUE(json[key].contains("median"));
+        EXPECT_TRUE(json[key].contains("worst"));
+        EXPECT_GE(json[key]["worst"].get<double>(), json[key]["median"].get<double>());
+        EXPECT_TRUE(std::isfinite(json[key]["worst"].get<double>()));
+    }
+    EXPECT_EQ(json["heldout_rel_l2"]["count"].get<int>(), 3);
+    // Explicit held-out angles outside the model's range are refused by name.
+    const CommandRun outside =
+        run({"score", model.string(), "--lens", lensFile(), "--angles", "5"});
+    EXPECT_NE(outside.code, 0);
+    EXPECT_NE(outside.err.find("outside the model's valid range"), std::string::npos)
+        << outside.err;
+    fs::remove(model);
+}
+
+TEST(FitCommand, RefusesWhatItCannotUse) {
+    const fs::path model = tempPath("refused.flm");
+    // The recorded sweep has no pixel pitch: without --lens or --sensor-mm the sensor is unknown.
+    CommandRun r = run({"fit", sweepDir(), "-o", model.string(), "--quiet"});
+    EXPECT_NE(r.code, 0);
+    EXPECT_NE(r.err.find("--sensor-mm"), std::string::npos) << r.err;
+    r = run({"fit", sweepDir(), "-o", model.string(), "--sensor-mm", "36x", "--quiet"});
+    EXPECT_EQ(r.code, 2);
+    r = run(
+        {"fit", sweepDir(), "-o", model.string(), "--sensor-mm", "36x24", "--optimizer", "newton"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("--optimizer"), std::string::npos);
+    r = run({"fit", sweepDir(), "-o", model.string(), "--sensor-mm", "36x24", "--samples", "2"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("max_samples"), std::string::npos) << r.err;
+    r = run({"fit", "/nonexistent/sweep", "-o", model.string()});
+    EXPECT_NE(r.code, 0);
+    EXPECT_FALSE(fs::exists(model));
+    // A model is scored only with the lens it was fitted with.
+    ASSERT_EQ(run({"fit", sweepDir(), "--lens", lensFile(), "-o", model.string(), "--quiet"}).code,
+              0);
+    r = run({"score", model.string(), "--lens",
+             flarelab::testing::lensPath("double-gauss-tronnier-50mm.csv")});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("not the lens the model was fitted with"), std::string::npos) << r.err;
+    fs::remove(model);
+}
+
+TEST(FitCommand, Sha256MatchesAKnownDigest) {
+    const fs::path file = tempPath("abc.txt");
+    {
+        std::ofstream out(file);
+        out << "abc";
+    }
+    auto digest = sha256Hex(file.string());
+    ASSERT_TRUE(digest.has_value());
+    EXPECT_EQ(*digest, "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
+    fs::remove(file);
+    EXPECT_FALSE(sha256Hex(file.string()).has_value());
+}
+
+}  // namespace
+}  // namespace flarelab::apps
