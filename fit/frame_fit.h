@@ -1,11 +1,13 @@
 // ============================================================================
 //  flarelab fit: Optimizer, CostOptions, FrameFitOptions, GhostFitReport, FrameFitReport,
-//                fitFrame, frameCost
+//                checkFrameFitOptions, fitFrame, drawFrameModel
 // ============================================================================
 //
 // Fitting the ghosts of one frame (chapter 7 of the thesis), each ghost on its own crop with the
-// others held at their current values (block coordinate descent, `passes` times over; within a
-// pass the ghosts are fitted in parallel from the same state of the others).
+// others held at their current values (block coordinate descent, `passes` times over). Within a
+// pass the ghosts are fitted one after another, brightest first, each against the others' latest
+// states (Gauss-Seidel): fitted at once from the same state, overlapping ghosts would each fill
+// the same residual and overshoot together. The cores share each ghost's cost evaluation.
 //
 // Cost (§7.1). A ghost's crop is its pixel range (control box grown by the outer falloff and
 // `margin` times its size on every side, clipped to the frame) sampled on a grid of at most
@@ -38,7 +40,8 @@
 //
 // Optimizers. Ceres: Levenberg-Marquardt, dense QR, box bounds. Gradient descent: the thesis's
 // baseline (§7.2): central differences with a step per parameter, a learning rate per parameter
-// that decays every epoch, each parameter updated as soon as its derivative is known (online).
+// that decays every epoch, each parameter updated as soon as its derivative is known (online);
+// an epoch that raises the cost is undone and the rate halved (the thesis tuned its rates by hand).
 #pragma once
 
 #include <cstdint>

@@ -10,12 +10,20 @@
 //      reverse pass): in each frame, predict every live track's parameters by a low-order least
 //      squares polynomial through its last `history` fitted frames (§7.3), match the predictions
 //      to the frame's detections, start new tracks from unmatched detections that no live ghost
-//      explains, fit all of them together (fitFrame), and end tracks whose ghost has faded into
-//      the noise, left the frame or gone unmatched for max_missed frames.
-//   3. Tracks born after the start are also followed back from where they were born (a ghost
-//      that separates from another was there before it was detected).
+//      explains, fit all of them together (fitFrame, the predictions as priors), and end tracks
+//      whose ghost has faded into the noise, is less than a tenth in view, collapsed to a speck,
+//      ran off (brighter than anything in the frame), fell below min_energy_fraction of the
+//      frame's ghost light, or went unmatched for max_missed frames. The sky is the lowest
+//      background of the probed frames; light above it everywhere in a frame is a ghost larger
+//      than the frame (a veil), followed like the others.
+//   3. Tracks born after the start are also followed back from where they were born, at most
+//      max_extension_frames (a ghost that separates from another was there before it was
+//      detected); the other ghosts stored there are held fixed.
 //   4. Compression (buildModel): each parameter of each track as a Chebyshev series of the angle
-//      (polyfit.h), its degree chosen by cross-validation unless fixed; tracks with fewer than
+//      (polyfit.h), its degree chosen by cross-validation unless fixed, frames more than four
+//      robust sigmas off the first fit down-weighted; intensities as logs floored at a
+//      thousandth of the track's brightest; each parameter's bounds the range its frames
+//      spanned, widened by a quarter (evaluation clamps to them). Tracks with fewer than
 //      min_track_frames frames are noise and are not modelled.
 // Only one frame is held in memory at a time, whatever the sweep's length.
 #pragma once
