@@ -4,8 +4,8 @@
 //
 // Automatic detection: what the thesis set by hand (chapter 11: manual initial parameters), found
 // in the frame itself.
-//   1. The sky: the background level and its noise per channel, robustly (median and MAD of the
-//      pixels), so that the ghosts, however many, do not bias it.
+//   1. The sky: the background level and its noise per channel, robustly (the lowest mode of the
+//      values and the spread below it), so that the ghosts, however many, do not bias it.
 //   2. The light: the brightest blob (the light's own image, saturated in every bracket on the rig)
 //      and a disc around it that the fit and the score leave out: its radius grows with the
 //      light's blob until its neighbourhood falls to the noise, plus a margin.
@@ -14,9 +14,8 @@
 //      peak) and turned into an initial ghost (shape from its extents, shading from its values).
 //      Blobs whose energy does not rise above the noise are dropped.
 // A black frame, pure noise or a saturated frame gives no candidates, not an error.
-// Details (fit/detect.cpp): the background is the lowest mode of the values (broad ghosts may
-// cover most of the frame, so not the median), its noise from the values below it; the
-// threshold applies to the smoothed noise (sigma times the kernel's sum of squares); ghosts that
+// Details (fit/detect.cpp): the background is the lowest mode rather than the median because
+// broad ghosts may cover most of the frame; the threshold applies to the smoothed noise (sigma times the kernel's sum of squares); ghosts that
 // overlap form one component, which the circle detector (DetectOptions::circles) splits into the
 // circles it finds inside it.
 #pragma once
