@@ -247,8 +247,9 @@ TEST(SweepFit, GhostLeavingTheFrameEndsItsTrack) {
             if (x > 0.0) {
                 // Ghost 0 itself is not followed out of the frame (a speck of noise fitted at the
                 // frame's edge after it left may remain: see the closing note of issue 6).
-                if (std::abs(x - trueState(truth[0], sample.angle_deg).shape.centre_x_mm) < 1.0)
+                if (std::abs(x - trueState(truth[0], sample.angle_deg).shape.centre_x_mm) < 1.0) {
                     EXPECT_LT(sample.angle_deg, 3.5) << describe(*result);
+                }
                 ++samples_of_0;
             } else if (std::abs(x - trueState(truth[1], sample.angle_deg).shape.centre_x_mm) <
                        0.3) {

@@ -114,7 +114,9 @@ TEST(ModelGhostPrimitive, RangesClipAndRefuseWhatCannotBeDrawn) {
     // Tiny: a ghost smaller than a pixel still gets a range of at least its centre's pixel or none.
     auto tiny = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.01, 0.01, 0.001)),
                                       shading(1.0, 1.0), m, w, h);
-    if (tiny) EXPECT_LE(tiny->x1 - tiny->x0, 2);
+    if (tiny) {
+        EXPECT_LE(tiny->x1 - tiny->x0, 2);
+    }
     // Off the image, black, non-finite or invalid: nothing to draw.
     EXPECT_FALSE(prepareGhostPrimitive(toBezierLoop(circleGhostShape(100.0, 0.0, 2.0)),
                                        shading(1.0, 1.0), m, w, h));
