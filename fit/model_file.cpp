@@ -20,6 +20,7 @@
 #include <utility>
 
 #include "common/check.h"
+#include "common/file_descriptor.h"
 #include "proto/model.pb.h"
 
 namespace flarelab::fit {
@@ -30,10 +31,6 @@ namespace pb = google::protobuf;
 namespace v1 = flarelab::v1;
 
 constexpr int64_t kMaxUint32 = std::numeric_limits<uint32_t>::max();
-
-std::string osMessage(int error_number) {
-    return std::error_code(error_number, std::generic_category()).message();
-}
 
 // Shortest decimal that reads back to the same double.
 std::string formatDouble(double value) {
@@ -551,43 +548,16 @@ std::string describeStrictFailure(const pb::util::Status& status) {
 // ---------------------------------------------------------------------------------------------
 // Files.
 
-class FileDescriptor {
-public:
-    explicit FileDescriptor(int fd) : fd_(fd) {}
-    ~FileDescriptor() {
-        if (fd_ >= 0) ::close(fd_);
-    }
-    FileDescriptor(const FileDescriptor&) = delete;
-    FileDescriptor& operator=(const FileDescriptor&) = delete;
-    int get() const { return fd_; }
-    bool valid() const { return fd_ >= 0; }
-    // 0 or the errno of close().
-    int close() {
-        const int result = ::close(fd_);
-        fd_ = -1;
-        return result == 0 ? 0 : errno;
-    }
-
-private:
-    int fd_ = -1;
-};
 
 Result<std::string> readWholeFile(const std::string& path, int64_t max_bytes) {
-    FileDescriptor fd(::open(path.c_str(), O_RDONLY | O_CLOEXEC));
-    if (!fd.valid()) {
-        const int error = errno;
-        return makeError(error == ENOENT ? ErrorCode::NotFound : ErrorCode::IoError,
-                         path + ": cannot open: " + osMessage(error));
-    }
-    struct stat info {};
-    if (::fstat(fd.get(), &info) != 0)
-        return makeError(ErrorCode::IoError, path + ": cannot stat: " + osMessage(errno));
-    if (!S_ISREG(info.st_mode)) return makeError(ErrorCode::IoError, path + ": not a regular file");
-    if (info.st_size > max_bytes)
-        return makeError(ErrorCode::IoError, path + ": " + std::to_string(info.st_size) +
+    auto file = openRegularFile(path);
+    if (!file) return file.error();
+    const FileDescriptor& fd = file->fd;
+    if (file->size > max_bytes)
+        return makeError(ErrorCode::IoError, path + ": " + std::to_string(file->size) +
                                                  " bytes, more than the limit of " +
                                                  std::to_string(max_bytes));
-    std::string bytes(static_cast<size_t>(info.st_size), '\0');
+    std::string bytes(static_cast<size_t>(file->size), '\0');
     size_t done = 0;
     while (done < bytes.size()) {
         const ssize_t got = ::read(fd.get(), bytes.data() + done, bytes.size() - done);

@@ -29,7 +29,7 @@
 #include <system_error>
 #include <utility>
 
-#include "hdr/detail/file_descriptor.h"
+#include "common/file_descriptor.h"
 
 namespace flarelab::hdr {
 namespace {
@@ -41,9 +41,7 @@ constexpr int64_t kMaxChunkBytes = int64_t{1} << 28;
 constexpr size_t kWriteBufferBytes = size_t{1} << 20;
 constexpr const char* kChannelNames[3] = {"R", "G", "B"};
 
-using detail::osMessage;
 
-using detail::FileDescriptor;
 
 // ---------------------------------------------------------------------------------------------
 // Streams. OpenEXR reports stream failures by exception; these throw Iex exceptions, which the
@@ -831,7 +829,7 @@ Result<ExrWriteReport> writeExr(const std::string& path,
 }
 
 Result<ExrImage> readExr(const std::string& path, const ExrReadOptions& options) {
-    auto file = detail::openRegularFile(path);
+    auto file = openRegularFile(path);
     if (!file) return file.error();
     const FileDescriptor& fd = file->fd;
     FileIStream in(path, fd.get(), static_cast<uint64_t>(file->size));

@@ -22,7 +22,7 @@
 #include <utility>
 
 #include "common/check.h"
-#include "hdr/detail/file_descriptor.h"
+#include "common/file_descriptor.h"
 #include "proto/sweep.pb.h"
 
 namespace flarelab::hdr {
@@ -35,7 +35,6 @@ constexpr size_t kMaxPathBytes = 4096;
 constexpr size_t kMaxComponentBytes = 255;
 constexpr int kMaxBitDepth = 32;
 
-using detail::osMessage;
 
 // Shortest decimal that reads back to the same double, as the EXR attributes write them.
 std::string formatDouble(double value) {
@@ -75,7 +74,6 @@ bool hasExrExtension(std::string_view name) {
     return tail == ".exr";
 }
 
-using detail::FileDescriptor;
 
 // ---------------------------------------------------------------------------------------------
 // The rules of format version 1 (sweep.h), on the plain structs. Parsing reports a broken rule as
@@ -470,7 +468,7 @@ std::string describeStrictFailure(const pb::util::Status& status) {
 // Files.
 
 Result<std::string> readWholeFile(const std::string& path, int64_t max_bytes) {
-    auto file = detail::openRegularFile(path);
+    auto file = openRegularFile(path);
     if (!file) return file.error();
     const FileDescriptor& fd = file->fd;
     if (file->size > max_bytes)

@@ -1,8 +1,8 @@
 // ============================================================================
-//  flarelab hdr (private): FileDescriptor, osMessage, RegularFile, openRegularFile
+//  flarelab common: FileDescriptor, osMessage, RegularFile, openRegularFile
 // ============================================================================
 //
-// POSIX file handling shared by the EXR and sweep readers and writers (exr.cpp, sweep.cpp): an
+// POSIX file handling shared by the EXR, sweep and model readers and writers: an
 // owned descriptor whose close() reports the error a destructor would have to drop, the text of
 // an errno, and opening a file for reading that must be a regular file.
 #pragma once
@@ -19,7 +19,7 @@
 
 #include "common/result.h"
 
-namespace flarelab::hdr::detail {
+namespace flarelab {
 
 class FileDescriptor {
 public:
@@ -69,4 +69,4 @@ inline Result<RegularFile> openRegularFile(const std::string& path) {
     return RegularFile{std::move(fd), static_cast<int64_t>(info.st_size)};
 }
 
-}  // namespace flarelab::hdr::detail
+}  // namespace flarelab
