@@ -316,6 +316,16 @@ Status SweepFitter::processFrame(
     // New tracks from detections that no ghost explains.
     std::vector<size_t> born;
     std::vector<GhostState> born_states;
+    const auto startTrack = [&](const GhostState& state) {
+        Track track;
+        track.id = static_cast<int64_t>(tracks_.size());
+        track.live = true;
+        track.born_frame = static_cast<int>(j);
+        track.born_direction = direction;
+        tracks_.push_back(std::move(track));
+        born.push_back(tracks_.size() - 1);
+        born_states.push_back(state);
+    };
     if (allow_new) {
         for (size_t c = 0; c < candidates.size(); ++c) {
             if (used[c]) continue;
@@ -335,14 +345,7 @@ Status SweepFitter::processFrame(
             for (const auto& state : born_states)
                 explained = explained || normalisedDistance(state, c) <= options_.duplicate_radius;
             if (explained) continue;
-            Track track;
-            track.id = static_cast<int64_t>(tracks_.size());
-            track.live = true;
-            track.born_frame = static_cast<int>(j);
-            track.born_direction = direction;
-            tracks_.push_back(std::move(track));
-            born.push_back(tracks_.size() - 1);
-            born_states.push_back(candidates[c].initial);
+            startTrack(candidates[c].initial);
         }
         // A veil: light above the sky everywhere, from a ghost whose rim lies outside the frame.
         // It is followed as a ghost centred on the axis, larger than the frame, unless a ghost
@@ -369,14 +372,7 @@ Status SweepFitter::processFrame(
             }
             state.shading.inner_falloff_mm = 0.1 * frame_diagonal_mm;
             state.shading.outer_falloff_mm = 4.0 * pixel_mm;
-            Track track;
-            track.id = static_cast<int64_t>(tracks_.size());
-            track.live = true;
-            track.born_frame = static_cast<int>(j);
-            track.born_direction = direction;
-            tracks_.push_back(std::move(track));
-            born.push_back(tracks_.size() - 1);
-            born_states.push_back(state);
+            startTrack(state);
         }
     }
 
