@@ -25,10 +25,11 @@ struct FitState {
     std::string lens_file;
     std::string sensor;
     std::string optimizer = "ceres";
-    int iterations = 20;
-    int passes = 2;
-    int samples = 48;
-    int distance_iterations = 4;
+    // The library's defaults, so that the command fits what fitSweep fits.
+    int iterations = fit::FrameFitOptions{}.max_iterations;
+    int passes = fit::FrameFitOptions{}.passes;
+    int samples = fit::CostOptions{}.max_samples;
+    int distance_iterations = fit::CostOptions{}.distance.iterations;
     int degree = -1;
     bool quiet = false;
 };
