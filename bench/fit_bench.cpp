@@ -217,6 +217,16 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
         if (Status ok = run(*sweep, o, "degree", "fixed " + std::to_string(d)); !ok)
             return ok.error();
     }
+    // The shading refit (fit/shading_refit.h): off, and on a fifth of its frames.
+    for (int frames : {0, std::max(2, options.fit.shading.frames_per_ghost / 5)}) {
+        auto o = options.fit;
+        o.shading.frames_per_ghost = frames;
+        if (Status ok = run(*sweep, o, "shading refit frames",
+                            frames == 0 ? std::string("off") : std::to_string(frames));
+            !ok)
+            return ok.error();
+        if (options.quick) break;
+    }
     for (size_t i = 1; i < options.sweeps.size(); ++i) {
         auto other = hdr::readSweep(options.sweeps[i]);
         if (!other) return other.error();

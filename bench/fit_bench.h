@@ -12,10 +12,11 @@
 //
 // Trade. A whole sweep fitted and scored (fit/score.h) for each setting of one knob at a time,
 // the others at their defaults: optimizer iterations, distance iterations (Newton steps), crop
-// resolution (samples per side), polynomial degree (chosen by cross-validation or fixed), and
-// angular step (each --sweep given; e.g. the same lens captured at 0.2, 0.5, 1 and 2 degrees).
-// Reported per setting: fit time and the median and worst held-out relative L2. The first row
-// (the defaults) is the baseline every ratio refers to, measured in the same run.
+// resolution (samples per side), polynomial degree (chosen by cross-validation or fixed), the
+// shading refit (off, or on a fifth of its frames per ghost; fit/shading_refit.h), and angular step
+// (each --sweep given; e.g. the same lens captured at 0.2, 0.5, 1 and 2 degrees). Reported per
+// setting: fit time and the median and worst held-out relative L2. The first row (the defaults) is
+// the baseline every ratio refers to, measured in the same run.
 #pragma once
 
 #include <ostream>

@@ -557,6 +557,34 @@ Status checkFrameFitOptions(const FrameFitOptions& o) {
     return Ok{};
 }
 
+std::array<double, 3> transformScales(const FitFrame& frame,
+                                      const FrameDetection& detection,
+                                      const CostOptions& cost) {
+    std::array<double, 3> transform_scale{};
+    const int channels = frame.channels == 1 ? 1 : 3;
+    const int64_t total = frame.image.width * frame.image.height;
+    const int64_t step = std::max<int64_t>(1, total / 50000);
+    for (int c = 0; c < channels; ++c) {
+        std::vector<double> values;
+        values.reserve(static_cast<size_t>(total / step + 1));
+        for (int64_t i = 0; i < total; i += step)
+            if (!detection.excluded[static_cast<size_t>(i)])
+                values.push_back(frame.image.pixels[static_cast<size_t>(3 * i + c)] -
+                                 detection.background[static_cast<size_t>(c)]);
+        double bright = 0.0;
+        if (!values.empty()) {
+            const size_t k = static_cast<size_t>(0.99 * static_cast<double>(values.size() - 1));
+            std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k),
+                             values.end());
+            bright = std::max(0.0, values[k]);
+        }
+        transform_scale[static_cast<size_t>(c)] =
+            std::max(cost.transform_sigmas * detection.noise_sigma[static_cast<size_t>(c)],
+                     cost.transform_fraction * bright);
+    }
+    return transform_scale;
+}
+
 Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                 const FrameDetection& detection,
                                 std::vector<GhostState>& ghosts,
@@ -591,30 +619,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
     const double diagonal_mm = std::hypot(static_cast<double>(width) / frame.mapping.px_per_mm_x,
                                           static_cast<double>(height) / frame.mapping.px_per_mm_y);
 
-    // The scale of T per channel: the noise, or a fraction of the frame's bright level.
-    std::array<double, 3> transform_scale{};
-    {
-        const int64_t total = width * height;
-        const int64_t step = std::max<int64_t>(1, total / 50000);
-        for (int c = 0; c < layout.channels; ++c) {
-            std::vector<double> values;
-            values.reserve(static_cast<size_t>(total / step + 1));
-            for (int64_t i = 0; i < total; i += step)
-                if (!detection.excluded[static_cast<size_t>(i)])
-                    values.push_back(frame.image.pixels[static_cast<size_t>(3 * i + c)] -
-                                     detection.background[static_cast<size_t>(c)]);
-            double bright = 0.0;
-            if (!values.empty()) {
-                const size_t k = static_cast<size_t>(0.99 * static_cast<double>(values.size() - 1));
-                std::nth_element(values.begin(), values.begin() + static_cast<std::ptrdiff_t>(k),
-                                 values.end());
-                bright = std::max(0.0, values[k]);
-            }
-            transform_scale[static_cast<size_t>(c)] = std::max(
-                options.cost.transform_sigmas * detection.noise_sigma[static_cast<size_t>(c)],
-                options.cost.transform_fraction * bright);
-        }
-    }
+    const std::array<double, 3> transform_scale = transformScales(frame, detection, options.cost);
 
     // Gauss-Seidel: each ghost is fitted against the others' latest states, brightest first.
     // (Fitted at once from the same state, overlapping ghosts would each fill the same residual

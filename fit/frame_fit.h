@@ -44,6 +44,7 @@
 // an epoch that raises the cost is undone and the rate halved (the thesis tuned its rates by hand).
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <span>
 #include <vector>
@@ -105,6 +106,13 @@ struct FrameFitReport {
 };
 
 Status checkFrameFitOptions(const FrameFitOptions& options);
+
+// The scale s of the cost's transform T(v) = asinh(v / s) per channel (see Cost above): the
+// larger of transform_sigmas noise sigmas and transform_fraction of the frame's 99th percentile
+// above its background, outside the excluded pixels. Unused channels of a one-channel frame: 0.
+std::array<double, 3> transformScales(const FitFrame& frame,
+                                      const FrameDetection& detection,
+                                      const CostOptions& cost);
 
 // Fits `ghosts` (initial states in, fitted states out; every state valid on entry) to the frame.
 // The detection supplies background, noise and the excluded pixels. InvalidArgument for options

@@ -592,6 +592,7 @@ Result<SweepFitResult> SweepFitter::run() {
             [](const TrackSample& a, const TrackSample& b) { return a.angle_deg < b.angle_deg; });
         result_.tracks.push_back({track.id, std::move(track.samples)});
     }
+    result_.sky = sky_;
     result_.time_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
     return std::move(result_);
@@ -620,6 +621,8 @@ Status checkSweepFitOptions(const SweepFitOptions& options) {
         return status.error().withContext("sweep fit: frame");
     if (auto status = checkPolyFitOptions(options.poly); !status)
         return status.error().withContext("sweep fit: poly");
+    if (auto status = checkShadingRefitOptions(options.shading); !status)
+        return status.error().withContext("sweep fit");
     // The detection options, on a tiny black frame (detectGhosts refuses only options).
     FitFrame probe;
     probe.image = render::ImageRGB(8, 8);
@@ -794,6 +797,10 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     model.valid_from_deg = sweep.frames.front().angle_deg;
     model.valid_to_deg = sweep.frames.back().angle_deg;
     auto built = buildModel(*fitted, std::move(model), options);
+    if (!built) return built.error();
+    auto refit = refitShading(*built, source, fitted->sky, options.detect, options.frame.cost,
+                              options.shading);
+    if (!refit) return refit.error();
     if (result) *result = std::move(*fitted);
     return built;
 }

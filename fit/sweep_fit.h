@@ -28,6 +28,7 @@
 // Only one frame is held in memory at a time, whatever the sweep's length.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -39,6 +40,7 @@
 #include "fit/frame_fit.h"
 #include "fit/model_file.h"
 #include "fit/polyfit.h"
+#include "fit/shading_refit.h"
 #include "hdr/sweep.h"
 
 namespace flarelab::fit {
@@ -67,6 +69,8 @@ struct SweepFitOptions {
     int detect_every = 5;
     // A track born away from the start is followed back at most this many frames, >= 0.
     int max_extension_frames = 3;
+    // Step 5 (fitSweep): the compressed shading series refitted to the frames.
+    ShadingRefitOptions shading;
 };
 
 struct TrackSample {
@@ -90,6 +94,8 @@ struct SweepFitProgress {
 struct SweepFitResult {
     std::vector<GhostTrack> tracks;  // by id
     int start_frame = 0;
+    // The sky every ghost sits on, per channel (the lowest background of the probed frames).
+    std::array<double, 3> sky{};
     int64_t frame_count = 0;    // frames in the sweep (caps min_track_frames in buildModel)
     int64_t frames_fitted = 0;  // fitFrame calls
     int64_t evaluations = 0;
