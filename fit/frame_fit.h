@@ -1,6 +1,6 @@
 // ============================================================================
 //  flarelab fit: Optimizer, CostOptions, FrameFitOptions, GhostFitReport, FrameFitReport,
-//                checkFrameFitOptions, fitFrame, drawFrameModel
+//                checkFrameFitOptions, transformScales, fitFrame, drawFrameModel
 // ============================================================================
 //
 // Fitting the ghosts of one frame (chapter 7 of the thesis), each ghost on its own crop with the

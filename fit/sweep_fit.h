@@ -25,6 +25,9 @@
 //      thousandth of the track's brightest; each parameter's bounds the range its frames
 //      spanned, widened by a quarter (evaluation clamps to them). Tracks with fewer than
 //      min_track_frames frames are noise and are not modelled.
+//   5. Shading refit (fitSweep): the compressed shading series fitted to the frames' pixels, the
+//      shapes held (fit/shading_refit.h; per-frame shading is too loosely determined to be
+//      compressed parameter by parameter).
 // Only one frame is held in memory at a time, whatever the sweep's length.
 #pragma once
 
@@ -122,10 +125,10 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                               FlareModel model,
                               const SweepFitOptions& options);
 
-// All of it for a sweep on disk: frames loaded one at a time, the metadata from the manifest
-// (lens, capture, sensor size, camera), the valid range the sweep's angles. The sensor size is
-// the one given; both <= 0 means the manifest's pixel pitch (sweepSensorSize). InvalidArgument
-// for a sweep whose frames do not span two angles (a model needs at least two).
+// All of it (steps 1 to 5) for a sweep on disk: frames loaded one at a time, the metadata from the
+// manifest (lens, capture, sensor size, camera), the valid range the sweep's angles. The sensor
+// size is the one given; both <= 0 means the manifest's pixel pitch (sweepSensorSize).
+// InvalidArgument for a sweep whose frames do not span two angles (a model needs at least two).
 Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
                             double sensor_width_mm,
                             double sensor_height_mm,
