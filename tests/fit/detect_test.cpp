@@ -265,20 +265,30 @@ TEST(DetectGhosts, NoSmoothingAndCandidateCap) {
     expectMatches(d->candidates[0], discs[0]);
 }
 
-TEST(DetectGhosts, RunsFastOn640x427) {
+// A full-size frame, detected repeatedly with the same result. Its time is recorded, not
+// limited: speed is measured by bench tools, and a shared machine would make a limit flaky.
+TEST(DetectGhosts, FullSizeFrameGivesTheSameResultEveryRun) {
     const std::vector<Disc> discs = {{100.3, 80.7, 12.0, 20.0, 60.0},
                                      {400.0, 300.2, 30.0, 5.0, 15.0}};
     const FitFrame frame = makeFrame(syntheticImage(640, 427, discs, 320.5, 213.5, 1e5));
-    constexpr int kRuns = 20;
+    constexpr int kRuns = 5;
+    const auto first = detectGhosts(frame);
+    ASSERT_TRUE(first.has_value());
+    ASSERT_GE(first->candidates.size(), 2u);
     const auto start = std::chrono::steady_clock::now();
-    for (int i = 0; i < kRuns; ++i) ASSERT_TRUE(detectGhosts(frame).has_value());
+    for (int i = 0; i < kRuns; ++i) {
+        const auto again = detectGhosts(frame);
+        ASSERT_TRUE(again.has_value());
+        ASSERT_EQ(again->candidates.size(), first->candidates.size());
+        for (size_t c = 0; c < first->candidates.size(); ++c)
+            EXPECT_EQ(again->candidates[c].centroid_px, first->candidates[c].centroid_px);
+        EXPECT_EQ(again->excluded, first->excluded);
+    }
     const double ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
             .count() /
         kRuns;
-    std::printf("detectGhosts on 640 x 427: %.2f ms\n", ms);
     RecordProperty("ms_per_frame", std::to_string(ms));
-    EXPECT_LT(ms, 100.0);  // loose: shared machines, debug builds
 }
 
 // A simulated sweep (mono 12-bit camera, merged brackets): frame 4 is at 2 deg.
