@@ -9,6 +9,7 @@
 #include <cmath>
 #include <limits>
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -25,6 +26,8 @@ using Clock = std::chrono::steady_clock;
 // r, g, b; ln inner r, g, b; inner and outer falloff; inner and outer exponent.
 constexpr int kShadingCount = 10;
 constexpr int kFirstShading = 9;
+// The weight of a series' excursion out of its bounds, per bounds' width and observation.
+constexpr double kBoundPenalty = 1.0;
 using ShadingJet = ceres::Jet<double, kShadingCount>;
 
 Error invalid(const std::string& message) {
@@ -132,12 +135,14 @@ public:
     }
 
     // The ten shading values at an angle from coefficient vector `c` (the ghost's own when
-    // null), clamped into the parameters' bounds; with `jet`, each value's derivative with
-    // respect to the coefficients is written as (coefficient index, weight) pairs.
+    // null), clamped into the parameters' bounds, with where each comes from (its series'
+    // piece and x), the value before clamping and the width of its bounds.
     struct Values {
         std::array<double, kShadingCount> value{};
         std::array<SeriesPoint, kShadingCount> point{};
         std::array<bool, kShadingCount> clamped{};
+        std::array<double, kShadingCount> raw{};
+        std::array<double, kShadingCount> span{};
     };
     Values values(size_t g, double angle_deg, const double* c = nullptr) const {
         const Ghost& ghost = ghosts_[g];
@@ -164,6 +169,12 @@ public:
             v.value[static_cast<size_t>(i)] = clamped;
             v.point[static_cast<size_t>(i)] = p;
             v.clamped[static_cast<size_t>(i)] = clamped != value;
+            v.raw[static_cast<size_t>(i)] = value;
+            const std::optional<double> lo =
+                parameter.lower_bound ? parameter.lower_bound : info.lower_bound;
+            const std::optional<double> hi =
+                parameter.upper_bound ? parameter.upper_bound : info.upper_bound;
+            v.span[static_cast<size_t>(i)] = lo && hi ? std::max(*hi - *lo, 1e-3) : 1.0;
         }
         return v;
     }
@@ -243,6 +254,11 @@ public:
             offsets_[o] = rows;
             rows += static_cast<int>(obs.distance.size()) * channels;
         }
+        // Then one row per observation and value: how far the series has left its bounds. The
+        // clamp gives the image rows no gradient there, so without these a series that strays
+        // out of bounds at a frame could never be drawn back.
+        penalty_offset_ = rows;
+        rows += static_cast<int>(observations.size()) * kShadingCount;
         set_num_residuals(rows);
         mutable_parameter_block_sizes()->push_back(
             static_cast<int>(const_cast<SeriesModel&>(model).coefficients(ghost).size()));
@@ -273,6 +289,19 @@ public:
             for (int i = 0; i < kShadingCount; ++i)
                 chebyshevBasis(v.point[static_cast<size_t>(i)].x,
                                std::min(v.point[static_cast<size_t>(i)].count, 64), basis[i]);
+            for (int i = 0; i < kShadingCount; ++i) {
+                const int row = penalty_offset_ + static_cast<int>(o) * kShadingCount + i;
+                const double weight = kBoundPenalty / v.span[static_cast<size_t>(i)];
+                residuals[row] =
+                    weight * (v.raw[static_cast<size_t>(i)] - v.value[static_cast<size_t>(i)]);
+                if (!(jacobians && jacobians[0])) continue;
+                double* out = jacobians[0] + static_cast<size_t>(row) * np;
+                std::fill(out, out + np, 0.0);
+                if (!v.clamped[static_cast<size_t>(i)]) continue;
+                const SeriesPoint& p = v.point[static_cast<size_t>(i)];
+                for (int k = 0; k < std::min(p.count, 64); ++k)
+                    out[p.offset + k] += weight * basis[i][k];
+            }
             for (size_t s = 0; s < obs.distance.size(); ++s) {
                 for (int ch = 0; ch < channels_; ++ch) {
                     const int row = offsets_[o] + static_cast<int>(s) * channels_ + ch;
@@ -325,6 +354,7 @@ private:
     double c2_;
     std::vector<std::vector<std::array<double, 3>>> others_;
     std::vector<int> offsets_;
+    int penalty_offset_ = 0;
 };
 
 // A ghost's loop and its pixel box grown by `grow_mm`, clipped to the frame; false if empty.
