@@ -682,6 +682,11 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
             angles[i] = track.samples[i].angle_deg;
             values[i] = ghostParameters(track.samples[i].state, ln_floor);
         }
+        // A fixed degree above what the track's frames support is capped there (a short track
+        // is interpolated rather than refused).
+        PolyFitOptions poly = options.poly;
+        if (poly.fixed_degree > static_cast<int>(n) - 1)
+            poly.fixed_degree = static_cast<int>(n) - 1;
         ModelGhost ghost;
         ghost.id = track.id;
         ghost.name = "track " + std::to_string(track.id);
@@ -713,7 +718,7 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
             if (n == 1) {
                 parameter.pieces.push_back({angles[0], angles[0], {series[0]}, 0.0, 0.0, 1});
             } else {
-                auto fit = fitPolynomial(angles, series, options.poly);
+                auto fit = fitPolynomial(angles, series, poly);
                 if (!fit)
                     return fit.error().withContext("sweep fit: track " + std::to_string(track.id) +
                                                    ", " + info.name);
@@ -739,7 +744,7 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                             any = true;
                         }
                     if (any) {
-                        auto refit = fitPolynomial(angles, series, options.poly, weights);
+                        auto refit = fitPolynomial(angles, series, poly, weights);
                         if (refit) fit = std::move(refit);
                     }
                 }

@@ -20,7 +20,8 @@
 //      max_extension_frames (a ghost that separates from another was there before it was
 //      detected); the other ghosts stored there are held fixed.
 //   4. Compression (buildModel): each parameter of each track as a Chebyshev series of the angle
-//      (polyfit.h), its degree chosen by cross-validation unless fixed, frames more than four
+//      (polyfit.h), its degree chosen by cross-validation unless fixed (a fixed degree above a
+//      track's frames less one is capped there), frames more than four
 //      robust sigmas off the first fit down-weighted; intensities as logs floored at a
 //      thousandth of the track's brightest; each parameter's bounds the range its frames
 //      spanned, widened by a quarter (evaluation clamps to them). Tracks with fewer than

@@ -385,6 +385,41 @@ TEST(SweepFit, RefusesOptionsOutOfRange) {
     EXPECT_EQ(failed.error().code, ErrorCode::IoError);
 }
 
+// A fixed degree higher than a track's frames support is capped at them, not refused: the
+// whole model must not fail for one short track.
+TEST(SweepFit, FixedDegreeAboveAShortTrackIsCapped) {
+    SweepFitResult result;
+    GhostTrack long_track, short_track;
+    long_track.id = 0;
+    short_track.id = 1;
+    for (const double angle : angleRange(0.0, 0.5, 13)) {
+        long_track.samples.push_back({angle, trueState(kTwoGhosts[0], angle), 0.0});
+        if (angle <= 2.0)
+            short_track.samples.push_back({angle, trueState(kTwoGhosts[1], angle), 0.0});
+    }
+    ASSERT_EQ(short_track.samples.size(), 5u);
+    result.tracks = {long_track, short_track};
+    result.frame_count = 13;
+    SweepFitOptions options = quickOptions();
+    options.poly.fixed_degree = 8;
+    auto model = buildModel(result, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(model) << model.error().message;
+    ASSERT_EQ(model->ghosts.size(), 2u);
+    EXPECT_TRUE(validateModel(*model));
+    for (const auto& p : model->ghosts[0].parameters)
+        for (const auto& piece : p.pieces) EXPECT_EQ(piece.coefficients.size(), 9u) << p.name;
+    for (const auto& p : model->ghosts[1].parameters)
+        for (const auto& piece : p.pieces) EXPECT_EQ(piece.coefficients.size(), 5u) << p.name;
+    auto at = modelGhostsAt(*model, 1.25, 0.0);
+    ASSERT_TRUE(at);
+    ASSERT_EQ(at->size(), 2u);
+    for (const auto& g : *at) {
+        const GhostState truth = trueState(kTwoGhosts[static_cast<size_t>(g.id)], 1.25);
+        EXPECT_NEAR(g.state.shape.centre_x_mm, truth.shape.centre_x_mm, 1e-6);
+        EXPECT_NEAR(g.state.shape.right_mm, truth.shape.right_mm, 1e-6);
+    }
+}
+
 // The shading refit (step 5): a model whose shading series were compressed from per-frame fits
 // that wandered between unlike settings draws the frames badly; refitted to the frames it draws
 // them, between the fitted angles too, while the shapes stay as they were.
