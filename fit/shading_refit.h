@@ -21,7 +21,10 @@
 // Ghosts are refitted one after another, brightest first, `passes` times (Gauss-Seidel, as in a
 // frame). Since the cost is on the images, settings that draw the same ghost are equally good and
 // the series, being smooth by construction, cannot jump between them. Each parameter keeps its
-// bounds (evaluation clamps to them). One-channel frames fit one intensity series per kind and
+// bounds (evaluation clamps to them); where a series strays out of them at a frame, the clamp
+// leaves the image no say, so one more residual per frame and value (the excursion over the
+// bounds' width) draws it back. The residual fields of the refitted pieces still describe the
+// compression of the per-frame values. One-channel frames fit one intensity series per kind and
 // copy it to the three channels.
 #pragma once
 
