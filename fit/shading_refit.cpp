@@ -79,12 +79,10 @@ struct Observation {
     std::vector<std::pair<size_t, std::vector<double>>> others;  // ghost index, distances
 };
 
-class RefitGhost;
-
 // The model's ghosts with their shading series exposed as coefficient vectors.
 class SeriesModel {
 public:
-    SeriesModel(FlareModel& model, int channels) : model_(model), channels_(channels) {
+    SeriesModel(FlareModel& model, int channels) : channels_(channels) {
         for (ModelGhost& ghost : model.ghosts) {
             Ghost g;
             g.ghost = &ghost;
@@ -125,6 +123,7 @@ public:
     size_t size() const { return ghosts_.size(); }
     bool usable(size_t g) const { return ghosts_[g].usable; }
     std::vector<double>& coefficients(size_t g) { return ghosts_[g].coefficients; }
+    size_t coefficientCount(size_t g) const { return ghosts_[g].coefficients.size(); }
     const ModelGhost& ghost(size_t g) const { return *ghosts_[g].ghost; }
 
     // Whether the ghost is defined at the angle (modelGhostsAt's rule).
@@ -219,7 +218,6 @@ private:
         std::vector<double> coefficients;
         std::array<SeriesLayout, kShadingCount> series;
     };
-    FlareModel& model_;
     int channels_ = 3;
     std::vector<Ghost> ghosts_;
 };
@@ -260,8 +258,7 @@ public:
         penalty_offset_ = rows;
         rows += static_cast<int>(observations.size()) * kShadingCount;
         set_num_residuals(rows);
-        mutable_parameter_block_sizes()->push_back(
-            static_cast<int>(const_cast<SeriesModel&>(model).coefficients(ghost).size()));
+        mutable_parameter_block_sizes()->push_back(static_cast<int>(model.coefficientCount(ghost)));
     }
 
     bool Evaluate(double const* const* parameters,
