@@ -12,7 +12,10 @@
 // Cost (§7.1). A ghost's crop is its pixel range (control box grown by the outer falloff and
 // `margin` times its size on every side, clipped to the frame) sampled on a grid of at most
 // max_samples per side: a sample holds the mean of the frame over its block, less the
-// background; the model (this ghost plus the others) is evaluated at the sample's centre. Within
+// background, and the model (this ghost plus the others) is taken as its mean over the same block
+// (render::boxTransferWeights: exact for an edge straight across the block). Taken at the block's
+// centre instead, a sharp edge averaged over a block of 10 to 40 pixels reads as a wide falloff,
+// which the fit then learned and the renderer drew as blur. Within
 // a pass the ghost may move and grow by at most `margin` / 2 of its size (box bounds), so it
 // stays inside its crop and every change it makes is seen by the cost; the next pass and frame
 // re-crop around the new state. Data and model go through T(v) = asinh(v / s) with
@@ -37,6 +40,12 @@
 // respect to the control points is exact at the closest point (the envelope theorem:
 // d dist / d P_k = -u B_k(t*), u the unit vector from the curve to the sample), chained through
 // the control points' dependence on the parameters and the transfer function by Ceres' Jets.
+//
+// Restarts (Ceres). Two local minima are common enough to be tried around: a ghost with no prior
+// starts from its detection, whose blob reaches over the outer falloff, so the fit is also run
+// from the extents less the outer falloff; and a fit that ends with every border under a tenth
+// of its inner intensity (a dark rim: the shape too large, its edge drawn by a steep inner rise)
+// is run again from the edge that rise draws. The lower final cost is kept.
 //
 // Optimizers. Ceres: Levenberg-Marquardt, dense QR, box bounds. Gradient descent: the thesis's
 // baseline (§7.2): central differences with a step per parameter, a learning rate per parameter
@@ -132,7 +141,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                 std::span<const GhostState> priors = {},
                                 std::span<const GhostState> fixed = {});
 
-// The frame's model: the ghosts drawn at every pixel centre (through the tile engine) plus the
+// The frame's model: the ghosts drawn as pixel means (through the tile engine) plus the
 // background, in the frame's unit, with the frame's channel count.
 render::ImageRGB drawFrameModel(const FitFrame& frame,
                                 const FrameDetection& detection,

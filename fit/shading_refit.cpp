@@ -28,6 +28,10 @@ constexpr int kShadingCount = 10;
 constexpr int kFirstShading = 9;
 // The weight of a series' excursion out of its bounds, per bounds' width and observation.
 constexpr double kBoundPenalty = 1.0;
+// The weight of a jump between a series' adjacent pieces at their shared end, per bounds' width
+// and square root of the ghost's observations: stiff, since no frame lies at the joint (it is
+// half-way between two frames) and a piece's end is otherwise free to swing.
+constexpr double kJointPenalty = 10.0;
 using ShadingJet = ceres::Jet<double, kShadingCount>;
 
 Error invalid(const std::string& message) {
@@ -69,14 +73,15 @@ void chebyshevBasis(double x, int n, double* out) {
     for (int k = 2; k < n; ++k) out[k] = 2.0 * x * out[k - 1] - out[k - 2];
 }
 
-// One frame's view of one ghost: its crop's samples, their signed distances to the ghost and to
+// One frame's view of one ghost: its crop's samples, where they lie relative to the ghost and to
 // every other ghost reaching into the crop, and the data.
 struct Observation {
     double angle_deg = 0.0;
     std::array<double, 3> scale{};            // of the transform, per fitted channel
-    std::vector<double> distance;             // to this ghost, per sample
+    std::vector<render::BlockDistance> self;  // to this ghost, per sample
     std::vector<std::array<double, 3>> data;  // frame minus background, per sample
-    std::vector<std::pair<size_t, std::vector<double>>> others;  // ghost index, distances
+    std::vector<std::pair<size_t, std::vector<render::BlockDistance>>>
+        others;  // ghost index, samples
 };
 
 // The model's ghosts with their shading series exposed as coefficient vectors.
@@ -121,6 +126,38 @@ public:
     }
 
     size_t size() const { return ghosts_.size(); }
+
+    // Where two adjacent pieces of a fitted series meet: the left piece's coefficients (read at
+    // x = 1) and the right one's (at x = -1), and the width of the series' bounds.
+    struct Joint {
+        int left_offset = 0, left_count = 0, right_offset = 0, right_count = 0;
+        double span = 1.0;
+    };
+    std::vector<Joint> joints(size_t g) const {
+        std::vector<Joint> out;
+        const Ghost& ghost = ghosts_[g];
+        for (int i = 0; i < kShadingCount; ++i) {
+            if (sourceIndex(i) != i) continue;
+            const SeriesLayout& layout = ghost.series[static_cast<size_t>(i)];
+            const auto& pieces = layout.parameter->pieces;
+            const GhostParameterInfo& info = ghostParameterInfo(kFirstShading + i);
+            const auto& parameter = *layout.parameter;
+            const std::optional<double> lo =
+                parameter.lower_bound ? parameter.lower_bound : info.lower_bound;
+            const std::optional<double> hi =
+                parameter.upper_bound ? parameter.upper_bound : info.upper_bound;
+            for (size_t k = 0; k + 1 < pieces.size(); ++k) {
+                Joint j;
+                j.left_offset = layout.offsets[k];
+                j.left_count = static_cast<int>(pieces[k].coefficients.size());
+                j.right_offset = layout.offsets[k + 1];
+                j.right_count = static_cast<int>(pieces[k + 1].coefficients.size());
+                j.span = lo && hi ? std::max(*hi - *lo, 1e-3) : 1.0;
+                out.push_back(j);
+            }
+        }
+        return out;
+    }
     bool usable(size_t g) const { return ghosts_[g].usable; }
     std::vector<double>& coefficients(size_t g) { return ghosts_[g].coefficients; }
     size_t coefficientCount(size_t g) const { return ghosts_[g].coefficients.size(); }
@@ -178,12 +215,14 @@ public:
         return v;
     }
 
-    // The ghost's intensity at signed distance d (mm) in channel ch for given values.
-    static double intensity(const Values& v, double d, int ch) {
+    // The ghost's mean intensity over a sample's block in channel ch for given values.
+    static double intensity(const Values& v, const render::BlockDistance& b, int ch) {
         const double border = intensityOf(v.value[static_cast<size_t>(ch)]);
         const double inner = intensityOf(v.value[static_cast<size_t>(3 + ch)]);
-        return render::transferIntensity<double>(d, border, inner, v.value[6], v.value[7],
-                                                 v.value[8], v.value[9]);
+        const auto w =
+            render::boxTransferWeights<double>(b.distance_mm, b.spread_x_mm, b.spread_y_mm,
+                                               v.value[6], v.value[7], v.value[8], v.value[9]);
+        return border * w.border + inner * w.inner;
     }
     static double intensityOf(double ln) {
         return ln <= kMinLnIntensity ? 0.0 : std::exp(std::min(ln, 80.0));
@@ -242,21 +281,26 @@ public:
         for (size_t o = 0; o < observations.size(); ++o) {
             const Observation& obs = observations[o];
             auto& sum = others_[o];
-            sum.assign(obs.distance.size(), {0.0, 0.0, 0.0});
-            for (const auto& [h, distance] : obs.others) {
+            sum.assign(obs.self.size(), {0.0, 0.0, 0.0});
+            for (const auto& [h, samples] : obs.others) {
                 const auto v = model.values(h, obs.angle_deg);
-                for (size_t s = 0; s < distance.size(); ++s)
+                for (size_t s = 0; s < samples.size(); ++s)
                     for (int c = 0; c < channels; ++c)
-                        sum[s][static_cast<size_t>(c)] += SeriesModel::intensity(v, distance[s], c);
+                        sum[s][static_cast<size_t>(c)] += SeriesModel::intensity(v, samples[s], c);
             }
             offsets_[o] = rows;
-            rows += static_cast<int>(obs.distance.size()) * channels;
+            rows += static_cast<int>(obs.self.size()) * channels;
         }
         // Then one row per observation and value: how far the series has left its bounds. The
         // clamp gives the image rows no gradient there, so without these a series that strays
         // out of bounds at a frame could never be drawn back.
         penalty_offset_ = rows;
         rows += static_cast<int>(observations.size()) * kShadingCount;
+        // And one per joint of adjacent pieces: the jump between them.
+        joints_ = model.joints(ghost);
+        joint_offset_ = rows;
+        joint_weight_ = kJointPenalty * std::sqrt(static_cast<double>(observations.size()));
+        rows += static_cast<int>(joints_.size());
         set_num_residuals(rows);
         mutable_parameter_block_sizes()->push_back(static_cast<int>(model.coefficientCount(ghost)));
     }
@@ -267,6 +311,23 @@ public:
         const double* c = parameters[0];
         const int np = parameter_block_sizes()[0];
         bool finite = true;
+        // T_k(1) = 1 and T_k(-1) = (-1)^k.
+        for (size_t q = 0; q < joints_.size(); ++q) {
+            const auto& j = joints_[q];
+            const double weight = joint_weight_ / j.span;
+            double jump = 0.0;
+            for (int k = 0; k < j.left_count; ++k) jump += c[j.left_offset + k];
+            for (int k = 0; k < j.right_count; ++k)
+                jump -= (k % 2 == 0 ? 1.0 : -1.0) * c[j.right_offset + k];
+            const int row = joint_offset_ + static_cast<int>(q);
+            residuals[row] = weight * jump;
+            if (!(jacobians && jacobians[0])) continue;
+            double* out = jacobians[0] + static_cast<size_t>(row) * np;
+            std::fill(out, out + np, 0.0);
+            for (int k = 0; k < j.left_count; ++k) out[j.left_offset + k] = weight;
+            for (int k = 0; k < j.right_count; ++k)
+                out[j.right_offset + k] = -(k % 2 == 0 ? 1.0 : -1.0) * weight;
+        }
         tbb::parallel_for(size_t{0}, observations_.size(), [&](size_t o) {
             const Observation& obs = observations_[o];
             const auto v = model_.values(ghost_, obs.angle_deg, c);
@@ -299,7 +360,13 @@ public:
                 for (int k = 0; k < std::min(p.count, 64); ++k)
                     out[p.offset + k] += weight * basis[i][k];
             }
-            for (size_t s = 0; s < obs.distance.size(); ++s) {
+            for (size_t s = 0; s < obs.self.size(); ++s) {
+                const render::BlockDistance& b = obs.self[s];
+                render::TransferWeights<ShadingJet> w{};
+                if (jacobians && jacobians[0])
+                    w = render::boxTransferWeights<ShadingJet>(
+                        ShadingJet(b.distance_mm), b.spread_x_mm, b.spread_y_mm, value[6], value[7],
+                        value[8], value[9]);
                 for (int ch = 0; ch < channels_; ++ch) {
                     const int row = offsets_[o] + static_cast<int>(s) * channels_ + ch;
                     const double scale = obs.scale[static_cast<size_t>(ch)];
@@ -308,11 +375,9 @@ public:
                     double r, dr = 0.0;
                     ShadingJet m;
                     if (jacobians && jacobians[0]) {
-                        m = render::transferIntensity<ShadingJet>(ShadingJet(obs.distance[s]),
-                                                                  border[ch], inner[ch], value[6],
-                                                                  value[7], value[8], value[9]);
+                        m = border[ch] * w.border + inner[ch] * w.inner;
                     } else {
-                        m = ShadingJet(SeriesModel::intensity(v, obs.distance[s], ch));
+                        m = ShadingJet(SeriesModel::intensity(v, b, ch));
                     }
                     const double total = m.a + other;
                     r = std::asinh(total / scale) - std::asinh(data / scale);
@@ -352,6 +417,9 @@ private:
     std::vector<std::vector<std::array<double, 3>>> others_;
     std::vector<int> offsets_;
     int penalty_offset_ = 0;
+    std::vector<SeriesModel::Joint> joints_;
+    int joint_offset_ = 0;
+    double joint_weight_ = 0.0;
 };
 
 // A ghost's loop and its pixel box grown by `grow_mm`, clipped to the frame; false if empty.
@@ -495,7 +563,7 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
             Observation obs;
             obs.angle_deg = angle;
             obs.scale = scale;
-            std::vector<Eigen::Vector2d> points;
+            std::vector<Eigen::Vector2d> points, halves;  // block centres and half sizes, mm
             // Block means (as the frame fit samples): one pixel per block would be unbiased at
             // sharp edges but noisier, and measured worse on the Heliar sweep (held-out median
             // 0.143 against 0.132).
@@ -525,18 +593,20 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
                     points.push_back(
                         {(0.5 * static_cast<double>(ax + bx + 1) - m.centre_x_px) / m.px_per_mm_x,
                          (0.5 * static_cast<double>(ay + by + 1) - m.centre_y_px) / m.px_per_mm_y});
+                    halves.push_back({0.5 * static_cast<double>(bx - ax + 1) / m.px_per_mm_x,
+                                      0.5 * static_cast<double>(by - ay + 1) / m.px_per_mm_y});
                 }
             }
             if (points.empty()) continue;
             const auto distances = [&](const GhostState& s) {
                 const render::BezierLoop loop = render::toBezierLoop(s.shape);
-                std::vector<double> d(points.size());
+                std::vector<render::BlockDistance> d(points.size());
                 tbb::parallel_for(size_t{0}, points.size(), [&](size_t i) {
-                    d[i] = render::signedDistanceFast(loop, points[i], cost.distance);
+                    d[i] = render::blockDistance(loop, points[i], halves[i], cost.distance);
                 });
                 return d;
             };
-            obs.distance = distances(state);
+            obs.self = distances(state);
             // Other ghosts whose light reaches into the crop.
             for (const auto& [h, other] : present) {
                 if (h == g) continue;

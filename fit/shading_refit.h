@@ -23,7 +23,10 @@
 // the series, being smooth by construction, cannot jump between them. Each parameter keeps its
 // bounds (evaluation clamps to them); where a series strays out of them at a frame, the clamp
 // leaves the image no say, so one more residual per frame and value (the excursion over the
-// bounds' width) draws it back. The residual fields of the refitted pieces still describe the
+// bounds' width) draws it back. Where two pieces of a series meet (half-way between two frames,
+// so no frame holds the joint) one more residual holds them together: without it a piece's free
+// end once swung a ghost 40 times too bright half a step before its first frame. Samples are
+// block means compared with the model's block mean, as in the frame fit. The residual fields of the refitted pieces still describe the
 // compression of the per-frame values. One-channel frames fit one intensity series per kind and
 // copy it to the three channels.
 #pragma once

@@ -400,4 +400,37 @@ std::array<double, 3> shadeGhost(const BezierLoop& loop,
     return shadeAtDistance(shading, signedDistanceFast(loop, q_mm, options));
 }
 
+Vec2 blockSpread(const Vec2& centre_mm, const ClosestPoint& closest, const Vec2& half_size_mm) {
+    if (!(closest.distance_mm > 1e-12) || !std::isfinite(closest.distance_mm))
+        return half_size_mm * std::sqrt(0.5);
+    const Vec2 u = (centre_mm - closest.point_mm) / closest.distance_mm;
+    return {half_size_mm.x() * std::abs(u.x()), half_size_mm.y() * std::abs(u.y())};
+}
+
+BlockDistance blockDistance(const BezierLoop& loop,
+                            const Vec2& centre_mm,
+                            const Vec2& half_size_mm,
+                            const FastDistanceOptions& options) {
+    const ClosestPoint cp = closestPointFast(loop, centre_mm, options);
+    const double sign = windingNumber(loop, centre_mm) != 0 ? -1.0 : 1.0;
+    const Vec2 spread = blockSpread(centre_mm, cp, half_size_mm);
+    return {sign * cp.distance_mm, spread.x(), spread.y()};
+}
+
+std::array<double, 3> shadeGhostBlock(const BezierLoop& loop,
+                                      const GhostShading& shading,
+                                      const Vec2& centre_mm,
+                                      const Vec2& half_size_mm,
+                                      const FastDistanceOptions& options) {
+    const BlockDistance b = blockDistance(loop, centre_mm, half_size_mm, options);
+    const auto w = boxTransferWeights<double>(b.distance_mm, b.spread_x_mm, b.spread_y_mm,
+                                              shading.inner_falloff_mm, shading.outer_falloff_mm,
+                                              shading.inner_exponent, shading.outer_exponent);
+    std::array<double, 3> out{};
+    for (int c = 0; c < 3; ++c)
+        out[static_cast<size_t>(c)] = shading.border_rgb[static_cast<size_t>(c)] * w.border +
+                                      shading.inner_rgb[static_cast<size_t>(c)] * w.inner;
+    return out;
+}
+
 }  // namespace flarelab::render

@@ -40,6 +40,7 @@
 #include <array>
 #include <cmath>
 #include <span>
+#include <utility>
 #include <vector>
 
 #include "common/result.h"
@@ -216,6 +217,120 @@ T transferIntensity(const T& signed_distance_mm,
     return border + (target - border) * w;
 }
 
+// Eq. 6.4 as weights on the two intensities: I = I_b * border + I_i * inner.
+template <typename T>
+struct TransferWeights {
+    T border;
+    T inner;
+};
+
+namespace detail {
+
+// The first (F) and second (G) antiderivatives of eq. 6.4's weights in d, both zero at d = 0:
+// F' = w, G' = F. Outside, with s = d / F_o < 1: F = d - F_o s^(E+1) / (E+1) and
+// G = d^2 / 2 - F_o^2 s^(E+2) / ((E+1)(E+2)) on the border weight, then linear (F) and
+// quadratic (G) continuations where w is constant; inside likewise with F_i, E_i, mirrored.
+template <typename T>
+void transferAntiderivatives(const T& d,
+                             const T& inner_falloff_mm,
+                             const T& outer_falloff_mm,
+                             const T& inner_exponent,
+                             const T& outer_exponent,
+                             TransferWeights<T>& first,
+                             TransferWeights<T>& second) {
+    using std::pow;
+    if (d == T(0.0)) {  // F = d, G = d^2 / 2 on the border weight (carries d's derivatives)
+        first = {d, T(0.0)};
+        second = {T(0.5) * d * d, T(0.0)};
+        return;
+    }
+    if (d > T(0.0)) {
+        const T& f = outer_falloff_mm;
+        const T e1 = outer_exponent + T(1.0), e2 = outer_exponent + T(2.0);
+        if (d < f) {
+            const T s = d / f;
+            const T p1 = pow(s, e1);
+            first = {d - f * p1 / e1, T(0.0)};
+            second = {T(0.5) * d * d - f * f * p1 * s / (e1 * e2), T(0.0)};
+        } else {
+            const T f_end = f * outer_exponent / e1;
+            first = {f_end, T(0.0)};
+            second = {T(0.5) * f * f - f * f / (e1 * e2) + f_end * (d - f), T(0.0)};
+        }
+        return;
+    }
+    // Inside: y = -d; H(y) = integral of w over [-y, 0], F(d) = -H(y), G(d) = integral of H.
+    const T y = -d;
+    const T& f = inner_falloff_mm;
+    const T e1 = inner_exponent + T(1.0), e2 = inner_exponent + T(2.0);
+    TransferWeights<T> h, g;
+    if (y < f) {
+        const T s = y / f;
+        const T power = pow(s, e1);
+        const T p1 = f * power / e1, p2 = f * f * power * s / (e1 * e2);
+        h = {y - p1, p1};
+        g = {T(0.5) * y * y - p2, p2};
+    } else {
+        const T k = f * f / (e1 * e2), r = y - f;
+        const TransferWeights<T> h_end = {f * inner_exponent / e1, f / e1};
+        h = {h_end.border, h_end.inner + r};
+        g = {T(0.5) * f * f - k + h_end.border * r, k + h_end.inner * r + T(0.5) * r * r};
+    }
+    first = {-h.border, -h.inner};
+    second = g;
+}
+
+}  // namespace detail
+
+// Eq. 6.4's weights averaged over a rectangle of pixels around the point at signed distance d,
+// in the linear approximation of the distance across it (a straight edge): the distance over the
+// rectangle is d + u, u the sum of two uniform variables on [-a, a] and [-c, c], where a and c
+// (>= 0, mm) are the rectangle's half width and height times the distance gradient's |x| and
+// |y| components. This is what a pixel, or a block mean of pixels, records of a ghost whose
+// edges are sharper than it: the point value at the block's centre would be a blur the model
+// then learns as a wide falloff. Exact for the convolution of two boxes:
+//   (G(d+a+c) - G(d+a-c) - G(d-a+c) + G(d-a-c)) / (4ac);   c -> 0: (F(d+a) - F(d-a)) / 2a;
+// a, c -> 0: eq. 6.4 itself. Constant regions short-cut, so no rounding of the differences
+// enters far from the edge.
+template <typename T>
+TransferWeights<T> boxTransferWeights(const T& d,
+                                      double a,
+                                      double c,
+                                      const T& inner_falloff_mm,
+                                      const T& outer_falloff_mm,
+                                      const T& inner_exponent,
+                                      const T& outer_exponent) {
+    if (a < c) std::swap(a, c);
+    const double reach = a + c;
+    if (d - T(reach) >= outer_falloff_mm) return {T(0.0), T(0.0)};
+    if (d + T(reach) <= -inner_falloff_mm) return {T(0.0), T(1.0)};
+    if (a <= 1e-9) {
+        const T w_border = transferIntensity<T>(d, T(1.0), T(0.0), inner_falloff_mm,
+                                                outer_falloff_mm, inner_exponent, outer_exponent);
+        const T w_inner = transferIntensity<T>(d, T(0.0), T(1.0), inner_falloff_mm,
+                                               outer_falloff_mm, inner_exponent, outer_exponent);
+        return {w_border, w_inner};
+    }
+    TransferWeights<T> f[4], g[4];
+    const auto at = [&](int k, const T& x) {
+        detail::transferAntiderivatives<T>(x, inner_falloff_mm, outer_falloff_mm, inner_exponent,
+                                           outer_exponent, f[k], g[k]);
+    };
+    if (c <= 1e-3 * a) {
+        at(0, d + T(a));
+        at(1, d - T(a));
+        const double scale = 0.5 / a;
+        return {(f[0].border - f[1].border) * scale, (f[0].inner - f[1].inner) * scale};
+    }
+    at(0, d + T(a + c));
+    at(1, d + T(a - c));
+    at(2, d - T(a - c));
+    at(3, d - T(a + c));
+    const double scale = 0.25 / (a * c);
+    return {(g[0].border - g[1].border - g[2].border + g[3].border) * scale,
+            (g[0].inner - g[1].inner - g[2].inner + g[3].inner) * scale};
+}
+
 struct GhostShading {
     std::array<double, 3> border_rgb = {1.0, 1.0, 1.0};  // I_b per channel, >= 0
     std::array<double, 3> inner_rgb = {0.0, 0.0, 0.0};   // I_i per channel, >= 0
@@ -237,5 +352,31 @@ std::array<double, 3> shadeGhost(const BezierLoop& loop,
                                  const GhostShading& shading,
                                  const Eigen::Vector2d& q_mm,
                                  const FastDistanceOptions& options = {});
+
+// A rectangle of the sensor (a pixel, or a block of pixels a fit samples) seen from a loop: the
+// signed distance at its centre and the half spreads of the distance across it along x and y
+// (boxTransferWeights' a and c): the half size times the distance gradient's components, the
+// gradient being the unit vector from the closest curve point (on the curve, where it is
+// undefined, the diagonal's).
+struct BlockDistance {
+    double distance_mm = 0.0;
+    double spread_x_mm = 0.0;
+    double spread_y_mm = 0.0;
+};
+Eigen::Vector2d blockSpread(const Eigen::Vector2d& centre_mm,
+                            const ClosestPoint& closest,
+                            const Eigen::Vector2d& half_size_mm);
+BlockDistance blockDistance(const BezierLoop& loop,
+                            const Eigen::Vector2d& centre_mm,
+                            const Eigen::Vector2d& half_size_mm,
+                            const FastDistanceOptions& options = {});
+
+// The ghost's mean RGB value over the rectangle centred on q with half size `half_size_mm`
+// (boxTransferWeights): what a pixel, which integrates the light over its area, records.
+std::array<double, 3> shadeGhostBlock(const BezierLoop& loop,
+                                      const GhostShading& shading,
+                                      const Eigen::Vector2d& centre_mm,
+                                      const Eigen::Vector2d& half_size_mm,
+                                      const FastDistanceOptions& options = {});
 
 }  // namespace flarelab::render

@@ -32,8 +32,10 @@ std::optional<GhostPrimitive> prepareGhostPrimitive(const BezierLoop& loop_mm,
         lo_y = std::min(lo_y, p.y());
         hi_y = std::max(hi_y, p.y());
     }
-    // Beyond the outer falloff the ghost is zero; the curve lies in its control points' box.
-    const double grow = shading.outer_falloff_mm;
+    // Beyond the outer falloff the ghost is zero; the curve lies in its control points' box. A
+    // pixel's mean reaches half its diagonal further.
+    const double grow = shading.outer_falloff_mm +
+                        0.5 * std::hypot(1.0 / mapping.px_per_mm_x, 1.0 / mapping.px_per_mm_y);
     const Eigen::Vector2d a = mapping.toPixels(lo_x - grow, lo_y - grow);
     const Eigen::Vector2d b = mapping.toPixels(hi_x + grow, hi_y + grow);
     if (!std::isfinite(a.x()) || !std::isfinite(a.y()) || !std::isfinite(b.x()) ||
@@ -60,10 +62,12 @@ std::optional<GhostPrimitive> prepareGhostPrimitive(const BezierLoop& loop_mm,
 void addGhostRow(const GhostPrimitive& g, int64_t y, int64_t x0, int64_t x1, float* rgb) {
     const double qy =
         (static_cast<double>(y) + 0.5 - g.mapping.centre_y_px) / g.mapping.px_per_mm_y;
+    const Eigen::Vector2d half(0.5 / g.mapping.px_per_mm_x, 0.5 / g.mapping.px_per_mm_y);
     for (int64_t x = x0; x <= x1; ++x, rgb += 3) {
         const double qx =
             (static_cast<double>(x) + 0.5 - g.mapping.centre_x_px) / g.mapping.px_per_mm_x;
-        const std::array<double, 3> v = shadeGhost(g.loop_mm, g.shading, {qx, qy}, g.distance);
+        const std::array<double, 3> v =
+            shadeGhostBlock(g.loop_mm, g.shading, {qx, qy}, half, g.distance);
         for (int c = 0; c < 3; ++c)
             if (std::isfinite(v[c])) rgb[c] += static_cast<float>(v[c]);
     }

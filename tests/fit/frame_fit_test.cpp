@@ -5,6 +5,7 @@
 #include <cmath>
 #include <random>
 
+#include "fit/detect.h"
 #include "fit/model_eval.h"
 
 namespace flarelab::fit {
@@ -103,9 +104,38 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
         EXPECT_NEAR(ghosts[g].shape.centre_y_mm, truth[g].shape.centre_y_mm, 0.1) << g;
     }
     // Extents and falloffs trade against each other at the border; the image is what counts.
+    // (Before the dark-rim restart one ghost settled with its border at zero and this was 0.08
+    // to 0.16 depending on the sampling; now about 0.03.)
     const double error = relativeL2(ghosts, truth, frame);
-    EXPECT_LT(error, 0.1);
-    EXPECT_LT(error, 0.25 * start_error);
+    EXPECT_LT(error, 0.05);
+    EXPECT_LT(error, 0.1 * start_error);
+}
+
+// An isolated disc with a bright rim, fitted from what detection makes of it (a shape larger by
+// about its outer falloff), at several samplings: the fit must find the disc, not a larger one
+// with a dimmed border, which the cost also holds as a local minimum (0.08 to 0.29 relative L2
+// from the detection's start alone, depending on the sampling).
+TEST(FrameFit, RecoversAnIsolatedDiscFromItsDetection) {
+    GhostState t = disc(-4.0, 0.0, 3.0, 30.0, 18.0);
+    t.shading.inner_falloff_mm = 1.0;
+    const std::vector<GhostState> truth = {t};
+    const FitFrame frame = makeFrame(truth, 160, 107, 10.0, 1.0, 7);
+    auto detection = detectGhosts(frame, DetectOptions{});
+    ASSERT_TRUE(detection.has_value()) << detection.error().message;
+    ASSERT_EQ(detection->candidates.size(), 1u);
+    for (const int samples : {16, 24, 32, 48}) {
+        std::vector<GhostState> ghosts = {detection->candidates[0].initial};
+        FrameFitOptions options;
+        options.cost.max_samples = samples;
+        auto report = fitFrame(frame, *detection, ghosts, options);
+        ASSERT_TRUE(report.has_value()) << report.error().message;
+        EXPECT_LT(relativeL2(ghosts, truth, frame), 0.05) << samples << " samples";
+        // The box: a disc's centre x trades against its left and right extents.
+        const auto& s = ghosts[0].shape;
+        EXPECT_NEAR(0.5 * (s.left_mm + s.right_mm), 3.0, 0.15) << samples << " samples";
+        EXPECT_NEAR(s.half_height_mm, 3.0, 0.15) << samples << " samples";
+        EXPECT_NEAR(s.centre_x_mm + 0.5 * (s.right_mm - s.left_mm), -4.0, 0.1) << samples;
+    }
 }
 
 TEST(FrameFit, GradientDescentBaselineLowersTheSameCost) {

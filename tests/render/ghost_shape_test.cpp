@@ -353,5 +353,73 @@ TEST(TransferIntensity, ShadesEachChannelAndValidatesFields) {
     EXPECT_FALSE(validateShading(bad));
 }
 
+// The mean of eq. 6.4 over a block of side w x h at a straight edge whose normal makes angle phi
+// with the x axis, by a dense grid: what boxTransferWeights must give in closed form.
+TransferWeights<double> denseBlockMean(
+    double d, double w, double h, double phi, double fi, double fo, double ei, double eo) {
+    const int n = 400;
+    TransferWeights<double> sum{0.0, 0.0};
+    for (int j = 0; j < n; ++j)
+        for (int i = 0; i < n; ++i) {
+            const double x = ((i + 0.5) / n - 0.5) * w, y = ((j + 0.5) / n - 0.5) * h;
+            const double e = d + x * std::cos(phi) + y * std::sin(phi);
+            sum.border += transferIntensity(e, 1.0, 0.0, fi, fo, ei, eo);
+            sum.inner += transferIntensity(e, 0.0, 1.0, fi, fo, ei, eo);
+        }
+    return {sum.border / (n * n), sum.inner / (n * n)};
+}
+
+TEST(TransferIntensity, BlockMeanMatchesDenseAveragingAtAnyEdgeAngle) {
+    struct Case {
+        double fi, fo, ei, eo;
+    };
+    // Sharp edges (falloffs far below the block), wide ones, and exponents at their bounds.
+    const Case cases[] = {{0.01, 0.01, 1.0, 1.0},
+                          {3.0, 2.0, 0.25, 4.0},
+                          {0.5, 1.5, 4.0, 0.25},
+                          {1.0, 0.02, 2.0, 1.0}};
+    const double w = 1.3, h = 0.9;
+    for (const Case& k : cases)
+        for (double phi : {0.0, 0.3, std::numbers::pi / 4.0, 1.2, std::numbers::pi / 2.0, 2.5})
+            for (double d : {-4.0, -1.1, -0.5, -0.2, 0.0, 0.15, 0.4, 0.9, 3.0}) {
+                const double a = 0.5 * w * std::abs(std::cos(phi));
+                const double c = 0.5 * h * std::abs(std::sin(phi));
+                const auto got = boxTransferWeights(d, a, c, k.fi, k.fo, k.ei, k.eo);
+                const auto want = denseBlockMean(d, w, h, phi, k.fi, k.fo, k.ei, k.eo);
+                EXPECT_NEAR(got.border, want.border, 2e-3)
+                    << "d " << d << " phi " << phi << " fi " << k.fi << " fo " << k.fo;
+                EXPECT_NEAR(got.inner, want.inner, 2e-3)
+                    << "d " << d << " phi " << phi << " fi " << k.fi << " fo " << k.fo;
+            }
+}
+
+TEST(TransferIntensity, BlockMeanOfAPointIsTheTransferAndFarRegionsAreExact) {
+    for (double d : {-2.0, -0.3, 0.0, 0.2, 1.5}) {
+        const auto w = boxTransferWeights(d, 0.0, 0.0, 1.0, 0.5, 2.0, 0.5);
+        EXPECT_DOUBLE_EQ(w.border, transferIntensity(d, 1.0, 0.0, 1.0, 0.5, 2.0, 0.5));
+        EXPECT_DOUBLE_EQ(w.inner, transferIntensity(d, 0.0, 1.0, 1.0, 0.5, 2.0, 0.5));
+        // A vanishing block tends to the point value (exponents >= 1: no infinite slope at the
+        // border, where an exponent below 1 makes the mean of a 1e-6 block differ by ~1e-3).
+        const auto tiny = boxTransferWeights(d, 1e-6, 4e-7, 1.0, 0.5, 2.0, 1.0);
+        EXPECT_NEAR(tiny.border, transferIntensity(d, 1.0, 0.0, 1.0, 0.5, 2.0, 1.0), 1e-5);
+        EXPECT_NEAR(tiny.inner, transferIntensity(d, 0.0, 1.0, 1.0, 0.5, 2.0, 1.0), 1e-5);
+    }
+    // Far from the edge on either side: exact constants, whatever the block.
+    const auto out = boxTransferWeights(50.0, 3.0, 2.0, 1.0, 0.5, 2.0, 0.5);
+    EXPECT_EQ(out.border, 0.0);
+    EXPECT_EQ(out.inner, 0.0);
+    const auto in = boxTransferWeights(-50.0, 3.0, 2.0, 1.0, 0.5, 2.0, 0.5);
+    EXPECT_EQ(in.border, 0.0);
+    EXPECT_EQ(in.inner, 1.0);
+    // Partition of unity deep inside a wide block: border + inner weights stay in [0, 1].
+    for (double d = -3.0; d <= 3.0; d += 0.05) {
+        const auto v = boxTransferWeights(d, 0.7, 0.4, 0.3, 0.2, 1.0, 1.0);
+        EXPECT_TRUE(std::isfinite(v.border) && std::isfinite(v.inner)) << d;
+        EXPECT_GE(v.border, -1e-12) << d;
+        EXPECT_GE(v.inner, -1e-12) << d;
+        EXPECT_LE(v.border + v.inner, 1.0 + 1e-12) << d;
+    }
+}
+
 }  // namespace
 }  // namespace flarelab::render
