@@ -141,8 +141,15 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
         if (ghost.parameters.size() != kGhostParameterCount) continue;  // not a ghost of this kind
         const auto& first = ghost.parameters.front().pieces;
         if (first.empty()) continue;
-        if (angle_deg < first.front().angle_from_deg || angle_deg > first.back().angle_to_deg)
-            continue;  // the ghost was not seen at this angle
+        // Within its fitted range a ghost is drawn as fitted; beyond it, it fades out over one
+        // capture step (see model_eval.h); at the next captured angle it was not seen.
+        const double step = std::isfinite(model.capture.step_deg) ? model.capture.step_deg : 0.0;
+        double weight = 1.0;
+        if (angle_deg < first.front().angle_from_deg)
+            weight = step > 0.0 ? 1.0 - (first.front().angle_from_deg - angle_deg) / step : 0.0;
+        if (angle_deg > first.back().angle_to_deg)
+            weight = step > 0.0 ? 1.0 - (angle_deg - first.back().angle_to_deg) / step : 0.0;
+        if (!(weight > 1e-9)) continue;  // the ghost was not seen at this angle
         GhostParameters values{};
         bool known = true;
         for (int i = 0; i < kGhostParameterCount && known; ++i) {
@@ -172,6 +179,10 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
         if (!known) continue;
         auto state = ghostStateFromParameters(values);
         if (!state) continue;  // non-finite series value: a model validateModel would refuse
+        for (int c = 0; c < 3; ++c) {
+            state->shading.border_rgb[c] *= weight;
+            state->shading.inner_rgb[c] *= weight;
+        }
         out.push_back({ghost.id, *state});
     }
     // The roll: kept as the state's shape rotated when drawn (see renderModel); states carry the

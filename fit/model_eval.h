@@ -16,6 +16,13 @@
 //                                                                   unit): intensities span
 //                                                                   decades, and stay >= 0
 //   inner_falloff_mm, outer_falloff_mm, inner_exponent, outer_exponent
+// A ghost is drawn over its fitted range (its first to its last fitted angle) and, beyond each
+// end, fades linearly to nothing over one capture step (capture.step_deg): it was seen at the
+// end angle and not at the next captured one, so between the two it faded or left, and a ghost
+// that the fit followed as two tracks meeting there (one ending, the next starting a step later)
+// is drawn as their mix rather than as nothing. At the captured angles nothing changes. On one
+// Heliar model this took the held-out median from 0.110 to 0.098, and a fitted angle that no
+// track covered from 1.0 to 0.55 half a step away.
 // Evaluated between fitted angles, a value may leave its bounds; ghostStateFromParameters clamps
 // it back (extents and falloffs to at least kMinExtentMm, fractions to [0, 1], exponents to
 // [0.25, 4]), so any evaluation gives a valid ghost.

@@ -420,6 +420,57 @@ TEST(SweepFit, FixedDegreeAboveAShortTrackIsCapped) {
     }
 }
 
+// Beyond its fitted range a ghost fades out over one capture step: half way to the next captured
+// angle it is drawn at half its end intensity, at that angle (where it was not seen) not at all;
+// within the range nothing changes.
+TEST(SweepFit, GhostsFadeOutOverOneStepBeyondTheirRange) {
+    SweepFitResult result;
+    GhostTrack long_track, short_track;
+    long_track.id = 0;
+    short_track.id = 1;
+    for (const double angle : angleRange(0.0, 0.5, 13)) {
+        long_track.samples.push_back({angle, trueState(kTwoGhosts[0], angle), 0.0});
+        if (angle >= 1.0 && angle <= 3.0)
+            short_track.samples.push_back({angle, trueState(kTwoGhosts[1], angle), 0.0});
+    }
+    result.tracks = {long_track, short_track};
+    result.frame_count = 13;
+    auto model = buildModel(result, modelShell(0.0, 6.0), quickOptions());
+    ASSERT_TRUE(model) << model.error().message;
+    const auto shortGhost = [&](double angle) -> std::optional<GhostState> {
+        auto at = modelGhostsAt(*model, angle, 0.0);
+        EXPECT_TRUE(at);
+        for (const auto& g : *at)
+            if (g.id == 1) return g.state;
+        return std::nullopt;
+    };
+    for (const double end : {1.0, 3.0}) {
+        const auto full = shortGhost(end);
+        ASSERT_TRUE(full);
+        const double beyond = end == 1.0 ? -1.0 : 1.0;
+        for (const double fraction : {0.25, 0.5, 0.9}) {
+            const auto faded = shortGhost(end + beyond * fraction * 0.5);
+            ASSERT_TRUE(faded) << end << " " << fraction;
+            EXPECT_EQ(faded->shape, full->shape);
+            for (int c = 0; c < 3; ++c) {
+                EXPECT_NEAR(faded->shading.border_rgb[c],
+                            (1.0 - fraction) * full->shading.border_rgb[c],
+                            1e-9 * full->shading.border_rgb[c]);
+                EXPECT_NEAR(faded->shading.inner_rgb[c],
+                            (1.0 - fraction) * full->shading.inner_rgb[c],
+                            1e-9 * full->shading.inner_rgb[c]);
+            }
+        }
+        EXPECT_FALSE(shortGhost(end + beyond * 0.5)) << "at the next captured angle";
+        EXPECT_FALSE(shortGhost(end + beyond * 0.75));
+    }
+    // Inside the range: as fitted (the long ghost, everywhere in range, is never faded).
+    const auto inside = shortGhost(2.0);
+    ASSERT_TRUE(inside);
+    EXPECT_NEAR(inside->shading.border_rgb[0], trueState(kTwoGhosts[1], 2.0).shading.border_rgb[0],
+                0.05 * trueState(kTwoGhosts[1], 2.0).shading.border_rgb[0]);
+}
+
 // The shading refit (step 5): a model whose shading series were compressed from per-frame fits
 // that wandered between unlike settings draws the frames badly; refitted to the frames it draws
 // them, between the fitted angles too, while the shapes stay as they were.
