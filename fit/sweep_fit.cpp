@@ -419,7 +419,10 @@ Status SweepFitter::processFrame(
                 return true;
         return false;
     };
-    // A ghost's light in the frame, roughly: its mean intensity over the part of its box in view.
+    // A ghost's light in the frame, roughly: its mean intensity over the part of its box in view,
+    // each intensity capped at the brightest the frame is (a border outside the frame is not held
+    // by the data and may run off; uncapped, such a ghost's "energy" once outweighed every other
+    // ghost's a thousandfold and ended them all by min_energy_fraction, leaving frames empty).
     const auto visibleEnergy = [&](const GhostState& g) {
         const double w =
             std::max(0.0, std::min(frame_x1, g.shape.centre_x_mm + g.shape.right_mm) -
@@ -429,11 +432,14 @@ Status SweepFitter::processFrame(
                               std::max(frame_y0, g.shape.centre_y_mm - g.shape.half_height_mm));
         double level = 0.0;
         for (int c = 0; c < channels; ++c)
-            level += 0.5 * (g.shading.border_rgb[c] + g.shading.inner_rgb[c]);
+            level += 0.5 * (std::min(g.shading.border_rgb[c], brightest_data) +
+                            std::min(g.shading.inner_rgb[c], brightest_data));
         return level * w * h;
     };
+    // Over the ghosts whose fit is kept (a run-off fit is not taken as a sample below).
     double total_energy = 0.0;
-    for (const GhostState& g : ghosts) total_energy += visibleEnergy(g);
+    for (const GhostState& g : ghosts)
+        if (!tooBright(g)) total_energy += visibleEnergy(g);
     for (const GhostState& g : fixed) total_energy += visibleEnergy(g);
 
     // The tracks fitted here (live, then born): their samples and their ends.
