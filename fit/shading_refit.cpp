@@ -66,6 +66,17 @@ SeriesPoint seriesPoint(const SeriesLayout& layout, double angle_deg) {
     return p;
 }
 
+// The width of shading value i's bounds (the model's own, else the parameter's), at least 1e-3;
+// 1 when either end is open. The scale of the penalty rows.
+double boundsWidth(const ModelParameter& parameter, int i) {
+    const GhostParameterInfo& info = ghostParameterInfo(kFirstShading + i);
+    const std::optional<double> lo =
+        parameter.lower_bound ? parameter.lower_bound : info.lower_bound;
+    const std::optional<double> hi =
+        parameter.upper_bound ? parameter.upper_bound : info.upper_bound;
+    return lo && hi ? std::max(*hi - *lo, 1e-3) : 1.0;
+}
+
 // T_0(x) .. T_{n-1}(x).
 void chebyshevBasis(double x, int n, double* out) {
     if (n > 0) out[0] = 1.0;
@@ -140,19 +151,14 @@ public:
             if (sourceIndex(i) != i) continue;
             const SeriesLayout& layout = ghost.series[static_cast<size_t>(i)];
             const auto& pieces = layout.parameter->pieces;
-            const GhostParameterInfo& info = ghostParameterInfo(kFirstShading + i);
-            const auto& parameter = *layout.parameter;
-            const std::optional<double> lo =
-                parameter.lower_bound ? parameter.lower_bound : info.lower_bound;
-            const std::optional<double> hi =
-                parameter.upper_bound ? parameter.upper_bound : info.upper_bound;
+            const double span = boundsWidth(*layout.parameter, i);
             for (size_t k = 0; k + 1 < pieces.size(); ++k) {
                 Joint j;
                 j.left_offset = layout.offsets[k];
                 j.left_count = static_cast<int>(pieces[k].coefficients.size());
                 j.right_offset = layout.offsets[k + 1];
                 j.right_count = static_cast<int>(pieces[k + 1].coefficients.size());
-                j.span = lo && hi ? std::max(*hi - *lo, 1e-3) : 1.0;
+                j.span = span;
                 out.push_back(j);
             }
         }
@@ -206,11 +212,7 @@ public:
             v.point[static_cast<size_t>(i)] = p;
             v.clamped[static_cast<size_t>(i)] = clamped != value;
             v.raw[static_cast<size_t>(i)] = value;
-            const std::optional<double> lo =
-                parameter.lower_bound ? parameter.lower_bound : info.lower_bound;
-            const std::optional<double> hi =
-                parameter.upper_bound ? parameter.upper_bound : info.upper_bound;
-            v.span[static_cast<size_t>(i)] = lo && hi ? std::max(*hi - *lo, 1e-3) : 1.0;
+            v.span[static_cast<size_t>(i)] = boundsWidth(parameter, i);
         }
         return v;
     }

@@ -385,21 +385,28 @@ TEST(SweepFit, RefusesOptionsOutOfRange) {
     EXPECT_EQ(failed.error().code, ErrorCode::IoError);
 }
 
-// A fixed degree higher than a track's frames support is capped at them, not refused: the
-// whole model must not fail for one short track.
-TEST(SweepFit, FixedDegreeAboveAShortTrackIsCapped) {
+// Exact tracks of the two ghosts over 0..6 deg at 0.5 deg (13 frames): ghost 0 all along, ghost
+// 1 only at the angles `short_range` keeps.
+SweepFitResult exactTracks(const std::function<bool(double)>& short_range) {
     SweepFitResult result;
     GhostTrack long_track, short_track;
     long_track.id = 0;
     short_track.id = 1;
     for (const double angle : angleRange(0.0, 0.5, 13)) {
         long_track.samples.push_back({angle, trueState(kTwoGhosts[0], angle), 0.0});
-        if (angle <= 2.0)
+        if (short_range(angle))
             short_track.samples.push_back({angle, trueState(kTwoGhosts[1], angle), 0.0});
     }
-    ASSERT_EQ(short_track.samples.size(), 5u);
     result.tracks = {long_track, short_track};
     result.frame_count = 13;
+    return result;
+}
+
+// A fixed degree higher than a track's frames support is capped at them, not refused: the
+// whole model must not fail for one short track.
+TEST(SweepFit, FixedDegreeAboveAShortTrackIsCapped) {
+    const SweepFitResult result = exactTracks([](double angle) { return angle <= 2.0; });
+    ASSERT_EQ(result.tracks[1].samples.size(), 5u);
     SweepFitOptions options = quickOptions();
     options.poly.fixed_degree = 8;
     auto model = buildModel(result, modelShell(0.0, 6.0), options);
@@ -424,17 +431,8 @@ TEST(SweepFit, FixedDegreeAboveAShortTrackIsCapped) {
 // angle it is drawn at half its end intensity, at that angle (where it was not seen) not at all;
 // within the range nothing changes.
 TEST(SweepFit, GhostsFadeOutOverOneStepBeyondTheirRange) {
-    SweepFitResult result;
-    GhostTrack long_track, short_track;
-    long_track.id = 0;
-    short_track.id = 1;
-    for (const double angle : angleRange(0.0, 0.5, 13)) {
-        long_track.samples.push_back({angle, trueState(kTwoGhosts[0], angle), 0.0});
-        if (angle >= 1.0 && angle <= 3.0)
-            short_track.samples.push_back({angle, trueState(kTwoGhosts[1], angle), 0.0});
-    }
-    result.tracks = {long_track, short_track};
-    result.frame_count = 13;
+    const SweepFitResult result =
+        exactTracks([](double angle) { return angle >= 1.0 && angle <= 3.0; });
     auto model = buildModel(result, modelShell(0.0, 6.0), quickOptions());
     ASSERT_TRUE(model) << model.error().message;
     const auto shortGhost = [&](double angle) -> std::optional<GhostState> {
