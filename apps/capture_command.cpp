@@ -206,6 +206,15 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
                 }
                 frame.raw_files.push_back(name.str());
             }
+            // Which of its samples the merge can use: recorded per exposure in the manifest.
+            const auto counts = hdr::countExposure(*captured);
+            if (!counts) {
+                err << "\nflarelab: frame " << i << " at " << angle << " deg, exposure " << t
+                    << " s: " << counts.error().message << "\n";
+                return 1;
+            }
+            frame.brackets.push_back({t, static_cast<uint64_t>(counts->usable),
+                                      static_cast<uint64_t>(counts->saturated)});
             bracket.push_back(std::move(*captured));
         }
         auto merged = hdr::mergeBrackets(bracket);
@@ -244,6 +253,10 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
             progress(err, terminal, i + 1, frames, elapsed());
     }
     if (terminal) err << "\n";
+    const hdr::ClippedFrames clipped = hdr::clippedFrames(writer->sweep());
+    if (const std::string w = hdr::clippingWarning(clipped, writer->sweep().frames.size());
+        !w.empty())
+        err << "flarelab: warning: " << w << "\n";
     out << "capture: " << written << " frames"
         << (skipped ? " (" + std::to_string(skipped) + " already there)" : "") << " of "
         << lens->name() << ", " << s.from_deg << " to " << s.to_deg << " deg in steps of "

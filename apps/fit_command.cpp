@@ -66,6 +66,10 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: fit: " << sweep.error().message << "\n";
         return 1;
     }
+    if (const std::string w =
+            hdr::clippingWarning(hdr::clippedFrames(*sweep), sweep->frames.size());
+        !w.empty())
+        err << "flarelab: fit: warning: " << w << "\n";
     std::array<double, 2> sensor{};
     bool have_sensor = false;
     if (!s.sensor.empty()) {

@@ -32,6 +32,16 @@ std::string joined(const std::vector<double>& values) {
     return out.str();
 }
 
+// Frames whose shortest exposure saturated more than hdr::kClippedFraction of the samples.
+Json clippedJson(const hdr::Sweep& s) {
+    const hdr::ClippedFrames c = hdr::clippedFrames(s);
+    return Json{{"fraction", c.fraction},
+                {"frames", c.frames},
+                {"frames_with_stats", c.with_stats},
+                {"worst_fraction", c.worst_fraction},
+                {"worst_angle_deg", c.worst_angle_deg}};
+}
+
 Json toJson(const hdr::Sweep& s, bool checked) {
     const hdr::SweepHeader& h = s.header;
     Json lens = {{"description", h.lens.description},
@@ -65,7 +75,8 @@ Json toJson(const hdr::Sweep& s, bool checked) {
                 {"angles_deg", angles},
                 {"frames_with_raw", with_raw},
                 {"checked", checked},
-                {"warnings", s.warnings}};
+                {"warnings", s.warnings},
+                {"clipped", clippedJson(s)}};
 }
 
 void printText(const hdr::Sweep& s, bool checked, std::ostream& out) {
@@ -110,6 +121,9 @@ void printText(const hdr::Sweep& s, bool checked, std::ostream& out) {
     out << (checked ? "checked: every frame read and matches the manifest\n"
                     : "checked: manifest only (--check reads every frame)\n");
     for (const std::string& warning : s.warnings) out << "warning: " << warning << "\n";
+    if (const std::string w = hdr::clippingWarning(hdr::clippedFrames(s), s.frames.size());
+        !w.empty())
+        out << "warning: " << w << "\n";
 }
 
 int runInfo(const InfoState& state, std::ostream& out, std::ostream& err) {

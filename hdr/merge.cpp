@@ -13,6 +13,7 @@
 #include <limits>
 #include <numeric>
 #include <sstream>
+#include <utility>
 
 #include "common/check.h"
 
@@ -162,6 +163,15 @@ struct BracketPlan {
     float floor = 0.0f;  // (r^2 + 1/12) / rel^2
 };
 
+// The integer thresholds of a bracket: {usable from, saturated from}. DN are integers: DN >= x
+// holds exactly when DN >= ceil(x), and DN - black < min_signal exactly when DN < ceil(black +
+// min_signal), so both thresholds are exact in float.
+std::pair<double, double> thresholdsDn(const RawFrame& f, const MergeOptions& o) {
+    const double saturated = std::ceil(
+        f.white_level_dn - o.saturation_margin_fraction * (f.white_level_dn - f.black_level_dn));
+    return {std::min(std::ceil(f.black_level_dn + o.min_signal_dn), saturated), saturated};
+}
+
 BracketPlan planBracket(const RawFrame& f,
                         double reference_exposure,
                         const MergeOptions& o,
@@ -169,13 +179,9 @@ BracketPlan planBracket(const RawFrame& f,
     BracketPlan p;
     p.samples = f.samples.data();
     p.black_dn = static_cast<float>(f.black_level_dn);
-    // DN are integers: DN >= x holds exactly when DN >= ceil(x), and DN - black < min_signal
-    // exactly when DN < ceil(black + min_signal), so both thresholds are exact in float.
-    const double saturated =
-        f.white_level_dn - o.saturation_margin_fraction * (f.white_level_dn - f.black_level_dn);
-    p.saturated_dn = static_cast<float>(std::ceil(saturated));
-    p.usable_dn = static_cast<float>(std::min(std::ceil(f.black_level_dn + o.min_signal_dn),
-                                              static_cast<double>(p.saturated_dn)));
+    const auto [usable, saturated] = thresholdsDn(f, o);
+    p.saturated_dn = static_cast<float>(saturated);
+    p.usable_dn = static_cast<float>(usable);
     const double rel = f.exposure_s * f.gain / reference_exposure;
     p.rel = static_cast<float>(rel);
     p.inv_rel = static_cast<float>(1.0 / rel);
@@ -556,6 +562,23 @@ Result<MergedFrame> mergeBrackets(std::span<const RawFrame> brackets, const Merg
     merged.camera = first.camera;
     merged.method = methodText(brackets.size(), options, used_fallback);
     return merged;
+}
+
+Result<ExposureCounts> countExposure(const RawFrame& frame, const MergeOptions& options) {
+    if (auto ok = checkOptions(options); !ok) return ok.error();
+    if (auto ok = checkBracket(frame, 0); !ok) return ok.error();
+    const auto [usable, saturated] = thresholdsDn(frame, options);
+    ExposureCounts c;
+    for (const uint16_t dn : frame.samples) {
+        const double v = dn;
+        if (v >= saturated)
+            ++c.saturated;
+        else if (v >= usable)
+            ++c.usable;
+        else
+            ++c.dark;
+    }
+    return c;
 }
 
 Result<render::ImageRGB> toImage(const MergedFrame& frame) {

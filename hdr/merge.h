@@ -123,6 +123,19 @@ struct MergedFrame {
 Result<MergedFrame> mergeBrackets(std::span<const RawFrame> brackets,
                                   const MergeOptions& options = {});
 
+// How one raw exposure's samples fall under the merge's rules (MergeOptions' thresholds, as
+// mergeBrackets applies them): usable, saturated (DN >= the saturation threshold) or dark. The
+// capture records them per exposure in the sweep manifest, and a sweep whose shortest exposure
+// clips much of the frame is warned of: there the merged radiance is only a lower bound.
+struct ExposureCounts {
+    int64_t usable = 0;
+    int64_t saturated = 0;
+    int64_t dark = 0;
+};
+
+// Errors (InvalidArgument): the options or the frame as mergeBrackets rejects them (one bracket).
+Result<ExposureCounts> countExposure(const RawFrame& frame, const MergeOptions& options = {});
+
 // The frame as an RGB image for EXR files and previews, values as in MergedFrame::radiance.
 // Mono: R = G = B = the sample. Bayer: bilinear demosaic; each pixel keeps its own sample for its
 // own colour, and each missing colour is the mean of the samples of that colour in its 3x3

@@ -35,7 +35,6 @@ constexpr size_t kMaxPathBytes = 4096;
 constexpr size_t kMaxComponentBytes = 255;
 constexpr int kMaxBitDepth = 32;
 
-
 // Shortest decimal that reads back to the same double, as the EXR attributes write them.
 std::string formatDouble(double value) {
     std::array<char, 32> buffer{};
@@ -73,7 +72,6 @@ bool hasExrExtension(std::string_view name) {
                    [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
     return tail == ".exr";
 }
-
 
 // ---------------------------------------------------------------------------------------------
 // The rules of format version 1 (sweep.h), on the plain structs. Parsing reports a broken rule as
@@ -756,6 +754,43 @@ std::string sweepFrameFileName(size_t index, double angle_deg) {
     char name[96];
     std::snprintf(name, sizeof(name), "frame_%05zu_%+.4fdeg.exr", index, angle_deg);
     return name;
+}
+
+ClippedFrames clippedFrames(const Sweep& sweep, double fraction) {
+    ClippedFrames c;
+    c.fraction = fraction;
+    const double samples = static_cast<double>(sweep.header.capture.width_px) *
+                           static_cast<double>(sweep.header.capture.height_px);
+    if (!(samples > 0.0)) return c;
+    for (const SweepFrame& f : sweep.frames) {
+        if (f.brackets.empty()) continue;
+        ++c.with_stats;
+        const auto shortest = std::min_element(
+            f.brackets.begin(), f.brackets.end(),
+            [](const auto& a, const auto& b) { return a.exposure_s < b.exposure_s; });
+        const double clipped = static_cast<double>(shortest->samples_clipped) / samples;
+        if (clipped > fraction) ++c.frames;
+        if (clipped > c.worst_fraction) {
+            c.worst_fraction = clipped;
+            c.worst_angle_deg = f.angle_deg;
+            c.shortest_exposure_s = shortest->exposure_s;
+        }
+    }
+    return c;
+}
+
+std::string clippingWarning(const ClippedFrames& clipped, size_t total_frames) {
+    if (clipped.frames == 0) return {};
+    char text[400];
+    std::snprintf(text, sizeof(text),
+                  "%zu of %zu frames have more than %.3g%% of their samples saturated in the "
+                  "shortest exposure (worst %.1f%% at %.4g deg, %.4g s): there the merged "
+                  "radiance is only a lower bound and ghosts under it cannot be fitted; capture "
+                  "again with shorter --brackets",
+                  clipped.frames, total_frames, 100.0 * clipped.fraction,
+                  100.0 * clipped.worst_fraction, clipped.worst_angle_deg,
+                  clipped.shortest_exposure_s);
+    return text;
 }
 
 // ---------------------------------------------------------------------------------------------

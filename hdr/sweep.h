@@ -174,6 +174,24 @@ Result<ExrImage> loadFrame(const Sweep& sweep, size_t index, const ExrReadOption
 // The index keeps names unique and sorted whatever the angles.
 std::string sweepFrameFileName(size_t index, double angle_deg);
 
+// Frames whose shortest exposure saturated more than a fraction of the samples (from the frames'
+// bracket statistics; frames without them are not looked at). There the merged radiance is only a
+// lower bound: a fit takes the clipped light for flat background, so the capture should be taken
+// again with shorter exposures. The light's own core saturates every exposure but covers far
+// less than the default fraction.
+struct ClippedFrames {
+    double fraction = 0.0;  // the fraction looked for
+    size_t frames = 0;      // frames over it
+    size_t with_stats = 0;  // frames that have bracket statistics
+    double worst_fraction = 0.0;
+    double worst_angle_deg = 0.0;
+    double shortest_exposure_s = 0.0;  // of the worst frame
+};
+inline constexpr double kClippedFraction = 0.01;
+ClippedFrames clippedFrames(const Sweep& sweep, double fraction = kClippedFraction);
+// One line for users, naming the frames, the worst and the remedy; empty when no frame is over.
+std::string clippingWarning(const ClippedFrames& clipped, size_t total_frames);
+
 struct SweepWriteOptions {
     ExrWriteOptions exr;
     // Append to the sweep already in the directory, whose lens, camera and capture settings must

@@ -58,6 +58,38 @@ TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
     EXPECT_NE(run.out.find("3 already there"), std::string::npos) << run.out;
 }
 
+TEST(Capture, RecordsEachExposuresClippingAndWarnsOfASaturatedSweep) {
+    // The double Gauss's ghosts are far brighter than the lensbaby's: with the default brackets
+    // its whole frame saturates every exposure; with 1/64 of them it does not.
+    const std::string dir = freshDir("clipped");
+    auto args = small(dir);
+    args[3] = flarelab::testing::lensPath("double-gauss-tronnier-50mm.csv");
+    CommandRun run = capture(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_NE(run.err.find("warning: 3 of 3 frames have more than 1% of their samples saturated"),
+              std::string::npos)
+        << run.err;
+    auto sweep = hdr::readSweep(dir);
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    ASSERT_EQ(sweep->frames[0].brackets.size(), 3u);
+    for (const hdr::SweepFrame& f : sweep->frames)
+        for (size_t k = 0; k < 3; ++k) {
+            EXPECT_EQ(f.brackets[k].exposure_s, f.exposure_times_s[k]);
+            EXPECT_LE(f.brackets[k].samples_used + f.brackets[k].samples_clipped, 48u * 32u);
+        }
+    // Longer exposures clip at least as much.
+    EXPECT_LE(sweep->frames[1].brackets[0].samples_clipped,
+              sweep->frames[1].brackets[2].samples_clipped);
+
+    const std::string short_dir = freshDir("short");
+    args = small(short_dir);
+    args[3] = flarelab::testing::lensPath("double-gauss-tronnier-50mm.csv");
+    args.insert(args.end(), {"--brackets", "0.004,0.016,0.064"});
+    run = capture(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_EQ(run.err.find("warning"), std::string::npos) << run.err;
+}
+
 TEST(Capture, RefusesBadRequestsNamingWhatIsWrong) {
     const std::string dir = freshDir("bad");
     auto args = small(dir);

@@ -168,6 +168,36 @@ TEST(MergeBrackets, SampleSaturatedInEveryBracketIsALowerBoundWithCountZero) {
     EXPECT_EQ(merged->dark_samples, 0);
 }
 
+TEST(CountExposure, SortsSamplesByTheMergesThresholds) {
+    // Black 128, white 4095, margin 1 %: saturated from ceil(4095 - 0.01 * 3967) = 4056; usable
+    // from 129 (DN - black >= 0.5).
+    RawFrame f = frame(6, 1, 1.0);
+    f.samples = {0, 128, 129, 4055, 4056, 4095};
+    auto c = countExposure(f);
+    ASSERT_TRUE(c) << c.error().message;
+    EXPECT_EQ(c->dark, 2);
+    EXPECT_EQ(c->usable, 2);
+    EXPECT_EQ(c->saturated, 2);
+    // The same thresholds as the merge: a sample is saturated in one exactly when the other
+    // drops it as saturated.
+    std::vector<RawFrame> one = {f};
+    auto merged = mergeBrackets(one);
+    ASSERT_TRUE(merged);
+    EXPECT_EQ(merged->saturated_samples, c->saturated);
+    EXPECT_EQ(merged->dark_samples, c->dark);
+    MergeOptions wide;
+    wide.saturation_margin_fraction = 0.5;  // saturated from ceil(4095 - 1983.5) = 2112
+    c = countExposure(f, wide);
+    ASSERT_TRUE(c);
+    EXPECT_EQ(c->saturated, 3);
+    wide.saturation_margin_fraction = 1.5;
+    c = countExposure(f, wide);
+    ASSERT_FALSE(c);
+    EXPECT_NE(c.error().message.find("saturation_margin_fraction"), std::string::npos);
+    f.samples.pop_back();  // no longer width x height
+    EXPECT_FALSE(countExposure(f));
+}
+
 TEST(MergeBrackets, SampleBlackInEveryBracketIsZeroWithCountZero) {
     std::vector<RawFrame> brackets = {frame(3, 1, 0.25, 128), frame(3, 1, 4.0, 120),
                                       frame(3, 1, 1.0, 0)};

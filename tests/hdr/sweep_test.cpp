@@ -609,6 +609,40 @@ TEST(ParseSweepManifest, BrokenNumbersAreRefusedByField) {
     }
 }
 
+TEST(ClippedFrames, CountsFramesWhoseShortestExposureClipsAndNamesTheWorst) {
+    Sweep s;
+    s.header.capture.width_px = 100;
+    s.header.capture.height_px = 10;  // 1000 samples
+    const auto with = [&](double angle, uint64_t clipped_short, uint64_t clipped_long) {
+        SweepFrame f;
+        f.angle_deg = angle;
+        f.exposure_times_s = {4.0, 0.25};  // the shortest need not come first
+        f.brackets = {{4.0, 0, clipped_long}, {0.25, 0, clipped_short}};
+        s.frames.push_back(f);
+    };
+    with(0.0, 5, 900);  // the light's core: 0.5 %, however much the long exposure clips
+    EXPECT_EQ(clippedFrames(s).frames, 0u);
+    EXPECT_EQ(clippingWarning(clippedFrames(s), s.frames.size()), "");
+    with(0.2, 300, 1000);
+    with(0.4, 20, 1000);
+    SweepFrame bare;  // a frame without statistics is not looked at
+    bare.angle_deg = 0.6;
+    s.frames.push_back(bare);
+    const ClippedFrames c = clippedFrames(s);
+    EXPECT_EQ(c.frames, 2u);
+    EXPECT_EQ(c.with_stats, 3u);
+    EXPECT_DOUBLE_EQ(c.worst_fraction, 0.3);
+    EXPECT_DOUBLE_EQ(c.worst_angle_deg, 0.2);
+    EXPECT_DOUBLE_EQ(c.shortest_exposure_s, 0.25);
+    const std::string w = clippingWarning(c, s.frames.size());
+    EXPECT_TRUE(contains(w, "2 of 4 frames")) << w;
+    EXPECT_TRUE(contains(w, "worst 30.0% at 0.2 deg, 0.25 s")) << w;
+    EXPECT_TRUE(contains(w, "shorter --brackets")) << w;
+    EXPECT_EQ(clippedFrames(s, 0.5).frames, 0u);
+    s.header.capture.width_px = 0;  // no size: nothing can be said
+    EXPECT_EQ(clippedFrames(s).frames, 0u);
+}
+
 TEST(FormatSweepManifest, RefusesWhatParseWouldRefuse) {
     Sweep sweep;
     sweep.header = smallHeader();
