@@ -26,9 +26,9 @@
 // bounds' width) draws it back. Where two pieces of a series meet (half-way between two frames,
 // so no frame holds the joint) one more residual holds them together: without it a piece's free
 // end once swung a ghost 40 times too bright half a step before its first frame. Samples are
-// block means compared with the model's block mean, as in the frame fit. The residual fields of the refitted pieces still describe the
-// compression of the per-frame values. One-channel frames fit one intensity series per kind and
-// copy it to the three channels.
+// block means compared with the model's block mean, as in the frame fit. The residual fields of
+// the refitted pieces are left as they were; fitSweep then recomputes them against the per-frame
+// values. One-channel frames fit one intensity series per kind and copy it to the three channels.
 #pragma once
 
 #include <array>

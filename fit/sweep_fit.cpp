@@ -6,6 +6,7 @@
 #include <cmath>
 #include <ctime>
 #include <limits>
+#include <map>
 #include <numeric>
 #include <optional>
 #include <sstream>
@@ -661,6 +662,65 @@ Result<SweepFitResult> fitSweepFrames(
     return fitter.run();
 }
 
+namespace {
+
+// ln intensities are floored at a thousandth of the track's brightest: below that a ghost is
+// invisible next to itself, and a black frame must not swing the series.
+double lnFloor(const GhostTrack& track) {
+    double brightest = 0.0;
+    for (const TrackSample& sample : track.samples)
+        for (int c = 0; c < 3; ++c)
+            brightest = std::max(
+                {brightest, sample.state.shading.border_rgb[c], sample.state.shading.inner_rgb[c]});
+    return brightest > 0.0 ? std::log(1e-3 * brightest) : kMinLnIntensity;
+}
+
+// The residual fields of every piece, from its series as it is now against the track's per-frame
+// values (a value at a shared end belongs to the later piece, as in evaluation). After the
+// shading refit the series no longer are the least-squares fits of those values, and the fields
+// must say how far they now lie from them.
+void refreshResiduals(FlareModel& model, const SweepFitResult& result) {
+    std::map<int64_t, const GhostTrack*> tracks;
+    for (const GhostTrack& track : result.tracks) tracks[track.id] = &track;
+    for (ModelGhost& ghost : model.ghosts) {
+        const auto found = tracks.find(ghost.id);
+        if (found == tracks.end() || ghost.parameters.size() != kGhostParameterCount) continue;
+        const GhostTrack& track = *found->second;
+        const double ln_floor = lnFloor(track);
+        std::vector<GhostParameters> values;
+        for (const TrackSample& sample : track.samples)
+            values.push_back(ghostParameters(sample.state, ln_floor));
+        for (int p = 0; p < kGhostParameterCount; ++p) {
+            auto& pieces = ghost.parameters[static_cast<size_t>(p)].pieces;
+            std::vector<double> sum_sq(pieces.size(), 0.0), max_abs(pieces.size(), 0.0);
+            for (size_t i = 0; i < track.samples.size(); ++i) {
+                const double angle = track.samples[i].angle_deg;
+                if (pieces.empty() || angle < pieces.front().angle_from_deg ||
+                    angle > pieces.back().angle_to_deg)
+                    continue;
+                size_t k = 0;
+                for (size_t j = 0; j < pieces.size(); ++j)
+                    if (angle >= pieces[j].angle_from_deg) k = j;
+                const ModelPiece& piece = pieces[k];
+                const double span = piece.angle_to_deg - piece.angle_from_deg;
+                const double x =
+                    span > 0.0 ? 2.0 * (angle - piece.angle_from_deg) / span - 1.0 : 0.0;
+                const double r = std::abs(chebyshevValue(piece.coefficients, x) - values[i][p]);
+                sum_sq[k] += r * r;
+                max_abs[k] = std::max(max_abs[k], r);
+            }
+            for (size_t k = 0; k < pieces.size(); ++k) {
+                if (pieces[k].samples < 1) continue;
+                pieces[k].residual_rms =
+                    std::sqrt(sum_sq[k] / static_cast<double>(pieces[k].samples));
+                pieces[k].residual_max = max_abs[k];
+            }
+        }
+    }
+}
+
+}  // namespace
+
 Result<FlareModel> buildModel(const SweepFitResult& result,
                               FlareModel model,
                               const SweepFitOptions& options) {
@@ -674,14 +734,7 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
         const size_t n = track.samples.size();
         if (n == 0 || static_cast<int64_t>(n) < min_frames) continue;
         if (model.ghosts.size() >= kModelMaxGhosts) break;
-        // ln intensities are floored at a thousandth of the track's brightest: below that a
-        // ghost is invisible next to itself, and a black frame must not swing the series.
-        double brightest = 0.0;
-        for (const TrackSample& sample : track.samples)
-            for (int c = 0; c < 3; ++c)
-                brightest = std::max({brightest, sample.state.shading.border_rgb[c],
-                                      sample.state.shading.inner_rgb[c]});
-        const double ln_floor = brightest > 0.0 ? std::log(1e-3 * brightest) : kMinLnIntensity;
+        const double ln_floor = lnFloor(track);
         std::vector<double> angles(n);
         std::vector<GhostParameters> values(n);
         for (size_t i = 0; i < n; ++i) {
@@ -812,6 +865,7 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     auto refit = refitShading(*built, source, fitted->sky, options.detect, options.frame.cost,
                               options.shading);
     if (!refit) return refit.error();
+    if (refit->ghosts > 0) refreshResiduals(*built, *fitted);
     if (result) *result = std::move(*fitted);
     return built;
 }

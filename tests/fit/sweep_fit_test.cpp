@@ -683,6 +683,47 @@ TEST(SweepFit, FitSweepOnDisk) {
     EXPECT_EQ(model->software_version, "flarelab fit");
     EXPECT_FALSE(model->created_utc.empty());
     EXPECT_TRUE(validateModel(*model));
+    // The shading refit moved series away from the least-squares fits of the per-frame values;
+    // every piece's residual fields describe the series as written against those values.
+    auto compressed = buildModel(result, *model, quickOptions());
+    ASSERT_TRUE(compressed) << compressed.error().message;
+    int moved = 0;
+    for (const ModelGhost& ghost : model->ghosts) {
+        const GhostTrack* track = nullptr;
+        for (const GhostTrack& t : result.tracks)
+            if (t.id == ghost.id) track = &t;
+        ASSERT_NE(track, nullptr);
+        double brightest = 0.0;
+        for (const TrackSample& sample : track->samples)
+            for (int c = 0; c < 3; ++c)
+                brightest = std::max({brightest, sample.state.shading.border_rgb[c],
+                                      sample.state.shading.inner_rgb[c]});
+        for (size_t p = 0; p < ghost.parameters.size(); ++p) {
+            ASSERT_EQ(ghost.parameters[p].pieces.size(), 1u);
+            const ModelPiece& piece = ghost.parameters[p].pieces[0];
+            double sum_sq = 0.0, max_abs = 0.0;
+            for (const TrackSample& sample : track->samples) {
+                const double x = 2.0 * (sample.angle_deg - piece.angle_from_deg) /
+                                     (piece.angle_to_deg - piece.angle_from_deg) -
+                                 1.0;
+                const double r =
+                    std::abs(chebyshevValue(piece.coefficients, x) -
+                             ghostParameters(sample.state, std::log(1e-3 * brightest))[p]);
+                sum_sq += r * r;
+                max_abs = std::max(max_abs, r);
+            }
+            EXPECT_NEAR(piece.residual_rms, std::sqrt(sum_sq / 3.0), 1e-9) << ghost.id << " " << p;
+            EXPECT_NEAR(piece.residual_max, max_abs, 1e-9) << ghost.id << " " << p;
+            const ModelPiece* before = nullptr;
+            for (const ModelGhost& g : compressed->ghosts)
+                if (g.id == ghost.id) before = &g.parameters[p].pieces[0];
+            ASSERT_NE(before, nullptr);
+            if (before->coefficients != piece.coefficients &&
+                std::abs(before->residual_rms - piece.residual_rms) > 1e-9)
+                ++moved;
+        }
+    }
+    EXPECT_GT(moved, 0) << "the refit changed no series: this check would not catch stale fields";
     // The manifest records no pixel pitch: without a sensor size it is refused.
     EXPECT_FALSE(fitSweep(three, 0.0, 0.0, quickOptions()));
 
