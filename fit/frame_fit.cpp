@@ -120,10 +120,16 @@ Bounds makeBounds(const Layout& layout,
         b.upper[static_cast<size_t>(layout.border(c))] = 1e4;
         b.upper[static_cast<size_t>(layout.inner(c))] = 1e4;
     }
-    for (int i : {layout.innerFalloff(), layout.outerFalloff()}) {
-        b.lower[static_cast<size_t>(i)] = 0.25 * px_mm;
-        b.upper[static_cast<size_t>(i)] = 2.0 * diagonal_mm;
-        b.scale[static_cast<size_t>(i)] = size_mm;
+    // The falloffs are bounded by the ghost's size: an outer falloff wider than the ghost, or an
+    // inner one wider than twice its size, no longer draws an edge but a haze, which trades off
+    // against the intensities and, since the crop grows with the outer falloff, reaches over the
+    // frame and takes the other ghosts' light (seen on the Heliar: outer falloffs of 6 radii).
+    const double falloff_cap[2] = {2.0 * size_mm, size_mm};  // inner, outer
+    for (int k : {0, 1}) {
+        const auto i = static_cast<size_t>(k == 0 ? layout.innerFalloff() : layout.outerFalloff());
+        b.lower[i] = 0.25 * px_mm;
+        b.upper[i] = std::max(2.0 * px_mm, std::min(2.0 * diagonal_mm, falloff_cap[k]));
+        b.scale[i] = size_mm;
     }
     for (int i : {layout.innerExponent(), layout.outerExponent()}) {
         b.lower[static_cast<size_t>(i)] = 0.25;
