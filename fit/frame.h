@@ -9,6 +9,7 @@
 // is fitted in one channel and its ghosts get equal colours.
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <string>
@@ -54,5 +55,10 @@ struct GhostState {
     render::GhostShading shading;
     bool operator==(const GhostState&) const = default;
 };
+
+// A ghost's size: its largest extent from the centre (half height, left, right), in mm.
+inline double ghostSize(const GhostState& state) {
+    return std::max({state.shape.half_height_mm, state.shape.left_mm, state.shape.right_mm});
+}
 
 }  // namespace flarelab::fit

@@ -698,7 +698,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
             GhostFitReport& gr = report.ghosts[g];
             const GhostState state = ghosts[g];
             const auto& s = state.shape;
-            const double size_mm = std::max({s.half_height_mm, s.left_mm, s.right_mm});
+            const double size_mm = ghostSize(state);
             const double grow = state.shading.outer_falloff_mm + options.cost.margin * size_mm;
             const auto& m = frame.mapping;
             const Eigen::Vector2d a = m.toPixels(s.centre_x_mm - s.left_mm - grow,

@@ -37,10 +37,10 @@
 // bounds are boxes: extents >= half a pixel, fractions in [0, 1]), per fitted channel the border
 // and inner intensity (>= 0, relative to the initial border), the two falloffs (>= a quarter
 // pixel; the inner <= twice the ghost's size, the outer <= its size) and the two exponents (in
-// [0.25, 4]). Derivatives: the signed distance's gradient with
-// respect to the control points is exact at the closest point (the envelope theorem:
-// d dist / d P_k = -u B_k(t*), u the unit vector from the curve to the sample), chained through
-// the control points' dependence on the parameters and the transfer function by Ceres' Jets.
+// [0.25, 4]). Derivatives: the signed distance's gradient with respect to the control points is
+// exact at the closest point (the envelope theorem: d dist / d P_k = -u B_k(t*), u the unit
+// vector from the curve to the sample), chained through the control points' dependence on the
+// parameters and the transfer function by Ceres' Jets.
 //
 // Restarts (Ceres). Two local minima are common enough to be tried around: a ghost with no prior
 // starts from its detection, whose blob reaches over the outer falloff, so the fit is also run

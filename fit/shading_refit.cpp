@@ -445,10 +445,6 @@ Crop cropOf(const GhostState& state, double grow_mm, const FitFrame& frame) {
     return c;
 }
 
-double ghostSize(const GhostState& state) {
-    return std::max({state.shape.half_height_mm, state.shape.left_mm, state.shape.right_mm});
-}
-
 }  // namespace
 
 Status checkShadingRefitOptions(const ShadingRefitOptions& options) {

@@ -21,14 +21,10 @@ Error invalid(const std::string& message) {
     return makeError(ErrorCode::InvalidArgument, "sweep fit: " + message);
 }
 
-double ghostRadius(const GhostState& state) {
-    return std::max({state.shape.half_height_mm, state.shape.left_mm, state.shape.right_mm});
-}
-
 // Two ghosts that describe the same thing: centres and extents within 2% of the larger ghost's
 // size, plus half a pixel.
 bool sameGhost(const GhostState& a, const GhostState& b, double half_pixel_mm) {
-    const double tolerance = 0.02 * std::max(ghostRadius(a), ghostRadius(b)) + half_pixel_mm;
+    const double tolerance = 0.02 * std::max(ghostSize(a), ghostSize(b)) + half_pixel_mm;
     return std::abs(a.shape.centre_x_mm - b.shape.centre_x_mm) <= tolerance &&
            std::abs(a.shape.centre_y_mm - b.shape.centre_y_mm) <= tolerance &&
            std::abs(a.shape.half_height_mm - b.shape.half_height_mm) <= tolerance &&
@@ -48,7 +44,7 @@ bool plausibleFit(
     const auto& a = from.shape;
     const auto& b = fitted.shape;
     if (std::hypot(b.centre_x_mm - a.centre_x_mm, b.centre_y_mm - a.centre_y_mm) >
-        move * ghostRadius(from) + slack_mm)
+        move * ghostSize(from) + slack_mm)
         return false;
     const auto within = [&](double x, double y) {
         return y <= factor * x + slack_mm && x <= factor * y + slack_mm;
@@ -246,11 +242,11 @@ Status SweepFitter::processFrame(
     // How far a detection is from a ghost: centre and radius differences over the radius.
     // Centres alone would call concentric discs of different sizes (every ghost at 0 degrees) one.
     const auto normalisedDistance = [&](const GhostState& state, size_t c) {
-        const double radius = std::max(ghostRadius(state), 2.0 * pixel_mm);
+        const double radius = std::max(ghostSize(state), 2.0 * pixel_mm);
         // The box's centre: what a detection's centroid estimates.
         const double box_x =
             state.shape.centre_x_mm + 0.5 * (state.shape.right_mm - state.shape.left_mm);
-        const double candidate_radius = ghostRadius(candidates[c].initial);
+        const double candidate_radius = ghostSize(candidates[c].initial);
         return (std::hypot(centroid_mm[c].x() - box_x,
                            centroid_mm[c].y() - state.shape.centre_y_mm) +
                 std::abs(candidate_radius - radius)) /
@@ -335,7 +331,7 @@ Status SweepFitter::processFrame(
             // must be in view, bright enough and of a plausible size.
             if (outside(candidates[c].initial)) continue;
             if (peakSigmas(candidates[c].initial) < kFadedSigmas) continue;
-            if (ghostRadius(candidates[c].initial) > 4.0 * frame_diagonal_mm) continue;
+            if (ghostSize(candidates[c].initial) > 4.0 * frame_diagonal_mm) continue;
             bool explained = false;
             for (const auto& state : predicted)
                 explained = explained || normalisedDistance(state, c) <= options_.duplicate_radius;
@@ -456,7 +452,7 @@ Status SweepFitter::processFrame(
             (is_born ? plausibleFit(born_states[i - live.size()], ghosts[k], 1.0, 3.0, pixel_mm)
                      : plausibleFit(predicted[i], ghosts[k], std::max(0.5, options_.match_radius),
                                     2.0, pixel_mm)) &&
-            ghostRadius(ghosts[k]) <= 2.0 * frame_diagonal_mm && !tooBright(ghosts[k]);
+            ghostSize(ghosts[k]) <= 2.0 * frame_diagonal_mm && !tooBright(ghosts[k]);
         if (!plausible) {
             // Nothing to fit it to here: a miss, and a new track is dropped.
             if (is_born || ++track.missed > options_.max_missed) track.live = false;
