@@ -3,7 +3,9 @@
 # lens, its first-order report and its ghosts at a few light angles (out/lenses/), flare images of
 # two lenses (out/images/, OpenEXR and PNG), and a sweep of the simulated rig: the Heliar from 0
 # to 30 degrees in 0.2 degree steps, three brackets per step merged to HDR (out/sweeps/heliar/,
-# with a PNG preview of every frame).
+# with a PNG preview of every frame), then that sweep fitted into a flare model (out/models/:
+# the model file, its description, its score against the simulator's noiseless ghosts, and the
+# model drawn at a few angles, captured and in between).
 set -euo pipefail
 build=${1:-build/release}
 out=${FLARELAB_OUT:-out}
@@ -33,3 +35,16 @@ rm -rf "$out/sweeps/heliar" "$out/sweeps/heliar-previews"
     --previews "$out/sweeps/heliar-previews" --preview-stops -12 -o "$out/sweeps/heliar"
 "$build/apps/flarelab" sweep info "$out/sweeps/heliar"
 cat "$out/lenses/heliar-tronnier.txt"
+mkdir -p "$out/models"
+heliar=data/lenses/heliar-tronnier.csv
+"$build/apps/flarelab" fit "$out/sweeps/heliar" --lens "$heliar" -o "$out/models/heliar.flm"
+"$build/apps/flarelab" model show "$out/models/heliar.flm" >"$out/models/heliar.txt"
+"$build/apps/flarelab" score "$out/models/heliar.flm" --lens "$heliar" --json \
+    >"$out/models/heliar.score.json"
+"$build/apps/flarelab" score "$out/models/heliar.flm" --lens "$heliar" |
+    tee "$out/models/heliar.score.txt"
+for angle in 5 12.3 20; do
+    "$build/apps/flarelab" model render "$out/models/heliar.flm" --angle "$angle" \
+        -o "$out/models/heliar-$angle.exr" --png "$out/models/heliar-$angle.png" --exposure-stops -12
+done
+echo "demo: model $out/models/heliar.flm (described in heliar.txt, scored in heliar.score.txt)"

@@ -9,6 +9,8 @@
 #include <vector>
 
 #include "fit/model_file.h"
+#include "fit/sweep_fit.h"
+#include "hdr/exr.h"
 #include "tests/apps/command_runner.h"
 
 namespace flarelab::apps {
@@ -135,6 +137,76 @@ TEST(ModelShow, BrokenFileIsAnErrorNamingIt) {
     const CommandRun text_run = model({"show", text});
     EXPECT_EQ(text_run.code, 1);
     EXPECT_TRUE(contains(text_run.err, text)) << text_run.err;
+}
+
+// A model of one still disc (radius 4 mm at the sensor's centre, border 2, inner 3, sharp edge)
+// fitted at three angles, on a 36 x 24 mm sensor of 72 x 48 pixels.
+fit::FlareModel discModel() {
+    fit::GhostState disc;
+    disc.shape.half_height_mm = disc.shape.left_mm = disc.shape.right_mm = 4.0;
+    for (double* h : {&disc.shape.left_handle_x_mm, &disc.shape.left_handle_y_mm,
+                      &disc.shape.right_handle_x_mm, &disc.shape.right_handle_y_mm})
+        *h = 4.0 * render::kCircleHandle;
+    disc.shading.border_rgb = {2.0, 2.0, 2.0};
+    disc.shading.inner_rgb = {3.0, 3.0, 3.0};
+    disc.shading.inner_falloff_mm = 0.5;
+    disc.shading.outer_falloff_mm = 0.05;
+    fit::SweepFitResult tracks;
+    tracks.frame_count = 3;
+    tracks.tracks.resize(1);
+    tracks.tracks[0].id = 1;
+    for (double angle : {0.0, 1.0, 2.0}) tracks.tracks[0].samples.push_back({angle, disc, 0.0});
+    fit::FlareModel shell = smallModel();
+    shell.ghosts.clear();
+    shell.capture.from_deg = shell.valid_from_deg = 0.0;
+    shell.capture.to_deg = shell.valid_to_deg = 2.0;
+    shell.capture.width_px = 72;
+    shell.capture.height_px = 48;
+    auto built = fit::buildModel(tracks, shell, fit::SweepFitOptions{});
+    EXPECT_TRUE(built) << built.error().message;
+    return *built;
+}
+
+TEST(ModelRender, DrawsTheModelAtAnAngleToExrAndPng) {
+    const fs::path dir =
+        fs::temp_directory_path() / ("flarelab_model_render_" + std::to_string(::getpid()));
+    fs::create_directories(dir);
+    const std::string path = (dir / "disc.flm").string();
+    ASSERT_TRUE(fit::writeModel(path, discModel()));
+    const std::string exr = (dir / "disc.exr").string(), png = (dir / "disc.png").string();
+    CommandRun r = model({"render", path, "--angle", "1.5", "-o", exr, "--png", png});
+    ASSERT_EQ(r.code, 0) << r.err;
+    EXPECT_TRUE(contains(r.out, "1 ghosts at 1.5 deg")) << r.out;
+    EXPECT_TRUE(fs::exists(png));
+    auto image = hdr::readExr(exr);
+    ASSERT_TRUE(image) << image.error().message;
+    ASSERT_EQ(image->image.width, 72);
+    ASSERT_EQ(image->image.height, 48);
+    EXPECT_EQ(image->meta.angle_deg, 1.5);
+    EXPECT_NEAR(image->image.at(36, 24)[1], 3.0, 1e-3);  // the centre: inner intensity
+    EXPECT_EQ(image->image.at(2, 2)[1], 0.0f);           // far outside the disc
+    // Another size and a light twice as strong.
+    r = model({"render", path, "--angle", "1.5", "--width", "36", "--height", "24", "--intensity",
+               "2", "-o", exr});
+    ASSERT_EQ(r.code, 0) << r.err;
+    image = hdr::readExr(exr);
+    ASSERT_TRUE(image);
+    EXPECT_EQ(image->image.width, 36);
+    EXPECT_NEAR(image->image.at(18, 12)[0], 6.0, 2e-3);
+    // Outside the valid range, no output, a bad intensity: refused, naming what is wrong.
+    r = model({"render", path, "--angle", "2.5", "-o", exr});
+    EXPECT_EQ(r.code, 1);
+    EXPECT_TRUE(contains(r.err, "valid range")) << r.err;
+    r = model({"render", path, "--angle", "1"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_TRUE(contains(r.err, "--png")) << r.err;
+    r = model({"render", path, "--angle", "1", "--intensity", "-1", "-o", exr});
+    EXPECT_NE(r.code, 0);
+    EXPECT_TRUE(contains(r.err, "--intensity")) << r.err;
+    r = model({"render", (dir / "missing.flm").string(), "--angle", "1", "-o", exr});
+    EXPECT_EQ(r.code, 1);
+    EXPECT_TRUE(contains(r.err, "missing.flm")) << r.err;
+    fs::remove_all(dir);
 }
 
 TEST(ModelShow, RequiresAModelArgument) {
