@@ -689,6 +689,7 @@ void refreshResiduals(FlareModel& model, const SweepFitResult& result) {
         for (int p = 0; p < kGhostParameterCount; ++p) {
             auto& pieces = ghost.parameters[static_cast<size_t>(p)].pieces;
             std::vector<double> sum_sq(pieces.size(), 0.0), max_abs(pieces.size(), 0.0);
+            std::vector<int64_t> count(pieces.size(), 0);
             for (size_t i = 0; i < track.samples.size(); ++i) {
                 const double angle = track.samples[i].angle_deg;
                 if (pieces.empty() || angle < pieces.front().angle_from_deg ||
@@ -704,11 +705,11 @@ void refreshResiduals(FlareModel& model, const SweepFitResult& result) {
                 const double r = std::abs(chebyshevValue(piece.coefficients, x) - values[i][p]);
                 sum_sq[k] += r * r;
                 max_abs[k] = std::max(max_abs[k], r);
+                ++count[k];
             }
             for (size_t k = 0; k < pieces.size(); ++k) {
-                if (pieces[k].samples < 1) continue;
-                pieces[k].residual_rms =
-                    std::sqrt(sum_sq[k] / static_cast<double>(pieces[k].samples));
+                if (count[k] == 0) continue;  // no per-frame value inside: keep the fields
+                pieces[k].residual_rms = std::sqrt(sum_sq[k] / static_cast<double>(count[k]));
                 pieces[k].residual_max = max_abs[k];
             }
         }
