@@ -5,6 +5,7 @@
 #include <string>
 #include <vector>
 
+#include "apps/png_preview.h"
 #include "hdr/exr.h"
 #include "hdr/merge.h"
 #include "hdr/raw_io.h"
@@ -61,14 +62,7 @@ int run(const MergeState& s, std::ostream& out, std::ostream& err) {
         return 1;
     }
     if (!written->note.empty()) err << "flarelab: " << written->note << "\n";
-    if (!s.png_path.empty()) {
-        render::ToneMapOptions tone;
-        tone.exposure_stops = s.exposure_stops;
-        if (Status ok = render::writePng(*image, s.png_path, tone); !ok) {
-            err << "flarelab: " << ok.error().message << "\n";
-            return 1;
-        }
-    }
+    if (!writePngPreview(*image, s.png_path, s.exposure_stops, err)) return 1;
     out << "merge: " << frames.size() << " bracket(s), " << merged->width << "x" << merged->height
         << ", angle " << merged->angle_deg << " deg, " << merged->saturated_samples
         << " samples saturated in every bracket, " << merged->dark_samples

@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "apps/png_preview.h"
 #include "fit/model_eval.h"
 #include "fit/model_file.h"
 #include "hdr/exr.h"
@@ -173,14 +174,7 @@ int runRender(const RenderState& s, std::ostream& out, std::ostream& err) {
             return 1;
         }
     }
-    if (!s.png_path.empty()) {
-        render::ToneMapOptions tone;
-        tone.exposure_stops = s.exposure_stops;
-        if (Status ok = render::writePng(*image, s.png_path, tone); !ok) {
-            err << "flarelab: " << ok.error().message << "\n";
-            return 1;
-        }
-    }
+    if (!writePngPreview(*image, s.png_path, s.exposure_stops, err)) return 1;
     out << "model render: " << (ghosts ? ghosts->size() : 0) << " ghosts at " << s.angle_deg
         << " deg, roll " << roll << " deg, " << width << "x" << height << ", " << ms << " ms -> "
         << (s.exr_path.empty() ? s.png_path

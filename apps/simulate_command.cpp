@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "apps/camera_flags.h"
+#include "apps/png_preview.h"
 #include "hdr/exr.h"
 #include "render/preview.h"
 #include "render/scene.h"
@@ -105,14 +106,7 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: " << written.error().message << "\n";
         return 1;
     }
-    if (!s.png_path.empty()) {
-        render::ToneMapOptions tone;
-        tone.exposure_stops = s.exposure_stops;
-        if (Status ok = render::writePng(*image, s.png_path, tone); !ok) {
-            err << "flarelab: " << ok.error().message << "\n";
-            return 1;
-        }
-    }
+    if (!writePngPreview(*image, s.png_path, s.exposure_stops, err)) return 1;
     out << "simulate: " << lens->name() << ", " << lights.size() << " light(s)"
         << (stats.lights_behind ? " (" + std::to_string(stats.lights_behind) + " behind)" : "")
         << ", " << stats.ghosts_drawn << " ghost grids, " << stats.quads << " quads, "
