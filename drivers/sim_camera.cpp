@@ -475,6 +475,10 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
         return deviceError(DeviceFault::Timeout, name(),
                            "no frame within timeout_s = " + fmt(timeout_s));
     }
+    // The exposure starts now: in real time the rendering below happens during it, as a real
+    // sensor integrates while the host waits, so a frame takes exposure + readout whatever the
+    // render costs (unless the render takes longer).
+    const int64_t start_ns = clock_->now_ns();
     const double frame_s = exposure_s_ + options_.readout_s;
     if (frame_s > timeout_s) {
         clock_->wait(timeout_s);
@@ -531,7 +535,7 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
             frame.samples[i] = static_cast<uint16_t>(std::clamp(std::round(dn), 0.0, white));
         }
     });
-    clock_->wait(frame_s);
+    clock_->waitUntil(start_ns + secondsToNs(frame_s));
     return frame;
 }
 

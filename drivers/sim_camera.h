@@ -152,6 +152,11 @@ public:
     Result<hdr::RawFrame> capture(double timeout_s) override;
 
     void setFaults(const SimCameraFaults& faults) { faults_ = faults; }
+    const SimCameraFaults& faults() const { return faults_; }
+    // The sequence number the next frame gets (>= 0); its noise is drawn from it. A sweep resumed
+    // at frame i of a bracket of n sets i * n, and its frames equal an uninterrupted run's.
+    void setSequence(int64_t next) { sequence_ = next; }
+    int64_t sequence() const { return sequence_; }
     // The noise-free electron rate (e/s) of every pixel, dark current excluded, for the light at
     // head angle angle_deg: what the sensor integrates (cached like captures).
     Result<std::vector<float>> meanRate_e_s(double angle_deg);
