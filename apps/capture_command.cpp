@@ -42,29 +42,6 @@ struct CaptureState {
     std::string output;
 };
 
-Result<std::vector<double>> parseBrackets(const std::string& text) {
-    std::vector<double> times;
-    std::stringstream in(text);
-    std::string part;
-    while (std::getline(in, part, ',')) {
-        size_t used = 0;
-        double t = 0.0;
-        try {
-            t = std::stod(part, &used);
-        } catch (const std::exception&) {
-            used = 0;
-        }
-        if (used == 0 || used != part.size() || !(t > 0.0) || !std::isfinite(t))
-            return makeError(
-                ErrorCode::InvalidArgument,
-                "--brackets: '" + part + "' is not a positive exposure time in seconds");
-        times.push_back(t);
-    }
-    if (times.empty())
-        return makeError(ErrorCode::InvalidArgument, "--brackets: give at least one exposure time");
-    return times;
-}
-
 std::string seconds(double s) {
     std::ostringstream o;
     o << std::fixed << std::setprecision(s < 10 ? 1 : 0) << s << " s";
@@ -266,6 +243,29 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
 }
 
 }  // namespace
+
+Result<std::vector<double>> parseBrackets(const std::string& text) {
+    std::vector<double> times;
+    std::stringstream in(text);
+    std::string part;
+    while (std::getline(in, part, ',')) {
+        size_t used = 0;
+        double t = 0.0;
+        try {
+            t = std::stod(part, &used);
+        } catch (const std::exception&) {
+            used = 0;
+        }
+        if (used == 0 || used != part.size() || !(t > 0.0) || !std::isfinite(t))
+            return makeError(
+                ErrorCode::InvalidArgument,
+                "--brackets: '" + part + "' is not a positive exposure time in seconds");
+        times.push_back(t);
+    }
+    if (times.empty())
+        return makeError(ErrorCode::InvalidArgument, "--brackets: give at least one exposure time");
+    return times;
+}
 
 void addCaptureCommand(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {
     auto state = std::make_shared<CaptureState>();

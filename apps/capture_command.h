@@ -3,8 +3,16 @@
 
 #include <CLI/CLI.hpp>
 #include <iosfwd>
+#include <string>
+#include <vector>
+
+#include "common/result.h"
 
 namespace flarelab::apps {
+
+// "0.25,1,4": exposure times in seconds, each a positive finite number; InvalidArgument naming
+// --brackets otherwise.
+Result<std::vector<double>> parseBrackets(const std::string& text);
 
 void addCaptureCommand(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code);
 

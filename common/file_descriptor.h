@@ -1,10 +1,11 @@
 // ============================================================================
-//  flarelab common: FileDescriptor, osMessage, RegularFile, openRegularFile
+//  flarelab common: FileDescriptor, osMessage, RegularFile, openRegularFile, replaceFile
 // ============================================================================
 //
 // POSIX file handling shared by the EXR, sweep and model readers and writers: an
 // owned descriptor whose close() reports the error a destructor would have to drop, the text of
-// an errno, and opening a file for reading that must be a regular file.
+// an errno, opening a file for reading that must be a regular file, and replacing a file's
+// contents atomically (replaceFile).
 #pragma once
 
 #include <fcntl.h>
@@ -13,6 +14,8 @@
 
 #include <cerrno>
 #include <cstdint>
+#include <filesystem>
+#include <functional>
 #include <string>
 #include <system_error>
 #include <utility>
@@ -67,6 +70,40 @@ inline Result<RegularFile> openRegularFile(const std::string& path) {
         return makeError(ErrorCode::IoError, path + ": cannot stat: " + osMessage(errno));
     if (!S_ISREG(info.st_mode)) return makeError(ErrorCode::IoError, path + ": not a regular file");
     return RegularFile{std::move(fd), static_cast<int64_t>(info.st_size)};
+}
+
+// Writes `text` to `directory`/`file_name` so that the file holds either its old or its new
+// contents whatever happens: a temporary file beside it, flushed to disk, renamed over it, and
+// the rename itself flushed through `directory_fd`.
+inline Status replaceFile(const std::string& directory,
+                   int directory_fd,
+                   const std::string& file_name,
+                   const std::string& text,
+                   const std::function<void()>& before_rename) {
+    const std::string path = (std::filesystem::path(directory) / file_name).string();
+    const std::string temporary = path + ".tmp-" + std::to_string(::getpid());
+    const auto fail = [&](const std::string& what, int error) -> Status {
+        ::unlink(temporary.c_str());
+        return makeError(ErrorCode::IoError, path + ": " + what + ": " + osMessage(error));
+    };
+    FileDescriptor fd(
+        ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0666));
+    if (!fd.valid()) return fail("cannot create " + temporary, errno);
+    size_t done = 0;
+    while (done < text.size()) {
+        const ssize_t wrote = ::write(fd.get(), text.data() + done, text.size() - done);
+        if (wrote < 0 && errno == EINTR) continue;
+        if (wrote <= 0) return fail("cannot write " + temporary, wrote < 0 ? errno : EIO);
+        done += static_cast<size_t>(wrote);
+    }
+    if (::fsync(fd.get()) != 0) return fail("cannot flush " + temporary + " to disk", errno);
+    if (const int error = fd.close(); error != 0) return fail("cannot close " + temporary, error);
+    if (before_rename) before_rename();
+    if (::rename(temporary.c_str(), path.c_str()) != 0)
+        return fail("cannot rename " + temporary + " into place", errno);
+    // The rename has happened; a failed flush of the directory is not a failed write.
+    ::fsync(directory_fd);
+    return Ok{};
 }
 
 }  // namespace flarelab

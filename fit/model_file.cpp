@@ -16,6 +16,7 @@
 #include <filesystem>
 #include <limits>
 #include <set>
+#include <sstream>
 #include <system_error>
 #include <utility>
 
@@ -696,6 +697,94 @@ Result<FlareModel> modelFromJson(std::string_view json, const std::string& name)
     if (auto status = pb::util::JsonStringToMessage(text, &m, options); !status.ok())
         return makeError(ErrorCode::ParseError, name + ": " + describeStrictFailure(status));
     return fromCheckedProto(m, name);
+}
+
+namespace {
+
+// "0.001 0.01 0.1"
+std::string joined(const std::vector<double>& values) {
+    std::ostringstream out;
+    for (size_t i = 0; i < values.size(); ++i) out << (i ? " " : "") << values[i];
+    return out.str();
+}
+
+std::string orNotDescribed(const std::string& text) {
+    return text.empty() ? "(not described)" : text;
+}
+
+// "mm, bounds -18..18, 2 pieces over -2..3 deg, degrees 1 3, residual rms <= 0.5, max 1.5"
+void printParameter(const ModelParameter& p, std::ostringstream& out) {
+    out << "    " << p.name << " [" << (p.unit.empty() ? "-" : p.unit) << "]";
+    if (p.lower_bound || p.upper_bound) {
+        out << ", bounds ";
+        if (p.lower_bound)
+            out << *p.lower_bound;
+        else
+            out << "-inf";
+        out << "..";
+        if (p.upper_bound)
+            out << *p.upper_bound;
+        else
+            out << "inf";
+    }
+    out << ": " << p.pieces.size() << (p.pieces.size() == 1 ? " piece" : " pieces") << ", degree"
+        << (p.pieces.size() == 1 ? " " : "s ");
+    double rms = 0.0;
+    double max = 0.0;
+    for (size_t i = 0; i < p.pieces.size(); ++i) {
+        const ModelPiece& piece = p.pieces[i];
+        out << (i ? " " : "") << piece.coefficients.size() - 1;
+        rms = std::max(rms, piece.residual_rms);
+        max = std::max(max, piece.residual_max);
+    }
+    out << ", residual rms " << (p.pieces.size() == 1 ? "" : "<= ") << rms << ", max " << max
+        << "\n";
+}
+
+}  // namespace
+
+std::string describeModel(const FlareModel& m, const std::string& path) {
+    std::ostringstream out;
+    out << "model " << path << " (format " << m.format_version;
+    if (!m.software_version.empty()) out << ", written by " << m.software_version;
+    if (!m.created_utc.empty()) out << ", created " << m.created_utc;
+    out << ")\n";
+
+    const ModelLens& lens = m.lens;
+    out << "lens: " << orNotDescribed(lens.description);
+    if (lens.focal_length_mm) out << ", " << *lens.focal_length_mm << " mm";
+    if (lens.f_number) out << ", f/" << *lens.f_number;
+    out << ", sensor " << lens.sensor_width_mm << " x " << lens.sensor_height_mm << " mm\n";
+    out << "prescription: "
+        << (lens.prescription_file.empty() ? std::string("none") : lens.prescription_file);
+    if (!lens.prescription_sha256.empty()) out << " (sha256 " << lens.prescription_sha256 << ")";
+    out << "\n";
+
+    const ModelCapture& c = m.capture;
+    out << "capture: " << c.from_deg << " to " << c.to_deg << " deg in steps of " << c.step_deg
+        << " deg, roll " << c.roll_deg << " deg, " << c.width_px << "x" << c.height_px
+        << " pixels, camera " << orNotDescribed(c.camera) << "\n";
+    out << "brackets: ";
+    if (c.exposure_times_s.empty())
+        out << "none";
+    else
+        out << c.exposure_times_s.size() << " exposures of " << joined(c.exposure_times_s) << " s";
+    out << "\n";
+    out << "valid range: " << m.valid_from_deg << " to " << m.valid_to_deg << " deg\n";
+
+    out << "ghosts: " << m.ghosts.size() << "\n";
+    for (const ModelGhost& g : m.ghosts) {
+        out << "  ghost " << g.id;
+        if (!g.name.empty()) out << " (" << g.name << ")";
+        const ModelPiece& first = g.parameters.front().pieces.front();
+        const ModelPiece& last = g.parameters.front().pieces.back();
+        out << ": " << first.angle_from_deg << " to " << last.angle_to_deg << " deg, "
+            << g.fit.frames_fitted << " frames fitted (" << g.fit.first_angle_deg << " to "
+            << g.fit.last_angle_deg << " deg), " << g.parameters.size()
+            << (g.parameters.size() == 1 ? " parameter" : " parameters") << "\n";
+        for (const ModelParameter& p : g.parameters) printParameter(p, out);
+    }
+    return out.str();
 }
 
 }  // namespace flarelab::fit

@@ -152,6 +152,10 @@ Result<FlareModel> readModelFromMemory(std::string_view bytes,
 // back to `model`.
 Result<std::string> modelToJson(const FlareModel& model);
 
+// A description for people, as `flarelab model show` prints it: lens, capture, valid range and
+// per ghost its parameters' pieces, degrees and residuals. `path` names the file in the heading.
+std::string describeModel(const FlareModel& model, const std::string& path);
+
 // Parses and validates the JSON mapping; `name` stands for the text in error messages.
 Result<FlareModel> modelFromJson(std::string_view json, const std::string& name = "<memory>");
 

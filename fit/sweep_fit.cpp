@@ -139,6 +139,13 @@ private:
     Status processFrame(
         size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend);
 
+    // The frame source's loader, refusing once options_.cancel is set.
+    Result<FitFrame> load(size_t index) const {
+        if (options_.cancel && options_.cancel->load())
+            return makeError(ErrorCode::Unsupported, "sweep fit: cancelled");
+        return frames_.load(index);
+    }
+
     const FrameSource& frames_;
     const SweepFitOptions& options_;
     const std::function<void(const SweepFitProgress&)>& progress_;
@@ -173,7 +180,7 @@ Result<int> SweepFitter::chooseStart() {
     size_t best_count = 0;
     bool first = true;
     for (const int index : indices) {
-        auto frame = frames_.load(static_cast<size_t>(index));
+        auto frame = load(static_cast<size_t>(index));
         if (!frame) return frame.error().withContext("frame " + std::to_string(index));
         auto detection = detectGhosts(*frame, options_.detect);
         if (!detection) return detection.error();
@@ -193,7 +200,7 @@ Result<int> SweepFitter::chooseStart() {
 
 Status SweepFitter::processFrame(
     size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend) {
-    auto frame = frames_.load(j);
+    auto frame = load(j);
     if (!frame) return frame.error().withContext("frame " + std::to_string(j));
     DetectOptions detect = options_.detect;
     const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));

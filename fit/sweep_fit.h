@@ -33,6 +33,7 @@
 #pragma once
 
 #include <array>
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -75,6 +76,9 @@ struct SweepFitOptions {
     int max_extension_frames = 3;
     // Step 5 (fitSweep): the compressed shading series refitted to the frames.
     ShadingRefitOptions shading;
+    // When set and it becomes true, the fit stops before its next frame with an Unsupported
+    // error "sweep fit: cancelled" (a daemon's job being cancelled or the daemon stopping).
+    const std::atomic<bool>* cancel = nullptr;
 };
 
 struct TrackSample {

@@ -487,40 +487,6 @@ Result<std::string> readWholeFile(const std::string& path, int64_t max_bytes) {
     return text;
 }
 
-// Writes `text` to `directory`/`file_name` so that the file holds either its old or its new
-// contents whatever happens: a temporary file beside it, flushed to disk, renamed over it, and
-// the rename itself flushed through `directory_fd`.
-Status replaceFile(const std::string& directory,
-                   int directory_fd,
-                   const std::string& file_name,
-                   const std::string& text,
-                   const std::function<void()>& before_rename) {
-    const std::string path = (fs::path(directory) / file_name).string();
-    const std::string temporary = path + ".tmp-" + std::to_string(::getpid());
-    const auto fail = [&](const std::string& what, int error) -> Status {
-        ::unlink(temporary.c_str());
-        return makeError(ErrorCode::IoError, path + ": " + what + ": " + osMessage(error));
-    };
-    FileDescriptor fd(
-        ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0666));
-    if (!fd.valid()) return fail("cannot create " + temporary, errno);
-    size_t done = 0;
-    while (done < text.size()) {
-        const ssize_t wrote = ::write(fd.get(), text.data() + done, text.size() - done);
-        if (wrote < 0 && errno == EINTR) continue;
-        if (wrote <= 0) return fail("cannot write " + temporary, wrote < 0 ? errno : EIO);
-        done += static_cast<size_t>(wrote);
-    }
-    if (::fsync(fd.get()) != 0) return fail("cannot flush " + temporary + " to disk", errno);
-    if (const int error = fd.close(); error != 0) return fail("cannot close " + temporary, error);
-    if (before_rename) before_rename();
-    if (::rename(temporary.c_str(), path.c_str()) != 0)
-        return fail("cannot rename " + temporary + " into place", errno);
-    // The rename has happened; a failed flush of the directory is not a failed write.
-    ::fsync(directory_fd);
-    return Ok{};
-}
-
 // `directory`/`relative` as a path that exists, is a regular file and, symbolic links resolved,
 // lies inside `canonical_directory`. `what` names the manifest field for messages.
 Result<std::string> resolveFile(const std::string& directory,
@@ -601,6 +567,7 @@ Result<std::vector<std::string>> findExtraFiles(const std::string& directory,
         if (it->is_directory(ec) && !it->is_symlink(ec)) continue;
         const std::string relative = it->path().lexically_relative(directory).generic_string();
         if (relative == kSweepManifestFile || listed.count(relative)) continue;
+        if (isSweepProduct(relative)) continue;
         extra.push_back(relative);
     }
     if (ec) return makeError(ErrorCode::IoError, directory + ": cannot list: " + ec.message());
@@ -748,6 +715,14 @@ Result<ExrImage> loadFrame(const Sweep& sweep, size_t index, const ExrReadOption
     if (auto ok = checkFrameImage(sweep, index, *exr, context + ".exr_file: " + *path); !ok)
         return ok.error();
     return exr;
+}
+
+bool isSweepProduct(std::string_view relative) {
+    const std::string_view previews = kSweepPreviewsDir;
+    if (relative.size() > previews.size() && relative.substr(0, previews.size()) == previews &&
+        relative[previews.size()] == '/')
+        return true;
+    return relative == kSweepModelFile || relative == kSweepModelText;
 }
 
 std::string sweepFrameFileName(size_t index, double angle_deg) {

@@ -26,7 +26,10 @@
 //   - file names (exr_file, raw_files) are relative paths inside the sweep directory: '/'
 //     separated, no empty, "." or ".." component, no backslash or control character, at most 255
 //     bytes per component; exr_file ends in ".exr"; no file is named twice, nor manifest.json.
-// readSweep further checks every file (see there). Extra files in the directory that the
+// readSweep further checks every file (see there). Besides its frames a sweep directory may hold
+// its products, which are not part of the manifest and not looked at: the folder `previews/`
+// (PNG previews of the frames) and the fitted model `model.flm` with its description
+// `model.txt` (isSweepProduct). Other extra files in the directory that the
 // manifest does not list are warnings (Sweep::warnings), not errors, unless
 // ReadSweepOptions::extra_exr_files_are_errors: an interrupted writer leaves exactly such a file
 // (its last frame, written but not yet listed), and the sweep up to it is still good.
@@ -169,6 +172,13 @@ Result<Sweep> readSweep(const std::string& directory, const ReadSweepOptions& op
 // Reads frame `index` (< sweep.frames.size(), else a bug) of a sweep from readSweep or
 // readSweepManifest and checks it against the manifest as readSweep does.
 Result<ExrImage> loadFrame(const Sweep& sweep, size_t index, const ExrReadOptions& options = {});
+
+// Whether `relative` (a '/'-separated path inside a sweep directory) is one of the sweep's
+// products named at the top of this file: under previews/, or model.flm or model.txt.
+bool isSweepProduct(std::string_view relative);
+inline constexpr char kSweepPreviewsDir[] = "previews";
+inline constexpr char kSweepModelFile[] = "model.flm";
+inline constexpr char kSweepModelText[] = "model.txt";
 
 // The file name SweepWriter gives frame `index` at `angle_deg`: "frame_00012_+2.4000deg.exr".
 // The index keeps names unique and sorted whatever the angles.
