@@ -6,6 +6,7 @@
 
 #include "apps/bench_command.h"
 #include "apps/capture_command.h"
+#include "apps/daemon_commands.h"
 #include "apps/fit_command.h"
 #include "apps/lens_commands.h"
 #include "apps/merge_command.h"
@@ -26,6 +27,8 @@ int main(int argc, char** argv) {
         flarelab::apps::addModelCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addFitCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addBenchCommands(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addRigCommands(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addJobCommands(app, std::cout, std::cerr, exit_code);
         CLI11_PARSE(app, argc, argv);
         return exit_code;
     } catch (const std::exception& e) {

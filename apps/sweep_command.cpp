@@ -1,5 +1,7 @@
 #include "apps/sweep_command.h"
 
+#include "apps/daemon_commands.h"
+
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -147,8 +149,9 @@ int runInfo(const InfoState& state, std::ostream& out, std::ostream& err) {
 
 void addSweepCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {
     CLI::App* sweep =
-        app.add_subcommand("sweep", "inspect sweep directories (manifest + EXR frames)");
+        app.add_subcommand("sweep", "inspect sweep directories, start sweeps on flarelabd");
     sweep->require_subcommand(1);
+    addSweepStartCommand(*sweep, out, err, exit_code);
 
     auto info_state = std::make_shared<InfoState>();
     CLI::App* info = sweep->add_subcommand("info", "lens, camera, bracket and angles of a sweep");

@@ -1,0 +1,142 @@
+// ============================================================================
+//  flarelab daemon: ManagerOptions, JobManager, WatchBatch
+// ============================================================================
+//
+// The daemon's jobs: the one owner of the rig. Jobs run one at a time, in the order they were
+// started, on a worker thread (daemon/sweep_runner.h); the others wait QUEUED. Every change of a
+// job is written to the journal (daemon/journal.h) before it is announced, and announced as an
+// event that any number of watchers can follow.
+//
+// States and what moves them:
+//
+//     QUEUED ──worker──► RUNNING ──► SUCCEEDED | FAILED
+//       │  ▲               │  ▲
+//     pause resume       pause resume (a client), or a fault the job could not ride out
+//       ▼  │               ▼  │
+//      PAUSED ◄────────── PAUSED
+//     cancel: any unfinished state ──► CANCELLED (a running job at its next frame)
+//     the daemon stops under a running job ──► INTERRUPTED; at the next start it is QUEUED again
+//     (resumed where its sweep on disk ends) unless the daemon runs with resume off, when a
+//     client's resume queues it.
+//
+// Control: the client that starts a job controls it; another client's pause, resume or cancel
+// is refused (PERMISSION_DENIED) unless it takes control. Errors are grpc::Status values whose
+// messages name the field at fault.
+#pragma once
+
+#include <grpcpp/support/status.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "common/result.h"
+#include "daemon/journal.h"
+#include "daemon/sweep_runner.h"
+#include "proto/daemon.pb.h"
+
+namespace flarelab::daemon {
+
+struct ManagerOptions {
+    RunnerOptions runner;
+    bool resume = true;         // queue interrupted jobs again at start
+    size_t max_queued = 64;     // jobs QUEUED or PAUSED at once
+    size_t events_kept = 1024;  // per job, for watchers that fall behind
+};
+
+// Events for a watcher, after the sequence number it has seen.
+struct WatchBatch {
+    std::vector<flarelab::v1::JobEvent> events;
+    bool ended = false;  // the job has ended and these are its last events
+};
+
+class JobManager {
+public:
+    // Reads the journal of options.runner.state_dir, marks jobs that were running INTERRUPTED
+    // and, with options.resume, queues them again; then starts the worker. Records that cannot be
+    // read are set aside and reported in `warnings`.
+    static Result<std::unique_ptr<JobManager>> open(ManagerOptions options,
+                                                    std::vector<std::string>* warnings = nullptr);
+    ~JobManager();
+    JobManager(const JobManager&) = delete;
+    JobManager& operator=(const JobManager&) = delete;
+
+    // Stops the worker: a running job stops at its next frame (its captured frames written) and
+    // becomes INTERRUPTED; watchers are told. Idempotent.
+    void shutdown();
+
+    grpc::Status check(const flarelab::v1::SweepConfig& config, flarelab::v1::SweepPlan* plan);
+    grpc::Status start(const flarelab::v1::StartSweepRequest& request,
+                       const std::string& client,
+                       flarelab::v1::Job* job);
+    grpc::Status pause(const flarelab::v1::JobControlRequest& request,
+                       const std::string& client,
+                       flarelab::v1::Job* job);
+    grpc::Status resume(const flarelab::v1::JobControlRequest& request,
+                        const std::string& client,
+                        flarelab::v1::Job* job);
+    grpc::Status cancel(const flarelab::v1::JobControlRequest& request,
+                        const std::string& client,
+                        flarelab::v1::Job* job);
+    std::vector<flarelab::v1::Job> list() const;  // without their configs' lens text
+    grpc::Status result(const std::string& job_id, flarelab::v1::JobResult* result) const;
+
+    // The job's current state as a STATE event, and the sequence number to watch from.
+    grpc::Status watchStart(const std::string& job_id,
+                            flarelab::v1::JobEvent* first,
+                            uint64_t* sequence) const;
+    // Waits up to `wait` for events after `*sequence`, moves `*sequence` on. NOT_FOUND for an
+    // unknown job, UNAVAILABLE once the manager shuts down.
+    grpc::Status watchNext(const std::string& job_id,
+                           uint64_t* sequence,
+                           std::chrono::milliseconds wait,
+                           WatchBatch* batch) const;
+
+    std::string runningJob() const;
+    size_t queuedJobs() const;
+    const ManagerOptions& options() const { return options_; }
+
+private:
+    struct Entry {
+        flarelab::v1::Job job;
+        std::deque<flarelab::v1::JobEvent> events;
+        uint64_t next_sequence = 1;
+        bool cancel_requested = false;
+    };
+    class Control;
+    friend class Control;
+
+    explicit JobManager(ManagerOptions options, Journal journal);
+    void work();
+    // With mutex_ held: persist and announce a change of `entry`.
+    void changed(Entry& entry, const std::string& log_note = "");
+    void emit(Entry& entry, flarelab::v1::JobEvent event);
+    grpc::Status find(const std::string& id, Entry** entry);
+    grpc::Status findConst(const std::string& id, const Entry** entry) const;
+    grpc::Status mayControl(Entry& entry,
+                            const flarelab::v1::JobControlRequest& request,
+                            const std::string& client,
+                            const char* what);
+    static bool ended(const flarelab::v1::Job& job);
+
+    ManagerOptions options_;
+    Journal journal_;
+    mutable std::mutex mutex_;
+    mutable std::condition_variable changed_cv_;  // job states and events
+    std::map<uint64_t, Entry> jobs_;              // by job number
+    std::map<std::string, uint64_t> by_request_;
+    uint64_t next_number_ = 1;
+    std::string running_;
+    Control* running_control_ = nullptr;
+    bool shutting_down_ = false;
+    std::thread worker_;
+};
+
+}  // namespace flarelab::daemon

@@ -1,0 +1,53 @@
+// ============================================================================
+//  flarelab daemon: Journal, JournalLoad
+// ============================================================================
+//
+// The daemon's job records on disk, so that a daemon that crashed or was killed finds its jobs
+// again. One file per job, `<state dir>/jobs/<job id>.json`: the message flarelab.v1.Job (its
+// configuration included) in the protobuf JSON mapping. Each save writes a temporary file, flushes
+// it to disk and renames it over the old record, so a record is always whole: the old one or the
+// new one. A record that cannot be read (torn by a broken disk, edited by hand) is not fatal: it
+// is renamed to `<name>.corrupt`, kept for a person to look at, and reported.
+//
+// The record says what the job was asked and how far it had got; what is on disk is the sweep's
+// own business (hdr/sweep.h): a resumed job trusts the sweep's manifest, not the record, for
+// which frames are safely written.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "common/result.h"
+#include "proto/daemon.pb.h"
+
+namespace flarelab::daemon {
+
+struct JournalLoad {
+    std::vector<flarelab::v1::Job> jobs;  // by id
+    std::vector<std::string> warnings;    // records set aside, one line each naming the file
+};
+
+class Journal {
+public:
+    // Creates `<state_dir>/jobs` if needed. IoError when it cannot.
+    static Result<Journal> open(const std::string& state_dir);
+
+    // Writes the job's record (atomically, see above). IoError naming the file.
+    Status save(const flarelab::v1::Job& job) const;
+    // Every record in the journal.
+    Result<JournalLoad> load() const;
+    // Parses one record; ParseError naming `name` and what is wrong (also for the fuzzer).
+    static Result<flarelab::v1::Job> parse(const std::string& json, const std::string& name);
+
+    const std::string& directory() const { return directory_; }
+
+private:
+    explicit Journal(std::string directory) : directory_(std::move(directory)) {}
+    std::string directory_;
+};
+
+// "job-000042" for 42; the number of such an id, or 0 when it is not one.
+std::string jobId(uint64_t number);
+uint64_t jobNumber(const std::string& id);
+
+}  // namespace flarelab::daemon

@@ -1,0 +1,64 @@
+// ============================================================================
+//  flarelab daemon: ServiceOptions, ServerOptions, DaemonServer
+// ============================================================================
+//
+// The gRPC face of the daemon (proto/daemon.proto) over a JobManager: admission of every call
+// (the shared token when one is set, the client's name, a rate limit per client), the RPCs, and
+// the server that listens on a Unix domain socket (mode 0660) and, when configured, on TCP.
+//
+// Bounds, so that no client can exhaust the daemon: a request of more than max_request_bytes
+// is refused by gRPC (RESOURCE_EXHAUSTED) before it is parsed; a client gets calls_per_s calls a
+// second on average with bursts of `burst` (RESOURCE_EXHAUSTED beyond); at most max_watchers
+// streams watch at once.
+#pragma once
+
+#include <memory>
+#include <string>
+
+#include "common/result.h"
+#include "daemon/job_manager.h"
+
+namespace flarelab::daemon {
+
+struct ServiceOptions {
+    std::string token;  // empty: no token is asked for
+    double calls_per_s = 50.0;
+    double burst = 200.0;
+    size_t max_watchers = 256;
+    size_t max_request_bytes = size_t{2} << 20;  // a 1 MiB lens file and the rest
+    std::string daemon_version = "flarelabd";
+    std::string rig = "sim";
+};
+
+struct ServerOptions {
+    std::string socket_path;  // empty: none
+    // "host:port" to listen on TCP as well; empty: none. The daemon's flags keep it on loopback
+    // unless told otherwise.
+    std::string tcp_address;
+    ServiceOptions service;
+};
+
+class DaemonServer {
+public:
+    // Listens and serves on gRPC's threads. IoError when the socket cannot be made (path too
+    // long for a Unix socket, directory not writable, port taken).
+    static Result<std::unique_ptr<DaemonServer>> start(JobManager& manager,
+                                                       const ServerOptions& options);
+    ~DaemonServer();
+    // Stops the job manager (a running job is interrupted at its next frame, watchers are told),
+    // then the server, waiting at most `deadline_s` for calls in flight. Idempotent.
+    void shutdown(double deadline_s = 5.0);
+    // The TCP port when listening on TCP (the one chosen when the address asked for port 0).
+    int tcpPort() const { return tcp_port_; }
+
+private:
+    DaemonServer() = default;
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+    int tcp_port_ = 0;
+};
+
+// The constant-time comparison a token check needs.
+bool sameSecret(const std::string& a, const std::string& b);
+
+}  // namespace flarelab::daemon

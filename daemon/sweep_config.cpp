@@ -1,0 +1,228 @@
+#include "daemon/sweep_config.h"
+
+#include <cmath>
+#include <filesystem>
+#include <sstream>
+
+#include "drivers/sim_head.h"
+#include "hdr/sweep.h"
+#include "optics/prescription.h"
+
+namespace flarelab::daemon {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::string num(double v) {
+    std::ostringstream o;
+    o.precision(10);
+    o << v;
+    return o.str();
+}
+
+Error bad(const std::string& field, const std::string& what) {
+    return makeError(ErrorCode::InvalidArgument, field + ": " + what);
+}
+
+// A finite number in [lo, hi] (bounds in the message).
+Status inRange(const std::string& field, double v, double lo, double hi) {
+    if (!std::isfinite(v) || v < lo || v > hi)
+        return bad(field, "must be a finite number in [" + num(lo) + ", " + num(hi) + "] (got " +
+                              num(v) + ")");
+    return Ok{};
+}
+
+bool hasControl(const std::string& s) {
+    for (const unsigned char c : s)
+        if (c < 0x20 || c == 0x7f) return true;
+    return false;
+}
+
+bool within(const fs::path& inner, const fs::path& root) {
+    auto r = root.begin(), i = inner.begin();
+    for (; r != root.end(); ++r, ++i)
+        if (i == inner.end() || *i != *r) return false;
+    return true;
+}
+
+}  // namespace
+
+std::vector<double> sweepAngles(double from_deg, double to_deg, double step_deg) {
+    std::vector<double> angles;
+    const size_t frames =
+        static_cast<size_t>(std::floor((to_deg - from_deg) / step_deg + 1e-9)) + 1;
+    angles.reserve(frames);
+    for (size_t i = 0; i < frames; ++i)
+        angles.push_back(std::min(
+            to_deg, std::round((from_deg + static_cast<double>(i) * step_deg) * 1e9) / 1e9));
+    return angles;
+}
+
+Result<std::string> resolveOutputDir(const std::string& requested,
+                                     const std::string& root,
+                                     const std::string& field) {
+    if (requested.empty()) return bad(field, "is empty: name the sweep directory");
+    if (requested.size() > 4096) return bad(field, "is longer than 4096 bytes");
+    if (requested.find('\0') != std::string::npos || hasControl(requested))
+        return bad(field, "holds a control character");
+    const fs::path given(requested);
+    for (const fs::path& part : given)
+        if (part == "..") return bad(field, "'" + requested + "' has a '..' component");
+    const fs::path root_path(root);
+    const fs::path full = (given.is_absolute() ? given : root_path / given).lexically_normal();
+    const fs::path clean = full.has_filename() ? full : full.parent_path();
+    if (!within(clean, root_path) || clean == root_path)
+        return bad(field, "'" + requested + "' is not below the output root " + root);
+    // The deepest part that exists, with its links resolved, must still lie below the root.
+    fs::path existing = clean;
+    std::error_code ec;
+    while (!fs::exists(fs::symlink_status(existing, ec)) && existing != root_path)
+        existing = existing.parent_path();
+    const fs::path real = fs::canonical(existing, ec);
+    if (ec) return bad(field, existing.string() + " cannot be resolved: " + ec.message());
+    if (!within(real, root_path))
+        return bad(field, "'" + requested + "' leads through '" + existing.string() + "' to " +
+                              real.string() + ", outside the output root " + root);
+    if (fs::exists(clean, ec) && !fs::is_directory(clean, ec))
+        return bad(field, "'" + clean.string() + "' exists and is not a directory");
+    return clean.string();
+}
+
+Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
+                                   const std::string& output_root,
+                                   const SweepLimits& limits) {
+    PreparedSweep p;
+    p.config = given;
+    v1::SweepConfig& c = p.config;
+    if (!c.has_sim())
+        return bad("config.sim",
+                   "is missing: this daemon drives the built-in simulated rig only (hardware "
+                   "backends are not built yet)");
+    // The simulated camera's lens.
+    const v1::SimLens& sl = c.sim().lens();
+    if (sl.prescription_csv().empty())
+        return bad("config.sim.lens.prescription_csv", "is empty: send the lens file's text");
+    if (static_cast<int64_t>(sl.prescription_csv().size()) > limits.max_prescription_bytes)
+        return bad("config.sim.lens.prescription_csv",
+                   "is " + std::to_string(sl.prescription_csv().size()) + " bytes, more than " +
+                       std::to_string(limits.max_prescription_bytes));
+    if (sl.name().size() > 255 || hasControl(sl.name()))
+        return bad("config.sim.lens.name", "must be at most 255 printable characters");
+    const std::string lens_name = sl.name().empty() ? "lens" : sl.name();
+    auto prescription = optics::parsePrescription(sl.prescription_csv(), lens_name);
+    if (!prescription) return bad("config.sim.lens.prescription_csv", prescription.error().message);
+    for (const auto& [field, value] :
+         {std::pair<const char*, double>{"focal_length_mm", sl.focal_length_mm()},
+          {"f_number", sl.f_number()},
+          {"sensor_width_mm", sl.sensor_width_mm()},
+          {"sensor_height_mm", sl.sensor_height_mm()}})
+        if (Status ok = inRange(std::string("config.sim.lens.") + field, value, 0.0, 1e4); !ok)
+            return ok.error();
+    if (Status ok =
+            inRange("config.sim.lens.blade_rotation_deg", sl.blade_rotation_deg(), -360.0, 360.0);
+        !ok)
+        return ok.error();
+    if (sl.aperture_blades() == 1 || sl.aperture_blades() == 2 || sl.aperture_blades() > 64)
+        return bad(
+            "config.sim.lens.aperture_blades",
+            "must be 0 (a circle) or 3..64 (got " + std::to_string(sl.aperture_blades()) + ")");
+    optics::CameraDescription camera;
+    camera.focal_length_mm = sl.focal_length_mm();
+    camera.f_number = sl.f_number();
+    if (sl.sensor_width_mm() > 0.0) camera.sensor_width_mm = sl.sensor_width_mm();
+    if (sl.sensor_height_mm() > 0.0) camera.sensor_height_mm = sl.sensor_height_mm();
+    camera.aperture_blades = static_cast<int>(sl.aperture_blades());
+    camera.aperture_rotation_deg = sl.blade_rotation_deg();
+    camera.coat_unspecified_surfaces = sl.coat_unspecified();
+    auto lens = optics::Lens::make(*prescription, camera);
+    if (!lens) return bad("config.sim.lens", lens.error().message);
+    p.lens = sl.table_stop() ? lens->withStopSemiAperture(lens->tableStopSemiAperture_mm()) : *lens;
+    if (c.sim().seed() == 0) c.mutable_sim()->set_seed(1);
+    const v1::SimFaults& faults = c.sim().faults();
+    if (faults.has_head_stall_at_deg() && !std::isfinite(faults.head_stall_at_deg()))
+        return bad("config.sim.faults.head_stall_at_deg", "must be a finite angle");
+    if (faults.camera_timeouts() > 1000 || faults.head_hangs() > 1000)
+        return bad("config.sim.faults", "at most 1000 injected timeouts");
+
+    // Angles.
+    if (Status ok =
+            inRange("config.from_deg", c.from_deg(), limits.head_min_deg, limits.head_max_deg);
+        !ok)
+        return ok.error();
+    if (Status ok = inRange("config.to_deg", c.to_deg(), limits.head_min_deg, limits.head_max_deg);
+        !ok)
+        return ok.error();
+    if (c.to_deg() < c.from_deg())
+        return bad("config.to_deg",
+                   "must be >= from_deg (" + num(c.from_deg()) + "; got " + num(c.to_deg()) + ")");
+    if (!std::isfinite(c.step_deg()) || !(c.step_deg() > 0.0))
+        return bad("config.step_deg",
+                   "must be a finite number > 0 (got " + num(c.step_deg()) + ")");
+    const double frames = std::floor((c.to_deg() - c.from_deg()) / c.step_deg() + 1e-9) + 1.0;
+    if (frames > static_cast<double>(limits.max_frames))
+        return bad("config.step_deg", num(c.step_deg()) + " deg over " + num(c.from_deg()) + ".." +
+                                          num(c.to_deg()) + " makes " + num(frames) +
+                                          " frames, more than " +
+                                          std::to_string(limits.max_frames));
+    p.angles_deg = sweepAngles(c.from_deg(), c.to_deg(), c.step_deg());
+
+    // The bracket and the sensor.
+    if (c.exposure_times_s().empty())
+        for (const double t : {0.25, 1.0, 4.0}) c.add_exposure_times_s(t);
+    if (c.exposure_times_s_size() > limits.max_exposures)
+        return bad("config.exposure_times_s", "has " + std::to_string(c.exposure_times_s_size()) +
+                                                  " times, more than " +
+                                                  std::to_string(limits.max_exposures));
+    for (int i = 0; i < c.exposure_times_s_size(); ++i) {
+        if (Status ok =
+                inRange("config.exposure_times_s[" + std::to_string(i) + "]", c.exposure_times_s(i),
+                        limits.min_exposure_s, limits.max_exposure_s);
+            !ok)
+            return ok.error();
+        p.exposure_times_s.push_back(c.exposure_times_s(i));
+    }
+    if (c.gain() == 0.0) c.set_gain(1.0);
+    if (Status ok = inRange("config.gain", c.gain(), limits.min_gain, limits.max_gain); !ok)
+        return ok.error();
+    if (c.width_px() == 0) c.set_width_px(640);
+    if (c.height_px() == 0) c.set_height_px(427);
+    if (c.width_px() > hdr::kSweepMaxSide || c.height_px() > hdr::kSweepMaxSide)
+        return bad(c.width_px() > hdr::kSweepMaxSide ? "config.width_px" : "config.height_px",
+                   "must be 1.." + std::to_string(hdr::kSweepMaxSide));
+    if (static_cast<int64_t>(c.width_px()) * c.height_px() > limits.max_pixels)
+        return bad("config.width_px", std::to_string(c.width_px()) + " x " +
+                                          std::to_string(c.height_px()) + " is more than " +
+                                          std::to_string(limits.max_pixels) + " pixels");
+    if (Status ok = inRange("config.preview_stops", c.preview_stops(), -64.0, 64.0); !ok)
+        return ok.error();
+    if (c.fit() && p.angles_deg.size() < 2)
+        return bad("config.fit", "a model needs a sweep of at least two angles");
+
+    // Where it goes.
+    auto dir = resolveOutputDir(c.output_dir(), output_root, "config.output_dir");
+    if (!dir) return dir.error();
+    p.output_dir = *dir;
+    std::error_code ec;
+    const bool has_manifest = fs::exists(fs::path(p.output_dir) / hdr::kSweepManifestFile, ec);
+    if (has_manifest && !c.resume_existing())
+        return bad("config.output_dir", "'" + p.output_dir +
+                                            "' already holds a sweep: choose another directory, "
+                                            "or set resume_existing to append to it");
+    if (!has_manifest && fs::exists(p.output_dir, ec) && !fs::is_empty(p.output_dir, ec))
+        p.warnings.push_back(p.output_dir + " exists and is not empty");
+
+    // Rig time: the move to the first angle, then per frame a step and the bracket.
+    double bracket_s = 0.0;
+    for (const double t : p.exposure_times_s) bracket_s += t + limits.readout_s;
+    const auto move = [&](double d) {
+        return drivers::SimHead::moveDuration_s(std::abs(d), limits.head_speed_deg_s,
+                                                limits.head_acceleration_deg_s2) +
+               limits.head_settle_s;
+    };
+    p.rig_time_s = move(p.angles_deg.front()) + bracket_s * p.angles_deg.size();
+    for (size_t i = 1; i < p.angles_deg.size(); ++i)
+        p.rig_time_s += move(p.angles_deg[i] - p.angles_deg[i - 1]);
+    return p;
+}
+
+}  // namespace flarelab::daemon

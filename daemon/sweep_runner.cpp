@@ -1,0 +1,574 @@
+#include "daemon/sweep_runner.h"
+
+#include <fcntl.h>
+#include <sys/statvfs.h>
+
+#include <chrono>
+#include <cmath>
+#include <ctime>
+#include <filesystem>
+#include <iomanip>
+#include <mutex>
+#include <set>
+#include <sstream>
+#include <thread>
+
+#include "common/file_descriptor.h"
+#include "daemon/bounded_queue.h"
+#include "drivers/sim_camera.h"
+#include "drivers/sim_head.h"
+#include "fit/frame.h"
+#include "fit/model_file.h"
+#include "fit/sweep_fit.h"
+#include "hdr/merge.h"
+#include "hdr/raw_io.h"
+#include "hdr/sweep.h"
+#include "render/preview.h"
+
+namespace flarelab::daemon {
+namespace {
+
+namespace fs = std::filesystem;
+using Clock = std::chrono::steady_clock;
+
+double secondsSince(Clock::time_point t) {
+    return std::chrono::duration<double>(Clock::now() - t).count();
+}
+
+std::string num(double v) {
+    std::ostringstream o;
+    o << std::setprecision(6) << v;
+    return o.str();
+}
+
+int64_t statvfsFree(const std::string& path) {
+    struct statvfs s {};
+    if (::statvfs(path.c_str(), &s) != 0) return -1;
+    return static_cast<int64_t>(s.f_bavail) * static_cast<int64_t>(s.f_frsize);
+}
+
+std::string utcStamp() {
+    const std::time_t now = std::time(nullptr);
+    std::tm tm{};
+    gmtime_r(&now, &tm);
+    char text[32];
+    std::strftime(text, sizeof text, "%Y%m%dT%H%M%SZ", &tm);
+    return text;
+}
+
+// One frame's bracket on its way from the capture thread to the processing thread.
+struct Captured {
+    size_t index = 0;
+    double angle_deg = 0.0;  // as the head reported it, to a nanodegree
+    std::vector<hdr::RawFrame> bracket;
+};
+
+// Moves files in the sweep directory that its manifest does not list (and that are not its
+// products) to `to`, keeping their relative paths. Returns the moved names.
+Result<std::vector<std::string>> setAsideUnlisted(const hdr::Sweep& sweep, const fs::path& to) {
+    std::set<std::string> listed;
+    for (const hdr::SweepFrame& f : sweep.frames) {
+        listed.insert(f.exr_file);
+        for (const std::string& raw : f.raw_files) listed.insert(raw);
+    }
+    std::vector<fs::path> extra;
+    std::error_code ec;
+    for (fs::recursive_directory_iterator it(sweep.directory, ec), end; !ec && it != end;
+         it.increment(ec)) {
+        if (it->is_directory(ec) && !it->is_symlink(ec)) continue;
+        const std::string relative =
+            it->path().lexically_relative(sweep.directory).generic_string();
+        if (relative == hdr::kSweepManifestFile || listed.count(relative) ||
+            hdr::isSweepProduct(relative))
+            continue;
+        extra.push_back(it->path());
+    }
+    if (ec)
+        return makeError(ErrorCode::IoError, sweep.directory + ": cannot list: " + ec.message());
+    std::vector<std::string> moved;
+    for (const fs::path& file : extra) {
+        const fs::path target = to / file.lexically_relative(sweep.directory);
+        fs::create_directories(target.parent_path(), ec);
+        if (!ec) fs::rename(file, target, ec);
+        if (ec)
+            return makeError(ErrorCode::IoError, file.string() + ": cannot move it aside to " +
+                                                     target.string() + ": " + ec.message());
+        moved.push_back(file.lexically_relative(sweep.directory).generic_string());
+    }
+    return moved;
+}
+
+class SweepJob {
+public:
+    SweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control)
+        : job_(job), options_(options), control_(control) {}
+
+    RunResult run();
+
+private:
+    Status makeRig();
+    Result<hdr::SweepWriter> openSweep();
+    // Head to angle with the retries of the fault policy; nullopt when the job must stop
+    // (the reason, if a failure, in result_).
+    std::optional<double> move(double angle_deg, size_t index);
+    std::optional<hdr::RawFrame> expose(double exposure_s, size_t index, double angle_deg);
+    void captureLoop(size_t first, BoundedQueue<Captured>& queue);
+    void processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writer);
+    Status writeFrame(Captured& captured, hdr::SweepWriter& writer);
+    void fitModel();
+    void fail(const std::string& reason) {
+        std::lock_guard lock(mutex_);
+        if (result_.outcome != RunOutcome::Failed || result_.reason.empty()) {
+            result_.outcome = RunOutcome::Failed;
+            result_.reason = reason;
+        }
+        failed_ = true;
+    }
+
+    const v1::Job& job_;
+    const RunnerOptions& options_;
+    JobControl& control_;
+    PreparedSweep sweep_;
+    std::shared_ptr<drivers::SimHead> head_;
+    std::unique_ptr<drivers::SimCamera> camera_;
+    std::mutex mutex_;
+    RunResult result_;
+    std::atomic<bool> failed_{false};
+    std::atomic<uint32_t> on_disk_{0};
+    size_t captures_ = 0;  // exposures attempted by this run (for injected faults)
+    Clock::time_point capture_start_;
+    size_t captured_this_run_ = 0;
+    size_t first_ = 0;
+};
+
+Status SweepJob::makeRig() {
+    const v1::SimSettings& sim = sweep_.config.sim();
+    auto clock = std::make_shared<drivers::SimClock>(sim.fast() ? drivers::SimTime::Fast
+                                                                : drivers::SimTime::RealTime);
+    drivers::SimHeadOptions head;
+    head.seed = sim.seed();
+    head.min_deg = options_.limits.head_min_deg;
+    head.max_deg = options_.limits.head_max_deg;
+    head.speed_deg_s = options_.limits.head_speed_deg_s;
+    head.acceleration_deg_s2 = options_.limits.head_acceleration_deg_s2;
+    head.settle_s = options_.limits.head_settle_s;
+    if (sim.faults().has_head_stall_at_deg())
+        head.faults.stall_at_deg = sim.faults().head_stall_at_deg();
+    head.faults.hang_moves = static_cast<int>(sim.faults().head_hangs());
+    auto made_head = drivers::SimHead::make(head, clock);
+    if (!made_head) return made_head.error();
+    head_ = std::move(*made_head);
+    drivers::SimCameraOptions camera;
+    camera.width_px = sweep_.config.width_px();
+    camera.height_px = sweep_.config.height_px();
+    camera.seed = sim.seed();
+    camera.gain = sweep_.config.gain();
+    camera.readout_s = options_.limits.readout_s;
+    auto made_camera = drivers::SimCamera::make(*sweep_.lens, camera, head_);
+    if (!made_camera) return made_camera.error();
+    camera_ = std::move(*made_camera);
+    return Ok{};
+}
+
+Result<hdr::SweepWriter> SweepJob::openSweep() {
+    const v1::SweepConfig& c = sweep_.config;
+    const optics::Lens& lens = *sweep_.lens;
+    hdr::SweepHeader header;
+    header.software_version = options_.software_version + " (simulated rig)";
+    header.lens.description = lens.name();
+    header.camera.description = camera_->identity().model;
+    header.camera.serial = camera_->identity().serial;
+    header.camera.bit_depth = camera_->capabilities().bit_depth;
+    header.camera.pixel_pitch_um =
+        1000.0 * lens.camera().sensor_width_mm / static_cast<double>(c.width_px());
+    if (lens.camera().f_number > 0.0) header.lens.f_number = lens.camera().f_number;
+    if (lens.camera().focal_length_mm > 0.0)
+        header.lens.focal_length_mm = lens.camera().focal_length_mm;
+    header.capture.from_deg = c.from_deg();
+    header.capture.to_deg = c.to_deg();
+    header.capture.step_deg = c.step_deg();
+    header.capture.exposure_times_s = sweep_.exposure_times_s;
+    header.capture.gain = camera_->gain();
+    header.capture.width_px = c.width_px();
+    header.capture.height_px = c.height_px();
+
+    hdr::SweepWriteOptions write;
+    std::error_code ec;
+    write.resume = fs::exists(fs::path(sweep_.output_dir) / hdr::kSweepManifestFile, ec);
+    if (write.resume) {
+        // Files the manifest does not list are not part of the sweep: set them aside.
+        auto listed = hdr::readSweepManifest(sweep_.output_dir);
+        if (!listed) return listed.error();
+        const fs::path aside = fs::path(options_.state_dir) / "recovered" / job_.id() / utcStamp();
+        auto moved = setAsideUnlisted(*listed, aside);
+        if (!moved) return moved.error();
+        if (!moved->empty())
+            control_.warning("resuming: " + std::to_string(moved->size()) +
+                             " file(s) the sweep does not list (an interrupted write) moved to " +
+                             aside.string());
+    }
+    return hdr::SweepWriter::create(sweep_.output_dir, header, write);
+}
+
+std::optional<double> SweepJob::move(double angle_deg, size_t index) {
+    int timeouts = 0, rehomes = 0;
+    for (;;) {
+        if (!control_.checkpoint()) return std::nullopt;
+        auto at = head_->moveTo(angle_deg, 120.0);
+        if (at) return *at;
+        const auto fault = drivers::deviceFaultOf(at.error());
+        const std::string where = "frame " + std::to_string(index) + " at " + num(angle_deg) +
+                                  " deg: " + at.error().message;
+        if (fault == drivers::DeviceFault::Stopped) return std::nullopt;  // stop() from control
+        if (fault == drivers::DeviceFault::Timeout && timeouts < options_.head_retries) {
+            ++timeouts;
+            control_.warning(where + " (retry " + std::to_string(timeouts) + " of " +
+                             std::to_string(options_.head_retries) + ")");
+            continue;
+        }
+        if (fault == drivers::DeviceFault::LostPosition && rehomes < options_.head_retries) {
+            ++rehomes;
+            control_.warning(where + "; homing again");
+            if (Status homed = head_->home(600.0); !homed)
+                control_.warning("homing failed: " + homed.error().message);
+            continue;
+        }
+        std::string reason;
+        if (fault == drivers::DeviceFault::Stalled) {
+            if (Status stopped = head_->stop(); !stopped)
+                control_.warning("stopping the head: " + stopped.error().message);
+            reason = "head stalled: " + where +
+                     "; the rig is stopped: clear the obstacle, then resume the job";
+        } else if (fault == drivers::DeviceFault::Timeout) {
+            reason = "head did not arrive after " + std::to_string(timeouts + 1) +
+                     " tries: " + where + "; check the head, then resume the job";
+        } else if (fault) {
+            reason = "head fault: " + where + "; resume the job when the head is back";
+        } else {
+            fail("head: " + where);
+            return std::nullopt;
+        }
+        if (!control_.pauseForFault(reason)) return std::nullopt;
+        timeouts = rehomes = 0;
+        if (fault == drivers::DeviceFault::LostPosition || fault == drivers::DeviceFault::Stalled)
+            if (Status homed = head_->home(600.0); !homed)
+                control_.warning("homing failed: " + homed.error().message);
+    }
+}
+
+std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, double angle_deg) {
+    int timeouts = 0;
+    const v1::SimFaults& faults = sweep_.config.sim().faults();
+    for (;;) {
+        ++captures_;
+        if (faults.camera_timeouts() > 0 &&
+            captures_ == std::max<size_t>(1, faults.camera_timeouts_from_capture())) {
+            drivers::SimCameraFaults f = camera_->faults();
+            f.time_out_captures = static_cast<int>(faults.camera_timeouts());
+            camera_->setFaults(f);
+        }
+        const double timeout_s = 2.0 * (exposure_s + options_.limits.readout_s) + 2.0;
+        auto frame = [&]() -> Result<hdr::RawFrame> {
+            if (Status set = camera_->setExposure(exposure_s); !set) return set.error();
+            return camera_->capture(timeout_s);
+        }();
+        if (frame) return std::move(*frame);
+        const auto fault = drivers::deviceFaultOf(frame.error());
+        const std::string where = "frame " + std::to_string(index) + " at " + num(angle_deg) +
+                                  " deg, exposure " + num(exposure_s) +
+                                  " s: " + frame.error().message;
+        if (fault == drivers::DeviceFault::Timeout && timeouts < options_.camera_retries) {
+            ++timeouts;
+            control_.warning(where + " (retry " + std::to_string(timeouts) + " of " +
+                             std::to_string(options_.camera_retries) + ")");
+            continue;
+        }
+        std::string reason;
+        if (fault == drivers::DeviceFault::Timeout)
+            reason = "camera timed out " + std::to_string(timeouts + 1) + " times: " + where +
+                     "; check the camera, then resume the job";
+        else if (fault)
+            reason = "camera fault: " + where + "; resume the job when the camera is back";
+        else {
+            fail("camera: " + where);
+            return std::nullopt;
+        }
+        if (!control_.pauseForFault(reason)) return std::nullopt;
+        timeouts = 0;
+    }
+}
+
+void SweepJob::captureLoop(size_t first, BoundedQueue<Captured>& queue) {
+    const size_t total = sweep_.angles_deg.size();
+    const size_t n = sweep_.exposure_times_s.size();
+    double bracket_s = 0.0;
+    for (const double t : sweep_.exposure_times_s) bracket_s += t + options_.limits.readout_s;
+    for (size_t i = first; i < total && !failed_; ++i) {
+        const double target = sweep_.angles_deg[i];
+        const auto at = move(target, i);
+        if (!at) break;
+        Captured captured;
+        captured.index = i;
+        captured.angle_deg = std::round(*at * 1e9) / 1e9;
+        bool complete = true;
+        for (size_t k = 0; k < n; ++k) {
+            const double t = sweep_.exposure_times_s[k];
+            auto frame = expose(t, i, target);
+            if (!frame) {
+                complete = false;
+                break;
+            }
+            captured.bracket.push_back(std::move(*frame));
+            v1::JobEvent e;
+            e.set_kind(v1::EXPOSURE);
+            e.set_frame_index(static_cast<uint32_t>(i));
+            e.set_angle_deg(captured.angle_deg);
+            e.set_bracket_index(static_cast<uint32_t>(k));
+            e.set_exposure_s(t);
+            const double elapsed = secondsSince(capture_start_);
+            e.set_elapsed_s(elapsed);
+            // Measured once a frame is done; before, the rig's own time (unknown in simulated
+            // time, where a frame takes what it renders).
+            const double per_frame = captured_this_run_ > 0
+                                         ? elapsed / static_cast<double>(captured_this_run_)
+                                     : sweep_.config.sim().fast() ? 0.0
+                                                                  : bracket_s;
+            e.set_eta_s(per_frame * static_cast<double>(total - i));
+            control_.event(std::move(e));
+        }
+        // A bracket cut short (the job stopped while paused on a fault) is not a frame; the
+        // next run takes the frame again, its camera's sequence set where the frame begins.
+        if (!complete) break;
+        ++captured_this_run_;
+        if (!queue.push(std::move(captured))) break;
+    }
+    queue.close();
+}
+
+Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
+    const v1::SweepConfig& c = sweep_.config;
+    const std::string dir = sweep_.output_dir;
+    // Room for this frame (float RGB, and the raw brackets when kept) and the margin.
+    int64_t need = c.width_px() * int64_t{c.height_px()} * 12 + options_.min_free_bytes;
+    if (c.keep_raw()) need += c.width_px() * int64_t{c.height_px()} * 2 * captured.bracket.size();
+    const int64_t free = options_.free_bytes ? options_.free_bytes(dir) : statvfsFree(dir);
+    if (free >= 0 && free < need)
+        return makeError(ErrorCode::IoError, "disk full: " + std::to_string(free >> 20) +
+                                                 " MiB free on " + dir + ", a frame and the " +
+                                                 std::to_string(options_.min_free_bytes >> 20) +
+                                                 " MiB the daemon keeps free need " +
+                                                 std::to_string(need >> 20) + " MiB");
+    hdr::SweepFrame frame;
+    frame.angle_deg = captured.angle_deg;
+    frame.exposure_times_s = sweep_.exposure_times_s;
+    for (size_t k = 0; k < captured.bracket.size(); ++k) {
+        const hdr::RawFrame& raw = captured.bracket[k];
+        const auto counts = hdr::countExposure(raw);
+        if (!counts) return counts.error().withContext("frame " + std::to_string(captured.index));
+        frame.brackets.push_back({raw.exposure_s, static_cast<uint64_t>(counts->usable),
+                                  static_cast<uint64_t>(counts->saturated)});
+        if (c.keep_raw()) {
+            std::ostringstream name;
+            name << "raw/frame_" << std::setw(5) << std::setfill('0') << captured.index << "_" << k
+                 << ".pgm";
+            std::error_code ec;
+            fs::create_directories(fs::path(dir) / "raw", ec);
+            if (Status ok = hdr::writeRaw(dir + "/" + name.str(), raw); !ok) return ok.error();
+            frame.raw_files.push_back(name.str());
+        }
+    }
+    auto merged = hdr::mergeBrackets(captured.bracket);
+    if (!merged) return merged.error().withContext("frame " + std::to_string(captured.index));
+    auto image = hdr::toImage(*merged);
+    if (!image) return image.error().withContext("frame " + std::to_string(captured.index));
+    frame.merge_method = merged->method;
+    frame.exr_file = hdr::sweepFrameFileName(captured.index, captured.angle_deg);
+    auto added = writer.addFrame(*image, frame);
+    if (!added) return added.error();
+    if (c.previews()) {
+        const fs::path previews = fs::path(dir) / hdr::kSweepPreviewsDir;
+        std::error_code ec;
+        fs::create_directories(previews, ec);
+        render::ToneMapOptions tone;
+        tone.exposure_stops = c.preview_stops();
+        const std::string png = (previews / fs::path(added->exr_file).stem()).string() + ".png";
+        if (Status ok = render::writePng(*image, png, tone); !ok)
+            control_.warning("preview: " + ok.error().message);
+    }
+    return Ok{};
+}
+
+void SweepJob::processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writer) {
+    const size_t total = sweep_.angles_deg.size();
+    while (auto captured = queue.pop()) {
+        if (failed_) continue;  // drain; the failure is already recorded
+        if (Status ok = writeFrame(*captured, writer); !ok) {
+            fail(ok.error().message + "; the " + std::to_string(writer.sweep().frames.size()) +
+                 " frame(s) written before are intact");
+            (void)head_->stop();  // the capture thread ends at its next step
+            continue;
+        }
+        const uint32_t done = static_cast<uint32_t>(writer.sweep().frames.size());
+        on_disk_ = done;
+        control_.setFramesDone(done);
+        v1::JobEvent e;
+        e.set_kind(v1::FRAME);
+        e.set_frame_index(static_cast<uint32_t>(captured->index));
+        e.set_angle_deg(captured->angle_deg);
+        const double elapsed = secondsSince(capture_start_);
+        e.set_elapsed_s(elapsed);
+        const size_t this_run = done - first_;
+        if (this_run > 0) e.set_eta_s(elapsed / this_run * static_cast<double>(total - done));
+        control_.event(std::move(e));
+    }
+}
+
+void SweepJob::fitModel() {
+    const auto start = Clock::now();
+    control_.setPhase(v1::FITTING);
+    auto sweep = hdr::readSweep(sweep_.output_dir);
+    if (!sweep) return fail("fit: " + sweep.error().message);
+    if (const std::string w =
+            hdr::clippingWarning(hdr::clippedFrames(*sweep), sweep->frames.size());
+        !w.empty())
+        control_.warning(w);
+    const optics::Lens& lens = *sweep_.lens;
+    const std::array<double, 2> sensor = {lens.camera().sensor_width_mm,
+                                          lens.camera().sensor_height_mm};
+    auto size = fit::sweepSensorSize(*sweep, &sensor);
+    if (!size) return fail("fit: " + size.error().message);
+    fit::SweepFitOptions options;
+    options.cancel = &control_.stopFlag();
+    const auto progress = [&](const fit::SweepFitProgress& p) {
+        v1::JobEvent e;
+        e.set_kind(v1::FIT_PROGRESS);
+        e.set_frame_index(static_cast<uint32_t>(p.frames_done));
+        e.set_angle_deg(p.angle_deg);
+        const double elapsed = secondsSince(start);
+        e.set_elapsed_s(elapsed);
+        if (p.frames_done > 0)
+            e.set_eta_s(elapsed / p.frames_done *
+                        static_cast<double>(std::max<int64_t>(0, p.frames_total - p.frames_done)));
+        e.set_message(std::to_string(p.frames_done) + "/" + std::to_string(p.frames_total) +
+                      " frames fitted, " + std::to_string(p.live_ghosts) + " ghosts");
+        control_.event(std::move(e));
+    };
+    fit::SweepFitResult fitted;
+    auto model = fit::fitSweep(*sweep, (*size)[0], (*size)[1], options, progress, &fitted);
+    if (!model) {
+        if (control_.stopFlag()) return;  // stopped, not failed
+        return fail("fit: " + model.error().message);
+    }
+    model->lens.prescription_file = sweep_.config.sim().lens().name();
+    if (!model->lens.f_number && lens.camera().f_number > 0.0)
+        model->lens.f_number = lens.camera().f_number;
+    const std::string path = (fs::path(sweep_.output_dir) / hdr::kSweepModelFile).string();
+    if (Status ok = fit::writeModel(path, *model); !ok) return fail("fit: " + ok.error().message);
+    const std::string text = fit::describeModel(*model, path);
+    const fs::path text_path = fs::path(sweep_.output_dir) / hdr::kSweepModelText;
+    FileDescriptor dir_fd(::open(sweep_.output_dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+    if (Status ok = replaceFile(sweep_.output_dir, dir_fd.get(), hdr::kSweepModelText, text, {});
+        !ok)
+        control_.warning("model description: " + ok.error().message);
+    result_.model_file = path;
+    result_.fit_wall_s = secondsSince(start);
+}
+
+RunResult SweepJob::run() {
+    // The job's own sweep may be on disk already (a resumed job): a sweep that is not its own
+    // was refused when the job was started, and SweepWriter refuses one whose settings differ.
+    v1::SweepConfig config = job_.config();
+    config.set_resume_existing(true);
+    auto prepared = prepareSweep(config, options_.output_root, options_.limits);
+    if (!prepared) {
+        result_.reason = prepared.error().message;
+        return result_;
+    }
+    sweep_ = std::move(*prepared);
+    if (Status ok = makeRig(); !ok) {
+        result_.reason = "rig: " + ok.error().message;
+        return result_;
+    }
+    control_.setStopHook([head = head_] { (void)head->stop(); });
+    control_.setPhase(v1::HOMING);
+    for (int tries = 0;; ++tries) {
+        if (!control_.checkpoint()) {
+            result_.outcome = RunOutcome::Stopped;
+            return result_;
+        }
+        Status homed = head_->home(600.0);
+        if (homed) break;
+        if (tries < options_.head_retries) continue;
+        if (!control_.pauseForFault("head could not be homed: " + homed.error().message +
+                                    "; check the head, then resume the job")) {
+            result_.outcome = RunOutcome::Stopped;
+            return result_;
+        }
+        tries = -1;
+    }
+    auto opened = openSweep();
+    if (!opened) {
+        result_.reason = opened.error().message;
+        return result_;
+    }
+    std::optional<hdr::SweepWriter> writer(std::move(*opened));
+    // Resume where the sweep on disk ends: its frames must be this job's first angles.
+    const auto& listed = writer->sweep().frames;
+    if (listed.size() > sweep_.angles_deg.size()) {
+        result_.reason = sweep_.output_dir + " holds " + std::to_string(listed.size()) +
+                         " frames, more than this sweep's " +
+                         std::to_string(sweep_.angles_deg.size());
+        return result_;
+    }
+    for (size_t i = 0; i < listed.size(); ++i)
+        if (std::abs(listed[i].angle_deg - sweep_.angles_deg[i]) > 0.5 * sweep_.config.step_deg()) {
+            result_.reason = sweep_.output_dir + ": frame " + std::to_string(i) + " lies at " +
+                             num(listed[i].angle_deg) + " deg, but this sweep's is at " +
+                             num(sweep_.angles_deg[i]) + " deg: not this sweep";
+            return result_;
+        }
+    first_ = listed.size();
+    on_disk_ = static_cast<uint32_t>(first_);
+    control_.setFramesDone(on_disk_);
+    if (first_ > 0)
+        control_.warning("resuming at frame " + std::to_string(first_) + " of " +
+                         std::to_string(sweep_.angles_deg.size()) + " (" +
+                         num(sweep_.angles_deg[std::min(first_, sweep_.angles_deg.size() - 1)]) +
+                         " deg): the frames before are on disk");
+    camera_->setSequence(static_cast<int64_t>(first_ * sweep_.exposure_times_s.size()));
+
+    control_.setPhase(v1::CAPTURE);
+    capture_start_ = Clock::now();
+    BoundedQueue<Captured> queue(std::max<size_t>(1, options_.queue_frames));
+    std::thread processing([&] { processLoop(queue, *writer); });
+    captureLoop(first_, queue);
+    processing.join();
+    result_.queue_high_water = queue.highWater();
+    result_.capture_wall_s = secondsSince(capture_start_);
+    result_.frames_on_disk = on_disk_;
+    if (failed_) return result_;
+    if (on_disk_ < sweep_.angles_deg.size()) {
+        result_.outcome = RunOutcome::Stopped;
+        return result_;
+    }
+    if (sweep_.config.fit()) {
+        writer.reset();  // releases the directory lock
+        fitModel();
+        if (failed_) return result_;
+        if (result_.model_file.empty()) {
+            result_.outcome = RunOutcome::Stopped;
+            return result_;
+        }
+    }
+    result_.outcome = RunOutcome::Succeeded;
+    return result_;
+}
+
+}  // namespace
+
+RunResult runSweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control) {
+    SweepJob sweep(job, options, control);
+    return sweep.run();
+}
+
+}  // namespace flarelab::daemon

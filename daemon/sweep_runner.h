@@ -1,0 +1,93 @@
+// ============================================================================
+//  flarelab daemon: JobControl, RunnerOptions, RunOutcome, RunResult, runSweepJob
+// ============================================================================
+//
+// One sweep job from start to end: the rig is made (the simulated rig, from the job's
+// configuration), the head homed, then a pipeline of two threads runs the capture:
+//
+//     capture thread:    move head ─► exposure 1 … n ─► queue (bounded) ─┐
+//     processing thread: ◄──────────────────────────────────────────────┘
+//                        count clipping ─► merge ─► raw files ─► EXR + manifest ─► preview
+//
+// so head moves and exposures never wait on merging or writing (only on a full queue, which
+// bounds memory: queue_frames brackets at most). When every frame is on disk and the job asks for
+// it, the sweep is fitted into `<sweep>/model.flm` (and `model.txt`, its description).
+//
+// Resuming. A job that finds a manifest in its directory continues it: frames the manifest lists
+// are safely on disk and are not captured again; files it does not list (the frame a crash left
+// half-recorded, temporary files) are moved to `<state dir>/recovered/<job id>/<time>/` (never
+// deleted), and capture restarts at the first angle the manifest lacks. The simulated camera's
+// frame sequence is set to where that angle's bracket starts, so a resumed sweep's frames equal
+// those of an uninterrupted one with the same seed, bit for bit.
+//
+// Faults. A camera timeout is retried camera_retries times, then the job pauses with the reason
+// (resume retries); a head that does not arrive likewise with head_retries; a head that lost
+// position is homed again; a stalled head is stopped and the job paused ("the rig is stopped");
+// a camera or head that is gone pauses the job. Too little free disk space (below
+// min_free_bytes plus a frame), or a write that fails, ends the job as failed, with every frame
+// written before it intact. Whatever was captured when a job stops (cancel, shutdown, failure of
+// a later stage) is still merged and written.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "daemon/sweep_config.h"
+#include "proto/daemon.pb.h"
+
+namespace flarelab::daemon {
+
+// What a running job tells its owner and asks of it. Called from the job's threads.
+class JobControl {
+public:
+    virtual ~JobControl() = default;
+    // Returns at once while the job runs; waits while it is paused; false when the job must stop
+    // (cancelled, or the daemon is stopping).
+    virtual bool checkpoint() = 0;
+    // The job pauses itself for `reason` (a fault it could not ride out) and waits like
+    // checkpoint() for a client to resume it.
+    virtual bool pauseForFault(const std::string& reason) = 0;
+    // True once the job must stop; the flag a fit watches.
+    virtual const std::atomic<bool>& stopFlag() const = 0;
+    // Called (from the controlling thread) when the job must stop, to interrupt a head move.
+    virtual void setStopHook(std::function<void()> hook) = 0;
+    virtual void setPhase(flarelab::v1::JobPhase phase) = 0;
+    virtual void setFramesDone(uint32_t frames) = 0;
+    virtual void warning(const std::string& message) = 0;
+    // An EXPOSURE, FRAME or FIT_PROGRESS event; the owner numbers it and adds the job's state.
+    virtual void event(flarelab::v1::JobEvent event) = 0;
+};
+
+struct RunnerOptions {
+    std::string output_root;  // absolute, canonical
+    std::string state_dir;    // absolute; recovered files go below it
+    SweepLimits limits;
+    int camera_retries = 3;  // per exposure, before the job pauses
+    int head_retries = 2;    // per move
+    int64_t min_free_bytes = int64_t{64} << 20;
+    size_t queue_frames = 4;  // brackets between capture and processing
+    // Free bytes of the file system holding a path; statvfs when empty (a test seam).
+    std::function<int64_t(const std::string&)> free_bytes;
+    std::string software_version = "flarelabd";
+};
+
+enum class RunOutcome { Succeeded, Failed, Stopped };
+
+struct RunResult {
+    RunOutcome outcome = RunOutcome::Failed;
+    std::string reason;      // why it failed
+    std::string model_file;  // when fitted
+    uint32_t frames_on_disk = 0;
+    double capture_wall_s = 0.0;  // from the first move to the last frame on disk
+    double fit_wall_s = 0.0;
+    size_t queue_high_water = 0;
+};
+
+// Runs `job` (its config must have passed prepareSweep with the same root and limits).
+RunResult runSweepJob(const flarelab::v1::Job& job,
+                      const RunnerOptions& options,
+                      JobControl& control);
+
+}  // namespace flarelab::daemon
