@@ -212,7 +212,7 @@ struct StartState {
     bool table_stop = false, coat_unspecified = false;
     double from_deg = 0.0, to_deg = 30.0, step_deg = 0.2;
     std::string brackets = "0.25,1,4";
-    int64_t width = 640, height = 427;
+    int64_t width = 0, height = 0;  // 0: the rig's default (640 x 427 simulated)
     double gain = 1.0;
     bool fast = false;
     uint64_t seed = 1;
@@ -223,28 +223,29 @@ struct StartState {
 };
 
 int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
-    if (!s.sim) {
-        err << "flarelab: sweep start: only --sim (the daemon's simulated rig) is available in "
-               "this build\n";
-        return 2;
-    }
     auto times = parseBrackets(s.brackets);
     if (!times) {
         err << "flarelab: " << times.error().message << "\n";
         return 2;
     }
-    std::ifstream lens(s.lens_file, std::ios::binary);
-    if (!lens) {
-        err << "flarelab: --lens " << s.lens_file << ": cannot open it\n";
-        return 1;
+    if (s.sim && s.lens_file.empty()) {
+        err << "flarelab: sweep start: --sim needs --lens FILE (the simulated camera's lens)\n";
+        return 2;
     }
     std::string text;
-    text.resize(size_t{1} << 20);
-    lens.read(text.data(), static_cast<std::streamsize>(text.size()));
-    text.resize(static_cast<size_t>(lens.gcount()));
-    if (lens.peek() != EOF) {
-        err << "flarelab: --lens " << s.lens_file << ": more than 1 MiB, not a lens file\n";
-        return 1;
+    if (s.sim) {
+        std::ifstream lens(s.lens_file, std::ios::binary);
+        if (!lens) {
+            err << "flarelab: --lens " << s.lens_file << ": cannot open it\n";
+            return 1;
+        }
+        text.resize(size_t{1} << 20);
+        lens.read(text.data(), static_cast<std::streamsize>(text.size()));
+        text.resize(static_cast<size_t>(lens.gcount()));
+        if (lens.peek() != EOF) {
+            err << "flarelab: --lens " << s.lens_file << ": more than 1 MiB, not a lens file\n";
+            return 1;
+        }
     }
     double sw = 0.0, sh = 0.0;
     char x = 0, extra = 0;
@@ -256,26 +257,28 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
     v1::StartSweepRequest request;
     request.set_request_id(s.request_id);
     v1::SweepConfig& c = *request.mutable_config();
-    v1::SimSettings& sim = *c.mutable_sim();
-    sim.set_fast(s.fast);
-    sim.set_seed(s.seed);
-    v1::SimLens& l = *sim.mutable_lens();
-    l.set_prescription_csv(text);
-    l.set_name(fs::path(s.lens_file).filename().string());
-    l.set_focal_length_mm(s.focal_mm);
-    l.set_f_number(s.f_number);
-    l.set_sensor_width_mm(sw);
-    l.set_sensor_height_mm(sh);
-    l.set_aperture_blades(static_cast<uint32_t>(std::max(0, s.blades)));
-    l.set_blade_rotation_deg(s.blade_rotation_deg);
-    l.set_table_stop(s.table_stop);
-    l.set_coat_unspecified(s.coat_unspecified);
+    if (s.sim) {
+        v1::SimSettings& sim = *c.mutable_sim();
+        sim.set_fast(s.fast);
+        sim.set_seed(s.seed);
+        v1::SimLens& l = *sim.mutable_lens();
+        l.set_prescription_csv(text);
+        l.set_name(fs::path(s.lens_file).filename().string());
+        l.set_focal_length_mm(s.focal_mm);
+        l.set_f_number(s.f_number);
+        l.set_sensor_width_mm(sw);
+        l.set_sensor_height_mm(sh);
+        l.set_aperture_blades(static_cast<uint32_t>(std::max(0, s.blades)));
+        l.set_blade_rotation_deg(s.blade_rotation_deg);
+        l.set_table_stop(s.table_stop);
+        l.set_coat_unspecified(s.coat_unspecified);
+    }
     c.set_from_deg(s.from_deg);
     c.set_to_deg(s.to_deg);
     c.set_step_deg(s.step_deg);
     for (const double t : *times) c.add_exposure_times_s(t);
     c.set_gain(s.gain);
-    c.set_width_px(static_cast<uint32_t>(s.width));
+    c.set_width_px(static_cast<uint32_t>(s.width));  // 0: the rig's default
     c.set_height_px(static_cast<uint32_t>(s.height));
     // The daemon resolves it against its output root; relative to the caller here.
     c.set_output_dir(fs::absolute(s.output).lexically_normal().string());
@@ -291,8 +294,9 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
     auto ctx = client->context();
     const grpc::Status status = client->stub().StartSweep(ctx.get(), request, &job);
     if (!status.ok()) return client->fail(status, "sweep start", err);
-    out << job.id() << " " << stateName(job.state()) << ": " << job.frames_total() << " frames of "
-        << l.name() << " -> " << job.output_dir() << "\n";
+    out << job.id() << " " << stateName(job.state()) << ": " << job.frames_total() << " frames"
+        << (s.sim ? " of " + c.sim().lens().name() : std::string()) << " -> " << job.output_dir()
+        << "\n";
     for (const std::string& w : job.warnings()) err << "flarelab: warning: " << w << "\n";
     if (!s.watch) return 0;
     return watch(*client, job.id(), out, err);
@@ -383,9 +387,10 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
     auto s = std::make_shared<StartState>();
     CLI::App* cmd = sweep.add_subcommand("start", "start a sweep as a job of flarelabd");
     addConnectionFlags(cmd, s->connection);
-    cmd->add_flag("--sim", s->sim, "on the daemon's simulated rig");
-    cmd->add_option("--lens", s->lens_file, "the simulated camera's lens (CSV, format v1)")
-        ->required();
+    cmd->add_flag("--sim", s->sim,
+                  "on the daemon's simulated rig (without it: the rig the daemon drives, e.g. a "
+                  "replay)");
+    cmd->add_option("--lens", s->lens_file, "the simulated camera's lens (CSV, format v1)");
     cmd->add_option("--focal-mm", s->focal_mm, "focal length the f-number refers to");
     cmd->add_option("--f-number", s->f_number, "working f-number");
     cmd->add_flag("--table-stop", s->table_stop, "keep the stop as the table gives it");
@@ -400,12 +405,10 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
     cmd->add_option("--brackets", s->brackets, "exposure times in seconds, comma separated")
         ->capture_default_str();
     cmd->add_option("--gain", s->gain, "linear gain")->capture_default_str();
-    cmd->add_option("--width", s->width, "frame width")
-        ->check(CLI::Range(int64_t{1}, int64_t{32768}))
-        ->capture_default_str();
-    cmd->add_option("--height", s->height, "frame height")
-        ->check(CLI::Range(int64_t{1}, int64_t{32768}))
-        ->capture_default_str();
+    cmd->add_option("--width", s->width, "frame width (default: the rig's, 640 simulated)")
+        ->check(CLI::Range(int64_t{1}, int64_t{32768}));
+    cmd->add_option("--height", s->height, "frame height (default: the rig's, 427 simulated)")
+        ->check(CLI::Range(int64_t{1}, int64_t{32768}));
     cmd->add_flag("--fast", s->fast, "simulated time: do not wait for exposures and moves");
     cmd->add_option("--seed", s->seed, "noise seed")->capture_default_str();
     cmd->add_flag("--keep-raw", s->keep_raw, "also keep every raw bracket (raw/*.pgm)");

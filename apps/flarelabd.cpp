@@ -2,6 +2,7 @@
 //
 //     flarelabd --state-dir DIR [--output-root DIR] [--listen HOST:PORT [--allow-remote]]
 //               [--token-file FILE] [--no-resume] [--camera-retries N] [--min-free-mb N]
+//               [--replay RECORDED_SWEEP]
 //
 // It keeps its journal in DIR/jobs, listens on DIR/flarelabd.sock (mode 0660), holds
 // DIR/flarelabd.lock so that one daemon owns a rig, and stops cleanly on SIGTERM or SIGINT: a
@@ -22,6 +23,7 @@
 #include "daemon/job_manager.h"
 #include "daemon/log.h"
 #include "daemon/service.h"
+#include "hdr/sweep.h"
 
 namespace {
 
@@ -38,7 +40,7 @@ bool isLoopback(const std::string& address) {
 
 int run(int argc, char** argv) {
     CLI::App app{"flarelabd: the flarelab rig daemon (sweeps as jobs, over gRPC)"};
-    std::string state_dir, output_root, listen, token_file, log_level = "info";
+    std::string state_dir, output_root, listen, token_file, replay, log_level = "info";
     bool no_resume = false, allow_remote = false;
     int camera_retries = 3, head_retries = 2;
     int64_t min_free_mb = 64;
@@ -53,6 +55,8 @@ int run(int argc, char** argv) {
     app.add_flag("--allow-remote", allow_remote, "let --listen bind an address beyond loopback");
     app.add_option("--token-file", token_file,
                    "ask every call for this shared token (metadata authorization: Bearer TOKEN)");
+    app.add_option("--replay", replay,
+                   "drive a recorded sweep played back instead of the simulated rig");
     app.add_flag("--no-resume", no_resume,
                  "do not resume interrupted jobs at start (they wait for a client's resume)");
     app.add_option("--camera-retries", camera_retries, "camera timeouts retried per exposure")
@@ -139,12 +143,38 @@ int run(int argc, char** argv) {
     options.runner.head_retries = head_retries;
     options.runner.min_free_bytes = min_free_mb << 20;
     options.runner.software_version = "flarelabd 0.1.0";
+    ServerOptions server_options;
+    if (!replay.empty()) {
+        auto recorded = hdr::readSweep(fs::absolute(replay).lexically_normal().string());
+        if (!recorded) {
+            std::cerr << "flarelabd: --replay: " << recorded.error().message << "\n";
+            return 1;
+        }
+        if (recorded->frames.empty()) {
+            std::cerr << "flarelabd: --replay " << replay << ": the sweep holds no frames\n";
+            return 1;
+        }
+        auto sweep = std::make_shared<const hdr::Sweep>(std::move(*recorded));
+        options.runner.limits.replay = sweep;
+        options.runner.limits.head_min_deg = std::min(0.0, sweep->frames.front().angle_deg);
+        options.runner.limits.head_max_deg = std::max(0.0, sweep->frames.back().angle_deg);
+        options.runner.limits.min_exposure_s = 1e-6;
+        options.runner.limits.max_exposure_s = 3600.0;
+        options.runner.limits.max_gain = 64.0;
+        ServiceOptions& s = server_options.service;
+        s.rig = "replay";
+        s.camera_model = "replay of " + sweep->header.camera.description;
+        s.camera_serial = sweep->header.camera.serial;
+        s.head_model = "replay head";
+        s.head_serial = "REPLAY-0";
+        s.device_uri = "replay:" + sweep->directory;
+        s.bit_depth = 16;
+    }
     auto manager = JobManager::open(options);
     if (!manager) {
         std::cerr << "flarelabd: " << manager.error().message << "\n";
         return 1;
     }
-    ServerOptions server_options;
     server_options.socket_path = (state / "flarelabd.sock").string();
     server_options.tcp_address = listen;
     server_options.service.token = token;

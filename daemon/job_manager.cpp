@@ -298,15 +298,19 @@ Status JobManager::start(const v1::StartSweepRequest& request,
         if (auto it = by_request_.find(request.request_id());
             !request.request_id().empty() && it != by_request_.end()) {
             const Entry& e = jobs_.at(it->second);
+            // The stored config has its defaults filled in; compare what prepareSweep makes of
+            // the retried one (whose directory may hold the first one's sweep by now).
             v1::SweepConfig given = request.config();
-            // The stored config has its defaults filled in; compare what prepareSweep makes.
+            given.set_resume_existing(true);
             auto prepared =
                 prepareSweep(given, options_.runner.output_root, options_.runner.limits);
-            v1::SweepConfig stored = e.job.config();
+            given = request.config();
             if (prepared) {
                 given = prepared->config;
+                given.set_resume_existing(request.config().resume_existing());
                 given.set_output_dir(prepared->output_dir);
             }
+            const v1::SweepConfig& stored = e.job.config();
             if (!google::protobuf::util::MessageDifferencer::Equals(given, stored))
                 return Status(StatusCode::ALREADY_EXISTS, "request_id: '" + request.request_id() +
                                                               "' started " + e.job.id() +

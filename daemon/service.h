@@ -27,7 +27,12 @@ struct ServiceOptions {
     size_t max_watchers = 256;
     size_t max_request_bytes = size_t{2} << 20;  // a 1 MiB lens file and the rest
     std::string daemon_version = "flarelabd";
-    std::string rig = "sim";
+    std::string rig = "sim";  // "sim" or "replay"
+    // What DescribeRig names; the simulated rig's by default.
+    std::string camera_model = "flarelab simulated camera", camera_serial = "SIMCAM-0";
+    std::string head_model = "flarelab simulated head", head_serial = "SIMHEAD-0";
+    std::string device_uri = "sim:";
+    int bit_depth = 12;
 };
 
 struct ServerOptions {

@@ -1,5 +1,6 @@
 #include "daemon/sweep_config.h"
 
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <sstream>
@@ -43,6 +44,57 @@ bool within(const fs::path& inner, const fs::path& root) {
     for (; r != root.end(); ++r, ++i)
         if (i == inner.end() || *i != *r) return false;
     return true;
+}
+
+// The simulated camera's lens and settings (config.sim) into p.lens; c's seed defaulted.
+Status prepareSimLens(v1::SweepConfig& c, const SweepLimits& limits, PreparedSweep& p) {
+    // The simulated camera's lens.
+    const v1::SimLens& sl = c.sim().lens();
+    if (sl.prescription_csv().empty())
+        return bad("config.sim.lens.prescription_csv", "is empty: send the lens file's text");
+    if (static_cast<int64_t>(sl.prescription_csv().size()) > limits.max_prescription_bytes)
+        return bad("config.sim.lens.prescription_csv",
+                   "is " + std::to_string(sl.prescription_csv().size()) + " bytes, more than " +
+                       std::to_string(limits.max_prescription_bytes));
+    if (sl.name().size() > 255 || hasControl(sl.name()))
+        return bad("config.sim.lens.name", "must be at most 255 printable characters");
+    const std::string lens_name = sl.name().empty() ? "lens" : sl.name();
+    auto prescription = optics::parsePrescription(sl.prescription_csv(), lens_name);
+    if (!prescription) return bad("config.sim.lens.prescription_csv", prescription.error().message);
+    for (const auto& [field, value] :
+         {std::pair<const char*, double>{"focal_length_mm", sl.focal_length_mm()},
+          {"f_number", sl.f_number()},
+          {"sensor_width_mm", sl.sensor_width_mm()},
+          {"sensor_height_mm", sl.sensor_height_mm()}})
+        if (Status ok = inRange(std::string("config.sim.lens.") + field, value, 0.0, 1e4); !ok)
+            return ok.error();
+    if (Status ok =
+            inRange("config.sim.lens.blade_rotation_deg", sl.blade_rotation_deg(), -360.0, 360.0);
+        !ok)
+        return ok.error();
+    if (sl.aperture_blades() == 1 || sl.aperture_blades() == 2 || sl.aperture_blades() > 64)
+        return bad(
+            "config.sim.lens.aperture_blades",
+            "must be 0 (a circle) or 3..64 (got " + std::to_string(sl.aperture_blades()) + ")");
+    optics::CameraDescription camera;
+    camera.focal_length_mm = sl.focal_length_mm();
+    camera.f_number = sl.f_number();
+    if (sl.sensor_width_mm() > 0.0) camera.sensor_width_mm = sl.sensor_width_mm();
+    if (sl.sensor_height_mm() > 0.0) camera.sensor_height_mm = sl.sensor_height_mm();
+    camera.aperture_blades = static_cast<int>(sl.aperture_blades());
+    camera.aperture_rotation_deg = sl.blade_rotation_deg();
+    camera.coat_unspecified_surfaces = sl.coat_unspecified();
+    auto lens = optics::Lens::make(*prescription, camera);
+    if (!lens) return bad("config.sim.lens", lens.error().message);
+    p.lens = sl.table_stop() ? lens->withStopSemiAperture(lens->tableStopSemiAperture_mm()) : *lens;
+    if (c.sim().seed() == 0) c.mutable_sim()->set_seed(1);
+    const v1::SimFaults& faults = c.sim().faults();
+    if (faults.has_head_stall_at_deg() && !std::isfinite(faults.head_stall_at_deg()))
+        return bad("config.sim.faults.head_stall_at_deg", "must be a finite angle");
+    if (faults.camera_timeouts() > 1000 || faults.head_hangs() > 1000)
+        return bad("config.sim.faults", "at most 1000 injected timeouts");
+
+    return Ok{};
 }
 
 }  // namespace
@@ -94,55 +146,18 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
     PreparedSweep p;
     p.config = given;
     v1::SweepConfig& c = p.config;
-    if (!c.has_sim())
-        return bad("config.sim",
-                   "is missing: this daemon drives the built-in simulated rig only (hardware "
-                   "backends are not built yet)");
-    // The simulated camera's lens.
-    const v1::SimLens& sl = c.sim().lens();
-    if (sl.prescription_csv().empty())
-        return bad("config.sim.lens.prescription_csv", "is empty: send the lens file's text");
-    if (static_cast<int64_t>(sl.prescription_csv().size()) > limits.max_prescription_bytes)
-        return bad("config.sim.lens.prescription_csv",
-                   "is " + std::to_string(sl.prescription_csv().size()) + " bytes, more than " +
-                       std::to_string(limits.max_prescription_bytes));
-    if (sl.name().size() > 255 || hasControl(sl.name()))
-        return bad("config.sim.lens.name", "must be at most 255 printable characters");
-    const std::string lens_name = sl.name().empty() ? "lens" : sl.name();
-    auto prescription = optics::parsePrescription(sl.prescription_csv(), lens_name);
-    if (!prescription) return bad("config.sim.lens.prescription_csv", prescription.error().message);
-    for (const auto& [field, value] :
-         {std::pair<const char*, double>{"focal_length_mm", sl.focal_length_mm()},
-          {"f_number", sl.f_number()},
-          {"sensor_width_mm", sl.sensor_width_mm()},
-          {"sensor_height_mm", sl.sensor_height_mm()}})
-        if (Status ok = inRange(std::string("config.sim.lens.") + field, value, 0.0, 1e4); !ok)
-            return ok.error();
-    if (Status ok =
-            inRange("config.sim.lens.blade_rotation_deg", sl.blade_rotation_deg(), -360.0, 360.0);
-        !ok)
-        return ok.error();
-    if (sl.aperture_blades() == 1 || sl.aperture_blades() == 2 || sl.aperture_blades() > 64)
-        return bad(
-            "config.sim.lens.aperture_blades",
-            "must be 0 (a circle) or 3..64 (got " + std::to_string(sl.aperture_blades()) + ")");
-    optics::CameraDescription camera;
-    camera.focal_length_mm = sl.focal_length_mm();
-    camera.f_number = sl.f_number();
-    if (sl.sensor_width_mm() > 0.0) camera.sensor_width_mm = sl.sensor_width_mm();
-    if (sl.sensor_height_mm() > 0.0) camera.sensor_height_mm = sl.sensor_height_mm();
-    camera.aperture_blades = static_cast<int>(sl.aperture_blades());
-    camera.aperture_rotation_deg = sl.blade_rotation_deg();
-    camera.coat_unspecified_surfaces = sl.coat_unspecified();
-    auto lens = optics::Lens::make(*prescription, camera);
-    if (!lens) return bad("config.sim.lens", lens.error().message);
-    p.lens = sl.table_stop() ? lens->withStopSemiAperture(lens->tableStopSemiAperture_mm()) : *lens;
-    if (c.sim().seed() == 0) c.mutable_sim()->set_seed(1);
-    const v1::SimFaults& faults = c.sim().faults();
-    if (faults.has_head_stall_at_deg() && !std::isfinite(faults.head_stall_at_deg()))
-        return bad("config.sim.faults.head_stall_at_deg", "must be a finite angle");
-    if (faults.camera_timeouts() > 1000 || faults.head_hangs() > 1000)
-        return bad("config.sim.faults", "at most 1000 injected timeouts");
+    if (limits.replay) {
+        if (c.has_sim())
+            return bad("config.sim", "this daemon replays the recorded sweep in " +
+                                         limits.replay->directory +
+                                         " (flarelabd --replay): leave sim out");
+    } else {
+        if (!c.has_sim())
+            return bad("config.sim",
+                       "is missing: this daemon drives the built-in simulated rig, whose lens "
+                       "and settings go here (hardware backends are not built yet)");
+        if (Status ok = prepareSimLens(c, limits, p); !ok) return ok.error();
+    }
 
     // Angles.
     if (Status ok =
@@ -165,6 +180,22 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
                                           " frames, more than " +
                                           std::to_string(limits.max_frames));
     p.angles_deg = sweepAngles(c.from_deg(), c.to_deg(), c.step_deg());
+    if (limits.replay) {
+        const auto& frames = limits.replay->frames;
+        for (const double angle : p.angles_deg) {
+            const bool recorded = std::any_of(frames.begin(), frames.end(), [&](const auto& f) {
+                return std::abs(f.angle_deg - angle) <= 1e-6;
+            });
+            if (!recorded) {
+                std::string have;
+                for (size_t i = 0; i < frames.size() && i < 8; ++i)
+                    have += (i ? ", " : "") + num(frames[i].angle_deg);
+                return bad("config.step_deg", "the recorded sweep has no frame at " + num(angle) +
+                                                  " deg (it has " + have +
+                                                  (frames.size() > 8 ? ", ..." : "") + ")");
+            }
+        }
+    }
 
     // The bracket and the sensor.
     if (c.exposure_times_s().empty())
@@ -184,8 +215,15 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
     if (c.gain() == 0.0) c.set_gain(1.0);
     if (Status ok = inRange("config.gain", c.gain(), limits.min_gain, limits.max_gain); !ok)
         return ok.error();
-    if (c.width_px() == 0) c.set_width_px(640);
-    if (c.height_px() == 0) c.set_height_px(427);
+    const int64_t default_width = limits.replay ? limits.replay->header.capture.width_px : 640;
+    const int64_t default_height = limits.replay ? limits.replay->header.capture.height_px : 427;
+    if (c.width_px() == 0) c.set_width_px(static_cast<uint32_t>(default_width));
+    if (c.height_px() == 0) c.set_height_px(static_cast<uint32_t>(default_height));
+    if (limits.replay && (c.width_px() != default_width || c.height_px() != default_height))
+        return bad("config.width_px",
+                   "the recorded sweep's frames are " + std::to_string(default_width) + " x " +
+                       std::to_string(default_height) + " (got " + std::to_string(c.width_px()) +
+                       " x " + std::to_string(c.height_px()) + ")");
     if (c.width_px() > hdr::kSweepMaxSide || c.height_px() > hdr::kSweepMaxSide)
         return bad(c.width_px() > hdr::kSweepMaxSide ? "config.width_px" : "config.height_px",
                    "must be 1.." + std::to_string(hdr::kSweepMaxSide));

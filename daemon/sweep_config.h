@@ -11,11 +11,13 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "common/result.h"
+#include "hdr/sweep.h"
 #include "optics/lens.h"
 #include "proto/daemon.pb.h"
 
@@ -37,6 +39,9 @@ struct SweepLimits {
     double min_gain = 1.0;
     double max_gain = 16.0;
     double readout_s = 0.03;
+    // The rig is a recorded sweep played back (flarelabd --replay) when set: then a config must
+    // leave `sim` out, its angles must be recorded ones, and its frame size is the recording's.
+    std::shared_ptr<const hdr::Sweep> replay;
 };
 
 struct PreparedSweep {
@@ -44,7 +49,7 @@ struct PreparedSweep {
     std::vector<double> angles_deg;    // increasing, on the step grid, rounded to a nanodegree
     std::vector<double> exposure_times_s;
     std::string output_dir;            // absolute, normalised, below the output root
-    std::optional<optics::Lens> lens;  // the simulated camera's
+    std::optional<optics::Lens> lens;  // the simulated camera's; none when replaying
     double rig_time_s = 0.0;           // exposures, readouts and moves, from angle 0
     std::vector<std::string> warnings;
 };

@@ -1,6 +1,7 @@
 #include "daemon/sweep_runner.h"
 
 #include <fcntl.h>
+#include <malloc.h>
 #include <sys/statvfs.h>
 
 #include <chrono>
@@ -15,6 +16,7 @@
 
 #include "common/file_descriptor.h"
 #include "daemon/bounded_queue.h"
+#include "drivers/replay.h"
 #include "drivers/sim_camera.h"
 #include "drivers/sim_head.h"
 #include "fit/frame.h"
@@ -129,8 +131,9 @@ private:
     const RunnerOptions& options_;
     JobControl& control_;
     PreparedSweep sweep_;
-    std::shared_ptr<drivers::SimHead> head_;
-    std::unique_ptr<drivers::SimCamera> camera_;
+    std::shared_ptr<drivers::Head> head_;
+    std::shared_ptr<drivers::Camera> camera_;
+    drivers::SimCamera* sim_camera_ = nullptr;  // camera_, when the rig is the simulated one
     std::mutex mutex_;
     RunResult result_;
     std::atomic<bool> failed_{false};
@@ -142,48 +145,43 @@ private:
 };
 
 Status SweepJob::makeRig() {
-    const v1::SimSettings& sim = sweep_.config.sim();
-    auto clock = std::make_shared<drivers::SimClock>(sim.fast() ? drivers::SimTime::Fast
-                                                                : drivers::SimTime::RealTime);
-    drivers::SimHeadOptions head;
-    head.seed = sim.seed();
-    head.min_deg = options_.limits.head_min_deg;
-    head.max_deg = options_.limits.head_max_deg;
-    head.speed_deg_s = options_.limits.head_speed_deg_s;
-    head.acceleration_deg_s2 = options_.limits.head_acceleration_deg_s2;
-    head.settle_s = options_.limits.head_settle_s;
-    if (sim.faults().has_head_stall_at_deg())
-        head.faults.stall_at_deg = sim.faults().head_stall_at_deg();
-    head.faults.hang_moves = static_cast<int>(sim.faults().head_hangs());
-    auto made_head = drivers::SimHead::make(head, clock);
-    if (!made_head) return made_head.error();
-    head_ = std::move(*made_head);
-    drivers::SimCameraOptions camera;
-    camera.width_px = sweep_.config.width_px();
-    camera.height_px = sweep_.config.height_px();
-    camera.seed = sim.seed();
-    camera.gain = sweep_.config.gain();
-    camera.readout_s = options_.limits.readout_s;
-    auto made_camera = drivers::SimCamera::make(*sweep_.lens, camera, head_);
-    if (!made_camera) return made_camera.error();
-    camera_ = std::move(*made_camera);
+    if (const auto& replay = options_.limits.replay) {
+        auto head = std::make_shared<drivers::ReplayHead>(replay);
+        camera_ = std::make_shared<drivers::ReplayCamera>(replay, head);
+        head_ = std::move(head);
+        return Ok{};
+    }
+    auto rig = makeSimRig(sweep_, options_.limits);
+    if (!rig) return rig.error();
+    head_ = std::move(rig->head);
+    sim_camera_ = rig->camera.get();
+    camera_ = std::move(rig->camera);
     return Ok{};
 }
 
 Result<hdr::SweepWriter> SweepJob::openSweep() {
     const v1::SweepConfig& c = sweep_.config;
-    const optics::Lens& lens = *sweep_.lens;
     hdr::SweepHeader header;
-    header.software_version = options_.software_version + " (simulated rig)";
-    header.lens.description = lens.name();
-    header.camera.description = camera_->identity().model;
-    header.camera.serial = camera_->identity().serial;
-    header.camera.bit_depth = camera_->capabilities().bit_depth;
-    header.camera.pixel_pitch_um =
-        1000.0 * lens.camera().sensor_width_mm / static_cast<double>(c.width_px());
-    if (lens.camera().f_number > 0.0) header.lens.f_number = lens.camera().f_number;
-    if (lens.camera().focal_length_mm > 0.0)
-        header.lens.focal_length_mm = lens.camera().focal_length_mm;
+    if (const auto& replay = options_.limits.replay) {
+        // The lens and camera are the recording's.
+        header.software_version =
+            options_.software_version + " (replay of " + replay->directory + ")";
+        header.lens = replay->header.lens;
+        header.camera = replay->header.camera;
+        header.camera.bit_depth = camera_->capabilities().bit_depth;
+    } else {
+        const optics::Lens& lens = *sweep_.lens;
+        header.software_version = options_.software_version + " (simulated rig)";
+        header.lens.description = lens.name();
+        header.camera.description = camera_->identity().model;
+        header.camera.serial = camera_->identity().serial;
+        header.camera.bit_depth = camera_->capabilities().bit_depth;
+        header.camera.pixel_pitch_um =
+            1000.0 * lens.camera().sensor_width_mm / static_cast<double>(c.width_px());
+        if (lens.camera().f_number > 0.0) header.lens.f_number = lens.camera().f_number;
+        if (lens.camera().focal_length_mm > 0.0)
+            header.lens.focal_length_mm = lens.camera().focal_length_mm;
+    }
     header.capture.from_deg = c.from_deg();
     header.capture.to_deg = c.to_deg();
     header.capture.step_deg = c.step_deg();
@@ -261,11 +259,11 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
     const v1::SimFaults& faults = sweep_.config.sim().faults();
     for (;;) {
         ++captures_;
-        if (faults.camera_timeouts() > 0 &&
+        if (sim_camera_ && faults.camera_timeouts() > 0 &&
             captures_ == std::max<size_t>(1, faults.camera_timeouts_from_capture())) {
-            drivers::SimCameraFaults f = camera_->faults();
+            drivers::SimCameraFaults f = sim_camera_->faults();
             f.time_out_captures = static_cast<int>(faults.camera_timeouts());
-            camera_->setFaults(f);
+            sim_camera_->setFaults(f);
         }
         const double timeout_s = 2.0 * (exposure_s + options_.limits.readout_s) + 2.0;
         auto frame = [&]() -> Result<hdr::RawFrame> {
@@ -329,10 +327,10 @@ void SweepJob::captureLoop(size_t first, BoundedQueue<Captured>& queue) {
             e.set_elapsed_s(elapsed);
             // Measured once a frame is done; before, the rig's own time (unknown in simulated
             // time, where a frame takes what it renders).
-            const double per_frame = captured_this_run_ > 0
-                                         ? elapsed / static_cast<double>(captured_this_run_)
-                                     : sweep_.config.sim().fast() ? 0.0
-                                                                  : bracket_s;
+            const double per_frame =
+                captured_this_run_ > 0 ? elapsed / static_cast<double>(captured_this_run_)
+                : !sweep_.config.has_sim() || sweep_.config.sim().fast() ? 0.0
+                                                                         : bracket_s;
             e.set_eta_s(per_frame * static_cast<double>(total - i));
             control_.event(std::move(e));
         }
@@ -410,6 +408,11 @@ void SweepJob::processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writ
         }
         const uint32_t done = static_cast<uint32_t>(writer.sweep().frames.size());
         on_disk_ = done;
+        // Every frame allocates and frees the same large buffers (brackets, merge, EXR, the
+        // manifest's text) on this thread and the camera's; glibc keeps what is freed in the
+        // threads' arenas, which then grow with the sweep. Handing it back now and then keeps
+        // the daemon's resident memory flat however long the sweep (README, "measured").
+        if (done % 16 == 0) ::malloc_trim(0);
         control_.setFramesDone(done);
         v1::JobEvent e;
         e.set_kind(v1::FRAME);
@@ -432,10 +435,11 @@ void SweepJob::fitModel() {
             hdr::clippingWarning(hdr::clippedFrames(*sweep), sweep->frames.size());
         !w.empty())
         control_.warning(w);
-    const optics::Lens& lens = *sweep_.lens;
-    const std::array<double, 2> sensor = {lens.camera().sensor_width_mm,
-                                          lens.camera().sensor_height_mm};
-    auto size = fit::sweepSensorSize(*sweep, &sensor);
+    // The simulated lens's sensor; a recording's pixel pitch.
+    std::array<double, 2> sensor = {0.0, 0.0};
+    if (sweep_.lens)
+        sensor = {sweep_.lens->camera().sensor_width_mm, sweep_.lens->camera().sensor_height_mm};
+    auto size = fit::sweepSensorSize(*sweep, sweep_.lens ? &sensor : nullptr);
     if (!size) return fail("fit: " + size.error().message);
     fit::SweepFitOptions options;
     options.cancel = &control_.stopFlag();
@@ -459,9 +463,11 @@ void SweepJob::fitModel() {
         if (control_.stopFlag()) return;  // stopped, not failed
         return fail("fit: " + model.error().message);
     }
-    model->lens.prescription_file = sweep_.config.sim().lens().name();
-    if (!model->lens.f_number && lens.camera().f_number > 0.0)
-        model->lens.f_number = lens.camera().f_number;
+    if (sweep_.lens) {
+        model->lens.prescription_file = sweep_.config.sim().lens().name();
+        if (!model->lens.f_number && sweep_.lens->camera().f_number > 0.0)
+            model->lens.f_number = sweep_.lens->camera().f_number;
+    }
     const std::string path = (fs::path(sweep_.output_dir) / hdr::kSweepModelFile).string();
     if (Status ok = fit::writeModel(path, *model); !ok) return fail("fit: " + ok.error().message);
     const std::string text = fit::describeModel(*model, path);
@@ -535,7 +541,8 @@ RunResult SweepJob::run() {
                          std::to_string(sweep_.angles_deg.size()) + " (" +
                          num(sweep_.angles_deg[std::min(first_, sweep_.angles_deg.size() - 1)]) +
                          " deg): the frames before are on disk");
-    camera_->setSequence(static_cast<int64_t>(first_ * sweep_.exposure_times_s.size()));
+    if (sim_camera_)
+        sim_camera_->setSequence(static_cast<int64_t>(first_ * sweep_.exposure_times_s.size()));
 
     control_.setPhase(v1::CAPTURE);
     capture_start_ = Clock::now();
@@ -565,6 +572,36 @@ RunResult SweepJob::run() {
 }
 
 }  // namespace
+
+Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits) {
+    const v1::SimSettings& sim = sweep.config.sim();
+    auto clock = std::make_shared<drivers::SimClock>(sim.fast() ? drivers::SimTime::Fast
+                                                                : drivers::SimTime::RealTime);
+    drivers::SimHeadOptions head;
+    head.seed = sim.seed();
+    head.min_deg = limits.head_min_deg;
+    head.max_deg = limits.head_max_deg;
+    head.speed_deg_s = limits.head_speed_deg_s;
+    head.acceleration_deg_s2 = limits.head_acceleration_deg_s2;
+    head.settle_s = limits.head_settle_s;
+    if (sim.faults().has_head_stall_at_deg())
+        head.faults.stall_at_deg = sim.faults().head_stall_at_deg();
+    head.faults.hang_moves = static_cast<int>(sim.faults().head_hangs());
+    auto made_head = drivers::SimHead::make(head, clock);
+    if (!made_head) return made_head.error();
+    SimRig rig;
+    rig.head = std::move(*made_head);
+    drivers::SimCameraOptions camera;
+    camera.width_px = sweep.config.width_px();
+    camera.height_px = sweep.config.height_px();
+    camera.seed = sim.seed();
+    camera.gain = sweep.config.gain();
+    camera.readout_s = limits.readout_s;
+    auto made_camera = drivers::SimCamera::make(*sweep.lens, camera, rig.head);
+    if (!made_camera) return made_camera.error();
+    rig.camera = std::move(*made_camera);
+    return rig;
+}
 
 RunResult runSweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control) {
     SweepJob sweep(job, options, control);

@@ -32,9 +32,12 @@
 #include <atomic>
 #include <cstdint>
 #include <functional>
+#include <memory>
 #include <string>
 
 #include "daemon/sweep_config.h"
+#include "drivers/sim_camera.h"
+#include "drivers/sim_head.h"
 #include "proto/daemon.pb.h"
 
 namespace flarelab::daemon {
@@ -84,6 +87,15 @@ struct RunResult {
     double fit_wall_s = 0.0;
     size_t queue_high_water = 0;
 };
+
+// The simulated rig a prepared sweep runs on: a head with the limits' motion and the config's
+// injected faults, and a camera with the lens, size, gain and seed, sharing one clock (simulated
+// time when config.sim.fast, else real time).
+struct SimRig {
+    std::shared_ptr<drivers::SimHead> head;
+    std::unique_ptr<drivers::SimCamera> camera;
+};
+Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits);
 
 // Runs `job` (its config must have passed prepareSweep with the same root and limits).
 RunResult runSweepJob(const flarelab::v1::Job& job,

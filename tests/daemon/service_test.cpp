@@ -82,6 +82,11 @@ TEST(Service, ARetriedStartWithTheSameRequestIdStartsOneJob) {
     EXPECT_EQ(startSweep(*stub, config, &other, "test", "bad id!").error_code(),
               grpc::StatusCode::INVALID_ARGUMENT);
     watchToEnd(*stub, first.id());
+    // Retried after the job finished (its directory now holds the sweep): still the same job.
+    v1::Job late;
+    ASSERT_TRUE(startSweep(*stub, config, &late, "test", "req-1").ok());
+    EXPECT_EQ(late.id(), first.id());
+    EXPECT_EQ(late.state(), v1::SUCCEEDED);
     v1::ListJobsResponse list;
     auto ctx = context();
     ASSERT_TRUE(stub->ListJobs(ctx.get(), {}, &list).ok());
