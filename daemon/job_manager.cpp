@@ -157,6 +157,7 @@ Result<std::unique_ptr<JobManager>> JobManager::open(ManagerOptions options,
         }
     }
     manager->worker_ = std::thread([m = manager.get()] { m->work(); });
+    manager->fitter_ = std::thread([m = manager.get()] { m->fitWork(); });
     return manager;
 }
 
@@ -165,12 +166,13 @@ JobManager::~JobManager() { shutdown(); }
 void JobManager::shutdown() {
     {
         std::lock_guard lock(mutex_);
-        if (shutting_down_ && !worker_.joinable()) return;
         shutting_down_ = true;
-        if (running_control_) running_control_->requestStop();
+        for (auto& [number, e] : jobs_)
+            if (e.control) e.control->requestStop();
         changed_cv_.notify_all();
     }
     if (worker_.joinable()) worker_.join();
+    if (fitter_.joinable()) fitter_.join();
 }
 
 bool JobManager::ended(const v1::Job& job) {
@@ -204,6 +206,43 @@ void JobManager::changed(Entry& entry, const std::string& log_note) {
     emit(entry, std::move(event));
 }
 
+// With mutex_ held: the job after a stage, as `result` says.
+void JobManager::finish(Entry& e, const RunResult& result) {
+    e.job.set_frames_done(std::max(e.job.frames_done(), result.frames_on_disk));
+    std::ostringstream note;
+    switch (result.outcome) {
+        case RunOutcome::Captured:  // on to the fit thread
+            e.job.set_phase(v1::FITTING);
+            fit_queue_.push_back(jobNumber(e.job.id()));
+            note << "captured in " << result.capture_wall_s << " s, queue high water "
+                 << result.queue_high_water << "; fit queued";
+            changed(e, note.str());
+            return;
+        case RunOutcome::Succeeded:
+            e.job.set_state(v1::SUCCEEDED);
+            e.job.set_phase(v1::FINISHED);
+            e.job.set_model_file(result.model_file);
+            break;
+        case RunOutcome::Failed:
+            e.job.set_state(v1::FAILED);
+            e.job.set_reason(result.reason);
+            break;
+        case RunOutcome::Stopped:
+            if (e.cancel_requested) {
+                e.job.set_state(v1::CANCELLED);
+                if (e.job.reason().empty()) e.job.set_reason("cancelled");
+            } else if (e.job.state() != v1::PAUSED) {
+                e.job.set_state(v1::INTERRUPTED);
+                e.job.set_reason("the daemon stopped; it resumes the job at its next start");
+            }
+            break;
+    }
+    e.control.reset();
+    note << "capture " << result.capture_wall_s << " s, fit " << result.fit_wall_s
+         << " s, queue high water " << result.queue_high_water;
+    changed(e, note.str());
+}
+
 void JobManager::work() {
     std::unique_lock lock(mutex_);
     for (;;) {
@@ -222,42 +261,46 @@ void JobManager::work() {
         next->job.set_state(v1::RUNNING);
         next->job.set_reason("");
         next->job.set_phase(v1::HOMING);
+        next->control = std::make_unique<Control>(*this, number);
         changed(*next, "started");
-        Control control(*this, number);
+        Control& control = *next->control;
         running_ = next->job.id();
-        running_control_ = &control;
         const v1::Job job = next->job;
         lock.unlock();
         const RunResult result = runSweepJob(job, options_.runner, control);
         lock.lock();
-        running_control_ = nullptr;
         running_.clear();
-        Entry& e = jobs_.at(number);
-        e.job.set_frames_done(result.frames_on_disk);
-        switch (result.outcome) {
-            case RunOutcome::Succeeded:
-                e.job.set_state(v1::SUCCEEDED);
-                e.job.set_phase(v1::FINISHED);
-                e.job.set_model_file(result.model_file);
-                break;
-            case RunOutcome::Failed:
-                e.job.set_state(v1::FAILED);
-                e.job.set_reason(result.reason);
-                break;
-            case RunOutcome::Stopped:
-                if (e.cancel_requested) {
-                    e.job.set_state(v1::CANCELLED);
-                    if (e.job.reason().empty()) e.job.set_reason("cancelled");
-                } else if (e.job.state() != v1::PAUSED) {
-                    e.job.set_state(v1::INTERRUPTED);
-                    e.job.set_reason("the daemon stopped; it resumes the job at its next start");
-                }
-                break;
+        finish(jobs_.at(number), result);
+    }
+}
+
+void JobManager::fitWork() {
+    std::unique_lock lock(mutex_);
+    for (;;) {
+        changed_cv_.wait(lock, [&] { return shutting_down_ || !fit_queue_.empty(); });
+        if (shutting_down_) {
+            // Fits not begun: their jobs resume at the next start (the frames are on disk).
+            for (const uint64_t number : fit_queue_) {
+                Entry& e = jobs_.at(number);
+                RunResult stopped;
+                stopped.outcome = RunOutcome::Stopped;
+                finish(e, stopped);
+            }
+            fit_queue_.clear();
+            return;
         }
-        std::ostringstream note;
-        note << "capture " << result.capture_wall_s << " s, fit " << result.fit_wall_s
-             << " s, queue high water " << result.queue_high_water;
-        changed(e, note.str());
+        const uint64_t number = fit_queue_.front();
+        fit_queue_.pop_front();
+        Entry& e = jobs_.at(number);
+        const v1::Job job = e.job;
+        Control& control = *e.control;
+        lock.unlock();
+        RunResult result;
+        result.outcome = RunOutcome::Stopped;  // cancelled while waiting for this thread
+        result.frames_on_disk = job.frames_done();
+        if (!control.stopFlag()) result = fitSweepJob(job, options_.runner, control);
+        lock.lock();
+        finish(jobs_.at(number), result);
     }
 }
 
@@ -393,6 +436,10 @@ Status JobManager::pause(const v1::JobControlRequest& request,
     if (state != v1::QUEUED && state != v1::RUNNING && state != v1::PAUSED)
         return Status(StatusCode::FAILED_PRECONDITION,
                       "pause " + e->job.id() + ": the job is " + v1::JobState_Name(state));
+    if (e->job.phase() == v1::FITTING)
+        return Status(StatusCode::FAILED_PRECONDITION,
+                      "pause " + e->job.id() +
+                          ": the job is fitting, which holds no device; cancel it or let it end");
     if (state != v1::PAUSED) {
         e->job.set_state(v1::PAUSED);
         e->job.set_reason("paused by " + client);
@@ -417,7 +464,7 @@ Status JobManager::resume(const v1::JobControlRequest& request,
     if (state != v1::PAUSED && state != v1::INTERRUPTED)
         return Status(StatusCode::FAILED_PRECONDITION,
                       "resume " + e->job.id() + ": the job is " + v1::JobState_Name(state));
-    e->job.set_state(running_ == e->job.id() ? v1::RUNNING : v1::QUEUED);
+    e->job.set_state(e->control ? v1::RUNNING : v1::QUEUED);
     e->job.set_reason("");
     changed(*e, "resumed by " + client);
     *job = e->job;
@@ -436,9 +483,10 @@ Status JobManager::cancel(const v1::JobControlRequest& request,
                                                            v1::JobState_Name(e->job.state()));
     e->cancel_requested = true;
     e->job.set_reason("cancelled by " + client);
-    if (running_ == e->job.id()) {
-        // The worker ends it once the frames captured so far are written.
-        if (running_control_) running_control_->requestStop();
+    if (e->control) {
+        // Its stage ends it: the capture once the frames captured so far are written, the fit
+        // before its next frame.
+        e->control->requestStop();
         changed_cv_.notify_all();
         logEvent(LogLevel::Info, "job.cancel_requested",
                  {{"job", e->job.id()}, {"client", client}});

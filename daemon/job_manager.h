@@ -2,10 +2,12 @@
 //  flarelab daemon: ManagerOptions, JobManager, WatchBatch
 // ============================================================================
 //
-// The daemon's jobs: the one owner of the rig. Jobs run one at a time, in the order they were
-// started, on a worker thread (daemon/sweep_runner.h); the others wait QUEUED. Every change of a
-// job is written to the journal (daemon/journal.h) before it is announced, and announced as an
-// event that any number of watchers can follow.
+// The daemon's jobs: the one owner of the rig. Jobs capture one at a time, in the order they were
+// started, on a worker thread (daemon/sweep_runner.h); the others wait QUEUED. A job that asks
+// for a fit is fitted on a second thread once captured (phase FITTING, still RUNNING), while the
+// rig goes on with the next job; a fitting job cannot pause (it holds no device) but can cancel.
+// Every change of a job is written to the journal (daemon/journal.h) before it is announced, and
+// announced as an event that any number of watchers can follow.
 //
 // States and what moves them:
 //
@@ -104,17 +106,20 @@ public:
     const ManagerOptions& options() const { return options_; }
 
 private:
+    class Control;
+    friend class Control;
     struct Entry {
         flarelab::v1::Job job;
         std::deque<flarelab::v1::JobEvent> events;
         uint64_t next_sequence = 1;
         bool cancel_requested = false;
+        std::unique_ptr<Control> control;  // while the job runs a stage
     };
-    class Control;
-    friend class Control;
 
     explicit JobManager(ManagerOptions options, Journal journal);
-    void work();
+    void work();     // the capture worker: one job at a time owns the rig
+    void fitWork();  // the fit worker: fits finished captures while the rig goes on
+    void finish(Entry& entry, const RunResult& result);
     // With mutex_ held: persist and announce a change of `entry`.
     void changed(Entry& entry, const std::string& log_note = "");
     void emit(Entry& entry, flarelab::v1::JobEvent event);
@@ -133,10 +138,10 @@ private:
     std::map<uint64_t, Entry> jobs_;              // by job number
     std::map<std::string, uint64_t> by_request_;
     uint64_t next_number_ = 1;
-    std::string running_;
-    Control* running_control_ = nullptr;
+    std::string running_;             // the job capturing, if any
+    std::deque<uint64_t> fit_queue_;  // jobs captured and waiting for their fit
     bool shutting_down_ = false;
-    std::thread worker_;
+    std::thread worker_, fitter_;
 };
 
 }  // namespace flarelab::daemon

@@ -100,12 +100,20 @@ Result<std::vector<std::string>> setAsideUnlisted(const hdr::Sweep& sweep, const
     return moved;
 }
 
+// The job's own sweep may be on disk already (a resumed job): a sweep that is not its own was
+// refused when the job was started, and SweepWriter refuses one whose settings differ.
+v1::SweepConfig resumable(v1::SweepConfig config) {
+    config.set_resume_existing(true);
+    return config;
+}
+
 class SweepJob {
 public:
     SweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control)
         : job_(job), options_(options), control_(control) {}
 
-    RunResult run();
+    RunResult run();  // capture
+    RunResult fit();
 
 private:
     Status makeRig();
@@ -481,11 +489,7 @@ void SweepJob::fitModel() {
 }
 
 RunResult SweepJob::run() {
-    // The job's own sweep may be on disk already (a resumed job): a sweep that is not its own
-    // was refused when the job was started, and SweepWriter refuses one whose settings differ.
-    v1::SweepConfig config = job_.config();
-    config.set_resume_existing(true);
-    auto prepared = prepareSweep(config, options_.output_root, options_.limits);
+    auto prepared = prepareSweep(resumable(job_.config()), options_.output_root, options_.limits);
     if (!prepared) {
         result_.reason = prepared.error().message;
         return result_;
@@ -558,16 +562,20 @@ RunResult SweepJob::run() {
         result_.outcome = RunOutcome::Stopped;
         return result_;
     }
-    if (sweep_.config.fit()) {
-        writer.reset();  // releases the directory lock
-        fitModel();
-        if (failed_) return result_;
-        if (result_.model_file.empty()) {
-            result_.outcome = RunOutcome::Stopped;
-            return result_;
-        }
+    result_.outcome = sweep_.config.fit() ? RunOutcome::Captured : RunOutcome::Succeeded;
+    return result_;
+}
+
+RunResult SweepJob::fit() {
+    auto prepared = prepareSweep(resumable(job_.config()), options_.output_root, options_.limits);
+    if (!prepared) {
+        result_.reason = prepared.error().message;
+        return result_;
     }
-    result_.outcome = RunOutcome::Succeeded;
+    sweep_ = std::move(*prepared);
+    fitModel();
+    if (failed_) return result_;
+    result_.outcome = result_.model_file.empty() ? RunOutcome::Stopped : RunOutcome::Succeeded;
     return result_;
 }
 
@@ -606,6 +614,11 @@ Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits)
 RunResult runSweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control) {
     SweepJob sweep(job, options, control);
     return sweep.run();
+}
+
+RunResult fitSweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control) {
+    SweepJob sweep(job, options, control);
+    return sweep.fit();
 }
 
 }  // namespace flarelab::daemon

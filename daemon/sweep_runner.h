@@ -1,5 +1,6 @@
 // ============================================================================
-//  flarelab daemon: JobControl, RunnerOptions, RunOutcome, RunResult, runSweepJob
+//  flarelab daemon: JobControl, RunnerOptions, RunOutcome, RunResult, SimRig, makeSimRig,
+//                   runSweepJob, fitSweepJob
 // ============================================================================
 //
 // One sweep job from start to end: the rig is made (the simulated rig, from the job's
@@ -11,7 +12,8 @@
 //
 // so head moves and exposures never wait on merging or writing (only on a full queue, which
 // bounds memory: queue_frames brackets at most). When every frame is on disk and the job asks for
-// it, the sweep is fitted into `<sweep>/model.flm` (and `model.txt`, its description).
+// it, fitSweepJob fits the sweep into `<sweep>/model.flm` (and `model.txt`, its description); the
+// daemon runs it on a thread of its own, so the rig goes on with the next job meanwhile.
 //
 // Resuming. A job that finds a manifest in its directory continues it: frames the manifest lists
 // are safely on disk and are not captured again; files it does not list (the frame a crash left
@@ -76,7 +78,8 @@ struct RunnerOptions {
     std::string software_version = "flarelabd";
 };
 
-enum class RunOutcome { Succeeded, Failed, Stopped };
+// Captured: every frame is on disk and the job asks for a fit, which fitSweepJob does.
+enum class RunOutcome { Succeeded, Captured, Failed, Stopped };
 
 struct RunResult {
     RunOutcome outcome = RunOutcome::Failed;
@@ -97,8 +100,14 @@ struct SimRig {
 };
 Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits);
 
-// Runs `job` (its config must have passed prepareSweep with the same root and limits).
+// Runs `job`'s capture (its config must have passed prepareSweep with the same root and
+// limits): Succeeded, or Captured when the job asks for a fit.
 RunResult runSweepJob(const flarelab::v1::Job& job,
+                      const RunnerOptions& options,
+                      JobControl& control);
+// Fits a job's sweep, complete on disk, into `<sweep>/model.flm`. Stopped when control's stop
+// flag is set during the fit.
+RunResult fitSweepJob(const flarelab::v1::Job& job,
                       const RunnerOptions& options,
                       JobControl& control);
 

@@ -380,6 +380,61 @@ TEST(Service, AWatcherThatLeavesDoesNotStopTheJobAndASecondClientWatchesButCanno
     EXPECT_EQ(waitFor(*stub, second.id(), ended).state(), v1::CANCELLED);
 }
 
+TEST(Service, TheRigGoesOnWithTheNextJobWhileTheLastOneFits) {
+    TempDir dir;
+    Daemon daemon(dir.path);
+    auto stub = daemon.stub();
+    // A fit of some seconds, a capture of a few milliseconds.
+    v1::SweepConfig fitted = simConfig("fitted", 0.0, 4.0, 0.2);
+    fitted.set_width_px(320);
+    fitted.set_height_px(213);
+    fitted.set_fit(true);
+    v1::Job a, b;
+    ASSERT_TRUE(startSweep(*stub, fitted, &a).ok());
+    ASSERT_TRUE(startSweep(*stub, simConfig("next", 0.0, 0.2, 0.2), &b).ok());
+    const v1::Job fitting = waitFor(
+        *stub, a.id(), [](const v1::Job& j) { return j.phase() == v1::FITTING || ended(j); });
+    EXPECT_EQ(fitting.phase(), v1::FITTING);
+    // A fit holds no device: it cannot pause, but b captures meanwhile and ends first.
+    v1::JobControlRequest pause;
+    pause.set_job_id(a.id());
+    v1::Job out;
+    auto ctx = context();
+    EXPECT_EQ(stub->PauseJob(ctx.get(), pause, &out).error_code(),
+              grpc::StatusCode::FAILED_PRECONDITION);
+    const v1::Job last_b = waitFor(*stub, b.id(), ended);
+    const v1::Job now_a = waitFor(*stub, a.id(), [](const v1::Job&) { return true; });
+    EXPECT_EQ(last_b.state(), v1::SUCCEEDED);
+    EXPECT_EQ(now_a.phase(), v1::FITTING) << "the fit ended before the next capture did";
+    const v1::Job last_a = waitFor(*stub, a.id(), ended);
+    EXPECT_EQ(last_a.state(), v1::SUCCEEDED) << last_a.reason();
+    EXPECT_TRUE(fs::exists(last_a.model_file()));
+}
+
+TEST(Service, CancellingAFitStopsItAndKeepsTheSweep) {
+    TempDir dir;
+    Daemon daemon(dir.path);
+    auto stub = daemon.stub();
+    v1::SweepConfig fitted = simConfig("cancelled-fit", 0.0, 3.0, 0.2);
+    fitted.set_width_px(160);
+    fitted.set_height_px(107);
+    fitted.set_fit(true);
+    v1::Job job;
+    ASSERT_TRUE(startSweep(*stub, fitted, &job).ok());
+    waitFor(*stub, job.id(), [](const v1::Job& j) { return j.phase() == v1::FITTING || ended(j); });
+    v1::JobControlRequest cancel;
+    cancel.set_job_id(job.id());
+    v1::Job out;
+    auto ctx = context();
+    ASSERT_TRUE(stub->CancelJob(ctx.get(), cancel, &out).ok());
+    const v1::Job last = waitFor(*stub, job.id(), ended);
+    EXPECT_EQ(last.state(), v1::CANCELLED);
+    EXPECT_FALSE(fs::exists(job.output_dir() + "/model.flm"));
+    auto sweep = hdr::readSweep(job.output_dir(), strictRead());
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    EXPECT_EQ(sweep->frames.size(), 16u);
+}
+
 TEST(Service, PauseAndResumeHoldTheRigBetweenFrames) {
     TempDir dir;
     Daemon daemon(dir.path);
