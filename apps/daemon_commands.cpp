@@ -169,13 +169,15 @@ int watch(Client& client, const std::string& id, std::ostream& out, std::ostream
         const bool fitting = event.kind() == v1::FIT_PROGRESS;
         if (!fitting && event.kind() != v1::FRAME && !(terminal && event.kind() == v1::EXPOSURE))
             continue;
-        const uint32_t total = std::max<uint32_t>(1, event.job().frames_total());
+        const uint32_t total = std::max<uint32_t>(
+            1, fitting ? event.fit_frames_total() : event.job().frames_total());
         const uint32_t done = fitting ? event.frame_index() : event.job().frames_done();
         std::ostringstream line;
         constexpr int kWidth = 30;
         const int filled = static_cast<int>(kWidth * std::min(done, total) / total);
         line << (fitting ? "fit     " : "capture ") << "[" << std::string(filled, '#')
-             << std::string(kWidth - filled, ' ') << "] " << done << "/" << total << " frames";
+             << std::string(kWidth - filled, ' ') << "] " << done << "/" << total
+             << (fitting ? " frame fits" : " frames");
         if (!fitting)
             line << ", " << std::fixed << std::setprecision(2) << event.angle_deg() << " deg";
         line << ", " << duration(event.elapsed_s()) << " elapsed, ETA "

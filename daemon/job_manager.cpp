@@ -238,8 +238,10 @@ void JobManager::finish(Entry& e, const RunResult& result) {
             break;
     }
     e.control.reset();
-    note << "capture " << result.capture_wall_s << " s, fit " << result.fit_wall_s
-         << " s, queue high water " << result.queue_high_water;
+    if (result.capture_wall_s > 0.0)
+        note << "capture " << result.capture_wall_s << " s, queue high water "
+             << result.queue_high_water;
+    if (result.fit_wall_s > 0.0) note << "fit " << result.fit_wall_s << " s";
     changed(e, note.str());
 }
 

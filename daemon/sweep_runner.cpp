@@ -455,6 +455,7 @@ void SweepJob::fitModel() {
         v1::JobEvent e;
         e.set_kind(v1::FIT_PROGRESS);
         e.set_frame_index(static_cast<uint32_t>(p.frames_done));
+        e.set_fit_frames_total(static_cast<uint32_t>(p.frames_total));
         e.set_angle_deg(p.angle_deg);
         const double elapsed = secondsSince(start);
         e.set_elapsed_s(elapsed);

@@ -250,7 +250,8 @@ TEST(Service, PersistentCameraTimeoutsPauseTheJobUntilResumed) {
         waitFor(*stub, job.id(), [](const v1::Job& j) { return j.state() == v1::PAUSED; });
     EXPECT_NE(paused.reason().find("camera timed out 4 times"), std::string::npos)
         << paused.reason();
-    EXPECT_EQ(paused.frames_done(), 1u);
+    waitFor(*stub, job.id(),
+            [](const v1::Job& j) { return j.state() == v1::PAUSED && j.frames_done() == 1; });
     v1::JobControlRequest resume;
     resume.set_job_id(job.id());
     v1::Job resumed;
@@ -275,7 +276,9 @@ TEST(Service, AStalledHeadStopsTheRigAndKeepsWhatWasWritten) {
         waitFor(*stub, job.id(), [](const v1::Job& j) { return j.state() == v1::PAUSED; });
     EXPECT_NE(paused.reason().find("head stalled"), std::string::npos) << paused.reason();
     EXPECT_NE(paused.reason().find("rig is stopped"), std::string::npos) << paused.reason();
-    EXPECT_EQ(paused.frames_done(), 3u);  // 0, 0.2, 0.4
+    // 0, 0.2 and 0.4 deg: the last may still be on its way to disk when the capture pauses.
+    waitFor(*stub, job.id(),
+            [](const v1::Job& j) { return j.state() == v1::PAUSED && j.frames_done() == 3; });
     v1::JobControlRequest cancel;
     cancel.set_job_id(job.id());
     v1::Job cancelled;
@@ -448,10 +451,19 @@ TEST(Service, PauseAndResumeHoldTheRigBetweenFrames) {
     auto ctx = context();
     ASSERT_TRUE(stub->PauseJob(ctx.get(), request, &out).ok());
     EXPECT_EQ(out.state(), v1::PAUSED);
-    std::this_thread::sleep_for(std::chrono::milliseconds(600));  // a frame at most finishes
-    const v1::Job held = waitFor(*stub, job.id(), [](const v1::Job&) { return true; });
-    std::this_thread::sleep_for(std::chrono::milliseconds(800));
-    const v1::Job still = waitFor(*stub, job.id(), [](const v1::Job&) { return true; });
+    // The frame under way when the pause came is finished and written; then nothing moves.
+    const auto now = [&] { return waitFor(*stub, job.id(), [](const v1::Job&) { return true; }); };
+    v1::Job held = now();
+    for (int i = 0; i < 50; ++i) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(600));
+        const v1::Job again = now();
+        if (again.frames_done() == held.frames_done()) break;
+        held = again;
+    }
+    EXPECT_LE(held.frames_done(), out.frames_done() + 2);  // one in the queue, one under way
+    std::this_thread::sleep_for(std::chrono::milliseconds(1000));
+    const v1::Job still = now();
+    EXPECT_EQ(still.state(), v1::PAUSED);
     EXPECT_EQ(held.frames_done(), still.frames_done());
     EXPECT_LT(still.frames_done(), 9u);
     auto ctx2 = context();
