@@ -23,6 +23,7 @@
 #include "daemon/job_manager.h"
 #include "daemon/log.h"
 #include "daemon/service.h"
+#include "daemon/sweep_runner.h"
 #include "hdr/sweep.h"
 
 namespace {
@@ -39,6 +40,7 @@ bool isLoopback(const std::string& address) {
 }
 
 int run(int argc, char** argv) {
+    settleAllocator();
     CLI::App app{"flarelabd: the flarelab rig daemon (sweeps as jobs, over gRPC)"};
     std::string state_dir, output_root, listen, token_file, replay, log_level = "info";
     bool no_resume = false, allow_remote = false;

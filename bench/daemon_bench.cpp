@@ -9,8 +9,9 @@
 //       of R, both wall times, their ratio and the ratio to the rig's own time (exposures + head
 //       moves, the simulated camera's readout set to 0 so that it is exactly that sum).
 //   daemon_bench memory --frames N [--width W] [--height H]
-//       A job of N frames in simulated time (as fast as it renders); prints the resident memory
-//       (VmRSS) after frame 10, N/4, N/2 and N, and the peak (VmHWM).
+//       A job of N frames from 0 to 20 degrees in simulated time (as fast as it renders); prints
+//       the resident memory (VmRSS) after frame 10, N/8, N/4, N/2, 3N/4 and N, and the peak
+//       (VmHWM).
 //   daemon_bench rigmem --frames N [--width W] [--height H]
 //       The same sweep through the simulated rig alone (no merge, no files), the baseline of
 //       what the simulator and the allocator warm up to; the same samples.
@@ -131,6 +132,14 @@ v1::SweepConfig config(const Args& a, const std::string& output, bool fast) {
     return c;
 }
 
+// Memory runs cover 0 to 20 degrees whatever their length, so that a short and a long sweep see
+// the same scenes (the renderer's buffers follow the ghosts in view) and differ only in length.
+void spanTwentyDegrees(v1::SweepConfig& c, int frames) {
+    c.set_from_deg(0.0);
+    c.set_step_deg(20.0 / (frames - 1));
+    c.set_to_deg(20.0);
+}
+
 struct Setup {
     std::string root;
     SweepLimits limits;
@@ -237,8 +246,7 @@ std::vector<uint32_t> samplePoints(uint32_t n) {
 int rigMemory(const Args& a) {
     const Setup s = setup();
     v1::SweepConfig c = config(a, "rigmem", true);
-    c.set_step_deg(0.02);
-    c.set_to_deg(0.02 * (a.frames - 1));
+    spanTwentyDegrees(c, a.frames);
     auto p = prepareSweep(c, s.root, s.limits);
     if (!p) throw std::runtime_error(p.error().message);
     auto rig = makeSimRig(*p, s.limits);
@@ -279,8 +287,7 @@ int memory(const Args& a) {
     const uint32_t n = static_cast<uint32_t>(a.frames);
     control.sample_at = samplePoints(n);
     v1::SweepConfig c = config(a, "memory", true);
-    c.set_step_deg(0.02);
-    c.set_to_deg(0.02 * (a.frames - 1));
+    spanTwentyDegrees(c, a.frames);
     RunResult result;
     const double wall = wholeJob(s, c, control, &result);
     nlohmann::json samples = nlohmann::json::object(), heap = nlohmann::json::object();
@@ -351,6 +358,7 @@ int idle(const Args& a) {
 }  // namespace
 
 int main(int argc, char** argv) {
+    settleAllocator();  // as flarelabd runs
     try {
         Args a;
         if (argc < 2)

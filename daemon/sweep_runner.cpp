@@ -416,10 +416,8 @@ void SweepJob::processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writ
         }
         const uint32_t done = static_cast<uint32_t>(writer.sweep().frames.size());
         on_disk_ = done;
-        // Every frame allocates and frees the same large buffers (brackets, merge, EXR, the
-        // manifest's text) on this thread and the camera's; glibc keeps what is freed in the
-        // threads' arenas, which then grow with the sweep. Handing it back now and then keeps
-        // the daemon's resident memory flat however long the sweep (README, "measured").
+        // What the threads' heaps hold free (small buffers; large ones are mapped, see
+        // settleAllocator) goes back to the system now and then.
         if (done % 16 == 0) ::malloc_trim(0);
         control_.setFramesDone(done);
         v1::JobEvent e;
@@ -581,6 +579,8 @@ RunResult SweepJob::fit() {
 }
 
 }  // namespace
+
+void settleAllocator() { ::mallopt(M_MMAP_THRESHOLD, 256 * 1024); }
 
 Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits) {
     const v1::SimSettings& sim = sweep.config.sim();

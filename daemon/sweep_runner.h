@@ -100,6 +100,13 @@ struct SimRig {
 };
 Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits);
 
+// glibc's malloc, set for a process that runs sweeps for hours: buffers of 256 KiB and more (the
+// brackets, merged frames, EXR and PNG encodings) are always mapped and returned to the system
+// when freed. Left alone, glibc raises that threshold to the largest buffer freed so far, keeps
+// such buffers in its heaps and lets them fragment, and a daemon's resident memory then grew by
+// some 15 % over a 1000-frame sweep (README, "The daemon"). Call once at start, before threads.
+void settleAllocator();
+
 // Runs `job`'s capture (its config must have passed prepareSweep with the same root and
 // limits): Succeeded, or Captured when the job asks for a fit.
 RunResult runSweepJob(const flarelab::v1::Job& job,

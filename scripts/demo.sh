@@ -2,10 +2,11 @@
 # The main job on the built-in simulated rig, as far as the project has come: for every shipped
 # lens, its first-order report and its ghosts at a few light angles (out/lenses/), flare images of
 # two lenses (out/images/, OpenEXR and PNG), and a sweep of the simulated rig: the Heliar from 0
-# to 30 degrees in 0.2 degree steps, three brackets per step merged to HDR (out/sweeps/heliar/,
-# with a PNG preview of every frame), then that sweep fitted into a flare model (out/models/:
-# the model file, its description, its score against the simulator's noiseless ghosts, and the
-# model drawn at a few angles, captured and in between).
+# to 30 degrees in 0.2 degree steps, three brackets per step merged to HDR and fitted into a
+# flare model, run as one job of the rig daemon flarelabd (out/sweeps/heliar/: the frames, a PNG
+# preview of each in previews/, model.flm and its description model.txt), then the model's score
+# against the simulator's noiseless ghosts and the model drawn at a few angles, captured and in
+# between (out/models/).
 set -euo pipefail
 build=${1:-build/release}
 out=${FLARELAB_OUT:-out}
@@ -29,22 +30,45 @@ for shot in heliar-tronnier:5:20 itoh-wide-zoom:8:-30; do
         --width 960 --height 640 --grid 128 --exposure-stops 14 \
         -o "$out/images/$name-$angle.exr" --png "$out/images/$name-$angle.png"
 done
+# The rig daemon runs the sweep and its fit as one job: flarelabd on the simulated rig, driven
+# through its socket by the flarelab client, then stopped with SIGTERM.
+heliar=data/lenses/heliar-tronnier.csv
+state=$(realpath -m "$out/flarelabd")
+if ((${#state} > 80)); then  # a Unix socket path holds at most 107 bytes
+    state=$(mktemp -d /tmp/flarelabd-demo-XXXXXX)
+fi
+export FLARELAB_SOCKET=$state/flarelabd.sock
+export FLARELAB_CLIENT=demo
 rm -rf "$out/sweeps/heliar" "$out/sweeps/heliar-previews"
-"$build/apps/flarelab" capture --sim --fast --lens data/lenses/heliar-tronnier.csv \
+mkdir -p "$out/sweeps"
+"$build/apps/flarelabd" --state-dir "$state" --output-root "$out" 2>"$out/flarelabd.log" &
+daemon=$!
+trap 'kill $daemon 2>/dev/null || true' EXIT
+for _ in $(seq 200); do
+    [[ -S $FLARELAB_SOCKET ]] && break
+    kill -0 $daemon 2>/dev/null || { cat "$out/flarelabd.log" >&2; exit 1; }
+    sleep 0.05
+done
+"$build/apps/flarelab" rig status
+"$build/apps/flarelab" sweep start --sim --fast --lens "$heliar" \
     --from 0 --to 30 --step 0.2 --brackets 0.25,1,4 --width 640 --height 427 \
-    --previews "$out/sweeps/heliar-previews" --preview-stops -12 -o "$out/sweeps/heliar"
+    --previews --preview-stops -12 --fit --watch -o "$out/sweeps/heliar"
+"$build/apps/flarelab" job list
+kill -TERM $daemon
+wait $daemon
+trap - EXIT
+echo "demo: flarelabd stopped; its log is $out/flarelabd.log, its journal $state/jobs/"
 "$build/apps/flarelab" sweep info "$out/sweeps/heliar"
 cat "$out/lenses/heliar-tronnier.txt"
 mkdir -p "$out/models"
-heliar=data/lenses/heliar-tronnier.csv
-"$build/apps/flarelab" fit "$out/sweeps/heliar" --lens "$heliar" -o "$out/models/heliar.flm"
-"$build/apps/flarelab" model show "$out/models/heliar.flm" >"$out/models/heliar.txt"
-"$build/apps/flarelab" score "$out/models/heliar.flm" --lens "$heliar" --json \
+model=$out/sweeps/heliar/model.flm
+cp "$out/sweeps/heliar/model.txt" "$out/models/heliar.txt"
+"$build/apps/flarelab" score "$model" --lens "$heliar" --json \
     >"$out/models/heliar.score.json"
-"$build/apps/flarelab" score "$out/models/heliar.flm" --lens "$heliar" |
+"$build/apps/flarelab" score "$model" --lens "$heliar" |
     tee "$out/models/heliar.score.txt"
 for angle in 5 12.3 20; do
-    "$build/apps/flarelab" model render "$out/models/heliar.flm" --angle "$angle" \
+    "$build/apps/flarelab" model render "$model" --angle "$angle" \
         -o "$out/models/heliar-$angle.exr" --png "$out/models/heliar-$angle.png" --exposure-stops -12
 done
-echo "demo: model $out/models/heliar.flm (described in heliar.txt, scored in heliar.score.txt)"
+echo "demo: model $model (described in model.txt beside it and $out/models/heliar.txt, scored in $out/models/heliar.score.txt)"
