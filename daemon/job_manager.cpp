@@ -47,6 +47,14 @@ public:
     bool checkpoint() override {
         std::unique_lock lock(manager_.mutex_);
         Entry& e = manager_.jobs_.at(number_);
+        if (!stop_ && e.job.state() == v1::PAUSED) {
+            // A pause takes effect between frames: say when it has.
+            v1::JobEvent held;
+            held.set_kind(v1::STATE);
+            held.set_message(kHoldingMessage);
+            manager_.emit(e, std::move(held));
+            logEvent(LogLevel::Info, "job.holding", {{"job", e.job.id()}});
+        }
         manager_.changed_cv_.wait(lock, [&] { return stop_ || e.job.state() != v1::PAUSED; });
         return !stop_;
     }

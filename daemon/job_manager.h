@@ -46,6 +46,10 @@
 
 namespace flarelab::daemon {
 
+// The message of the STATE event a paused job sends once its rig has stopped (a pause takes
+// effect after the frame under way).
+inline constexpr char kHoldingMessage[] = "holding: the rig is stopped until the job is resumed";
+
 struct ManagerOptions {
     RunnerOptions runner;
     bool resume = true;         // queue interrupted jobs again at start

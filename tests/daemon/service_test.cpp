@@ -6,6 +6,7 @@
 #include <sys/stat.h>
 
 #include <atomic>
+#include <mutex>
 #include <thread>
 
 #include "hdr/sweep.h"
@@ -444,6 +445,21 @@ TEST(Service, PauseAndResumeHoldTheRigBetweenFrames) {
     auto stub = daemon.stub();
     v1::Job job;
     ASSERT_TRUE(startSweep(*stub, simConfig("pause", 0.0, 1.6, 0.2, false), &job).ok());
+    // Every event of the job, as a second client sees them.
+    std::vector<v1::JobEvent> events;
+    std::mutex events_mutex;
+    std::thread watcher([&] {
+        auto ctx = context("watcher", 300.0);
+        v1::WatchJobRequest request;
+        request.set_job_id(job.id());
+        auto reader = stub->WatchJob(ctx.get(), request);
+        v1::JobEvent e;
+        while (reader->Read(&e)) {
+            std::lock_guard lock(events_mutex);
+            events.push_back(e);
+        }
+        (void)reader->Finish();
+    });
     waitFor(*stub, job.id(), [](const v1::Job& j) { return j.frames_done() >= 2; });
     v1::JobControlRequest request;
     request.set_job_id(job.id());
@@ -451,24 +467,39 @@ TEST(Service, PauseAndResumeHoldTheRigBetweenFrames) {
     auto ctx = context();
     ASSERT_TRUE(stub->PauseJob(ctx.get(), request, &out).ok());
     EXPECT_EQ(out.state(), v1::PAUSED);
-    // The frame under way when the pause came is finished and written; then nothing moves.
-    const auto now = [&] { return waitFor(*stub, job.id(), [](const v1::Job&) { return true; }); };
-    v1::Job held = now();
-    for (int i = 0; i < 50; ++i) {
-        std::this_thread::sleep_for(std::chrono::milliseconds(600));
-        const v1::Job again = now();
-        if (again.frames_done() == held.frames_done()) break;
-        held = again;
+    // The rig holds after the frame under way: the daemon says so, and from then on no exposure
+    // is taken and, once that frame is written, no frame lands.
+    size_t held_at = 0;
+    uint32_t captured = 0;
+    for (int i = 0; i < 3000 && held_at == 0; ++i) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(20));
+        std::lock_guard lock(events_mutex);
+        for (size_t k = 0; k < events.size(); ++k) {
+            if (events[k].kind() == v1::EXPOSURE)
+                captured = std::max(captured, events[k].frame_index() + 1);
+            if (events[k].message() == kHoldingMessage) {
+                held_at = k + 1;
+                break;
+            }
+        }
     }
-    EXPECT_LE(held.frames_done(), out.frames_done() + 2);  // one in the queue, one under way
+    ASSERT_GT(held_at, 0u) << "the paused job never said its rig holds";
+    EXPECT_LE(captured, out.frames_done() + 2);  // one in the queue, one under way
+    const v1::Job written =
+        waitFor(*stub, job.id(), [&](const v1::Job& j) { return j.frames_done() == captured; });
     std::this_thread::sleep_for(std::chrono::milliseconds(1000));
-    const v1::Job still = now();
+    const v1::Job still = waitFor(*stub, job.id(), [](const v1::Job&) { return true; });
     EXPECT_EQ(still.state(), v1::PAUSED);
-    EXPECT_EQ(held.frames_done(), still.frames_done());
-    EXPECT_LT(still.frames_done(), 9u);
+    EXPECT_EQ(still.frames_done(), written.frames_done());
+    {
+        std::lock_guard lock(events_mutex);
+        for (size_t k = held_at; k < events.size(); ++k)
+            EXPECT_NE(events[k].kind(), v1::EXPOSURE) << "an exposure while paused";
+    }
     auto ctx2 = context();
     ASSERT_TRUE(stub->ResumeJob(ctx2.get(), request, &out).ok());
     EXPECT_EQ(waitFor(*stub, job.id(), ended).state(), v1::SUCCEEDED);
+    watcher.join();
     auto sweep = hdr::readSweep(job.output_dir());
     ASSERT_TRUE(sweep);
     EXPECT_EQ(sweep->frames.size(), 9u);
