@@ -1,7 +1,5 @@
 #include "apps/sweep_command.h"
 
-#include "apps/daemon_commands.h"
-
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <optional>
@@ -9,6 +7,7 @@
 #include <string>
 #include <vector>
 
+#include "apps/daemon_commands.h"
 #include "hdr/sweep.h"
 
 namespace flarelab::apps {

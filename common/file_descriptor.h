@@ -76,10 +76,10 @@ inline Result<RegularFile> openRegularFile(const std::string& path) {
 // contents whatever happens: a temporary file beside it, flushed to disk, renamed over it, and
 // the rename itself flushed through `directory_fd`.
 inline Status replaceFile(const std::string& directory,
-                   int directory_fd,
-                   const std::string& file_name,
-                   const std::string& text,
-                   const std::function<void()>& before_rename) {
+                          int directory_fd,
+                          const std::string& file_name,
+                          const std::string& text,
+                          const std::function<void()>& before_rename) {
     const std::string path = (std::filesystem::path(directory) / file_name).string();
     const std::string temporary = path + ".tmp-" + std::to_string(::getpid());
     const auto fail = [&](const std::string& what, int error) -> Status {

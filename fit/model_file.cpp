@@ -549,7 +549,6 @@ std::string describeStrictFailure(const pb::util::Status& status) {
 // ---------------------------------------------------------------------------------------------
 // Files.
 
-
 Result<std::string> readWholeFile(const std::string& path, int64_t max_bytes) {
     auto file = openRegularFile(path);
     if (!file) return file.error();
