@@ -79,6 +79,45 @@ TEST(Resume, AStoppedDaemonInterruptsItsJobAndTheNextOneFinishesItIdentically) {
     expectSameSweep(output, reference.output_dir());
 }
 
+TEST(Resume, ADaemonStoppedDuringAFitFitsAgainAtItsNextStart) {
+    TempDir dir;
+    std::string job_id, output;
+    {
+        Daemon daemon(dir.path);
+        auto stub = daemon.stub();
+        v1::SweepConfig config = simConfig("fit-stopped", 0.0, 3.0, 0.2);
+        config.set_width_px(160);
+        config.set_height_px(107);
+        config.set_fit(true);
+        v1::Job job;
+        ASSERT_TRUE(startSweep(*stub, config, &job).ok());
+        job_id = job.id();
+        output = job.output_dir();
+        const v1::Job fitting = waitFor(
+            *stub, job.id(), [](const v1::Job& j) { return j.phase() == v1::FITTING || ended(j); });
+        ASSERT_EQ(fitting.phase(), v1::FITTING);
+        daemon.stop();
+    }
+    auto journal = Journal::open(dir.path);
+    ASSERT_TRUE(journal);
+    auto loaded = journal->load();
+    ASSERT_TRUE(loaded);
+    ASSERT_EQ(loaded->jobs.size(), 1u);
+    EXPECT_EQ(loaded->jobs[0].state(), v1::INTERRUPTED);
+    EXPECT_EQ(loaded->jobs[0].phase(), v1::FITTING);
+    EXPECT_FALSE(fs::exists(output + "/model.flm"));
+
+    Daemon again(dir.path);
+    auto stub = again.stub();
+    const v1::Job last = waitFor(*stub, job_id, ended, 300);
+    EXPECT_EQ(last.state(), v1::SUCCEEDED) << last.reason();
+    EXPECT_EQ(last.frames_done(), 16u);
+    EXPECT_TRUE(fs::exists(output + "/model.flm"));
+    auto sweep = hdr::readSweep(output, strictRead());
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    EXPECT_EQ(sweep->frames.size(), 16u);
+}
+
 TEST(Resume, WithoutResumeAnInterruptedJobWaitsForAClient) {
     TempDir dir;
     std::string job_id;
