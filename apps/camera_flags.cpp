@@ -22,6 +22,12 @@ void addCameraFlags(CLI::App* cmd, CameraFlags& flags) {
                   "give surfaces without a coating in the file the default 550 nm coating");
 }
 
+bool parseSensorMm(const std::string& text, double& width_mm, double& height_mm) {
+    char x = 0, extra = 0;
+    return std::sscanf(text.c_str(), "%lf%c%lf%c", &width_mm, &x, &height_mm, &extra) == 3 &&
+           (x == 'x' || x == 'X');
+}
+
 std::optional<Lens> loadLens(const std::string& path, const CameraFlags& flags, std::ostream& err) {
     auto prescription = loadPrescription(path);
     if (!prescription) {
@@ -41,9 +47,7 @@ std::optional<Lens> makeLens(const Prescription& prescription,
     camera.aperture_rotation_deg = flags.blade_rotation_deg;
     camera.coat_unspecified_surfaces = flags.coat_unspecified;
     double w = 0.0, h = 0.0;
-    char x = 0, extra = 0;
-    if (std::sscanf(flags.sensor.c_str(), "%lf%c%lf%c", &w, &x, &h, &extra) != 3 ||
-        (x != 'x' && x != 'X')) {
+    if (!parseSensorMm(flags.sensor, w, h)) {
         err << "flarelab: --sensor-mm '" << flags.sensor << "' is not WIDTHxHEIGHT in mm\n";
         return std::nullopt;
     }

@@ -28,6 +28,9 @@ struct CameraFlags {
 
 void addCameraFlags(CLI::App* cmd, CameraFlags& flags);
 
+// "36x24" (or "36X24") as width and height in mm; false when it is not WIDTHxHEIGHT.
+bool parseSensorMm(const std::string& text, double& width_mm, double& height_mm);
+
 // Loads the lens file and applies the camera flags; on failure writes the error to `err`.
 // The same for a prescription already loaded.
 std::optional<optics::Lens> makeLens(const optics::Prescription& prescription,

@@ -14,6 +14,7 @@
 #include <sstream>
 #include <string>
 
+#include "apps/camera_flags.h"
 #include "apps/capture_command.h"
 #include "proto/daemon.grpc.pb.h"
 
@@ -77,7 +78,7 @@ public:
         client->target_ = target;
         grpc::ChannelArguments args;
         args.SetMaxReceiveMessageSize(64 << 20);
-        client->stub_ = v1::FlareLab::NewStub(
+        client->api_ = v1::FlareLab::NewStub(
             grpc::CreateCustomChannel(target, grpc::InsecureChannelCredentials(), args));
         return client;
     }
@@ -91,7 +92,7 @@ public:
         return ctx;
     }
 
-    v1::FlareLab::Stub& stub() { return *stub_; }
+    v1::FlareLab::Stub& api() { return *api_; }
     const std::string& target() const { return target_; }
 
     // "flarelab: <what>: <status message>", with a hint when the daemon is not there.
@@ -106,8 +107,18 @@ public:
 private:
     Client() = default;
     std::string name_, token_, target_;
-    std::unique_ptr<v1::FlareLab::Stub> stub_;
+    std::unique_ptr<v1::FlareLab::Stub> api_;
 };
+
+// A message as `--json` prints it: protobuf's JSON mapping with the .proto's field names.
+void printJson(const google::protobuf::Message& message, std::ostream& out) {
+    std::string json;
+    google::protobuf::util::JsonPrintOptions print;
+    print.add_whitespace = true;
+    print.preserve_proto_field_names = true;
+    (void)google::protobuf::util::MessageToJsonString(message, &json, print);
+    out << json;
+}
 
 std::string duration(double s) {
     std::ostringstream o;
@@ -140,7 +151,7 @@ int watch(Client& client, const std::string& id, std::ostream& out, std::ostream
     auto ctx = client.context(false);
     v1::WatchJobRequest request;
     request.set_job_id(id);
-    auto reader = client.stub().WatchJob(ctx.get(), request);
+    auto reader = client.api().WatchJob(ctx.get(), request);
     const bool terminal = ::isatty(STDERR_FILENO) != 0;
     v1::JobEvent event;
     v1::Job last;
@@ -169,8 +180,8 @@ int watch(Client& client, const std::string& id, std::ostream& out, std::ostream
         const bool fitting = event.kind() == v1::FIT_PROGRESS;
         if (!fitting && event.kind() != v1::FRAME && !(terminal && event.kind() == v1::EXPOSURE))
             continue;
-        const uint32_t total = std::max<uint32_t>(
-            1, fitting ? event.fit_frames_total() : event.job().frames_total());
+        const uint32_t total =
+            std::max<uint32_t>(1, fitting ? event.fit_frames_total() : event.job().frames_total());
         const uint32_t done = fitting ? event.frame_index() : event.job().frames_done();
         std::ostringstream line;
         constexpr int kWidth = 30;
@@ -208,10 +219,7 @@ struct StartState {
     Connection connection;
     bool sim = false;
     std::string lens_file;
-    double focal_mm = 0.0, f_number = 0.0, blade_rotation_deg = 0.0;
-    std::string sensor = "36x24";
-    int blades = 0;
-    bool table_stop = false, coat_unspecified = false;
+    CameraFlags camera;
     double from_deg = 0.0, to_deg = 30.0, step_deg = 0.2;
     std::string brackets = "0.25,1,4";
     int64_t width = 0, height = 0;  // 0: the rig's default (640 x 427 simulated)
@@ -250,10 +258,8 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
         }
     }
     double sw = 0.0, sh = 0.0;
-    char x = 0, extra = 0;
-    if (std::sscanf(s.sensor.c_str(), "%lf%c%lf%c", &sw, &x, &sh, &extra) != 3 ||
-        (x != 'x' && x != 'X')) {
-        err << "flarelab: --sensor-mm '" << s.sensor << "' is not WIDTHxHEIGHT in mm\n";
+    if (!parseSensorMm(s.camera.sensor, sw, sh)) {
+        err << "flarelab: --sensor-mm '" << s.camera.sensor << "' is not WIDTHxHEIGHT in mm\n";
         return 2;
     }
     v1::StartSweepRequest request;
@@ -266,14 +272,14 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
         v1::SimLens& l = *sim.mutable_lens();
         l.set_prescription_csv(text);
         l.set_name(fs::path(s.lens_file).filename().string());
-        l.set_focal_length_mm(s.focal_mm);
-        l.set_f_number(s.f_number);
+        l.set_focal_length_mm(s.camera.focal_mm);
+        l.set_f_number(s.camera.f_number);
         l.set_sensor_width_mm(sw);
         l.set_sensor_height_mm(sh);
-        l.set_aperture_blades(static_cast<uint32_t>(std::max(0, s.blades)));
-        l.set_blade_rotation_deg(s.blade_rotation_deg);
-        l.set_table_stop(s.table_stop);
-        l.set_coat_unspecified(s.coat_unspecified);
+        l.set_aperture_blades(static_cast<uint32_t>(std::max(0, s.camera.blades)));
+        l.set_blade_rotation_deg(s.camera.blade_rotation_deg);
+        l.set_table_stop(s.camera.table_stop);
+        l.set_coat_unspecified(s.camera.coat_unspecified);
     }
     c.set_from_deg(s.from_deg);
     c.set_to_deg(s.to_deg);
@@ -294,7 +300,7 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
     if (!client) return 2;
     v1::Job job;
     auto ctx = client->context();
-    const grpc::Status status = client->stub().StartSweep(ctx.get(), request, &job);
+    const grpc::Status status = client->api().StartSweep(ctx.get(), request, &job);
     if (!status.ok()) return client->fail(status, "sweep start", err);
     out << job.id() << " " << stateName(job.state()) << ": " << job.frames_total() << " frames"
         << (s.sim ? " of " + c.sim().lens().name() : std::string()) << " -> " << job.output_dir()
@@ -316,15 +322,10 @@ int runList(const JobState& s, std::ostream& out, std::ostream& err) {
     if (!client) return 2;
     v1::ListJobsResponse response;
     auto ctx = client->context();
-    const grpc::Status status = client->stub().ListJobs(ctx.get(), {}, &response);
+    const grpc::Status status = client->api().ListJobs(ctx.get(), {}, &response);
     if (!status.ok()) return client->fail(status, "job list", err);
     if (s.json) {
-        std::string json;
-        google::protobuf::util::JsonPrintOptions print;
-        print.add_whitespace = true;
-        print.preserve_proto_field_names = true;
-        (void)google::protobuf::util::MessageToJsonString(response, &json, print);
-        out << json;
+        printJson(response, out);
         return 0;
     }
     if (response.jobs().empty()) out << "no jobs\n";
@@ -342,11 +343,11 @@ int runControl(const JobState& s, const std::string& what, std::ostream& out, st
     auto ctx = client->context();
     grpc::Status status;
     if (what == "pause")
-        status = client->stub().PauseJob(ctx.get(), request, &job);
+        status = client->api().PauseJob(ctx.get(), request, &job);
     else if (what == "resume")
-        status = client->stub().ResumeJob(ctx.get(), request, &job);
+        status = client->api().ResumeJob(ctx.get(), request, &job);
     else
-        status = client->stub().CancelJob(ctx.get(), request, &job);
+        status = client->api().CancelJob(ctx.get(), request, &job);
     if (!status.ok()) return client->fail(status, "job " + what, err);
     printJobLine(job, out);
     return 0;
@@ -357,15 +358,10 @@ int runRigStatus(const JobState& s, std::ostream& out, std::ostream& err) {
     if (!client) return 2;
     v1::RigDescription rig;
     auto ctx = client->context();
-    const grpc::Status status = client->stub().DescribeRig(ctx.get(), {}, &rig);
+    const grpc::Status status = client->api().DescribeRig(ctx.get(), {}, &rig);
     if (!status.ok()) return client->fail(status, "rig status", err);
     if (s.json) {
-        std::string json;
-        google::protobuf::util::JsonPrintOptions print;
-        print.add_whitespace = true;
-        print.preserve_proto_field_names = true;
-        (void)google::protobuf::util::MessageToJsonString(rig, &json, print);
-        out << json;
+        printJson(rig, out);
         return 0;
     }
     out << rig.daemon_version() << " (API v" << rig.api_version() << ") at " << client->target()
@@ -393,14 +389,6 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
                   "on the daemon's simulated rig (without it: the rig the daemon drives, e.g. a "
                   "replay)");
     cmd->add_option("--lens", s->lens_file, "the simulated camera's lens (CSV, format v1)");
-    cmd->add_option("--focal-mm", s->focal_mm, "focal length the f-number refers to");
-    cmd->add_option("--f-number", s->f_number, "working f-number");
-    cmd->add_flag("--table-stop", s->table_stop, "keep the stop as the table gives it");
-    cmd->add_option("--sensor-mm", s->sensor, "sensor size WxH in mm")->capture_default_str();
-    cmd->add_option("--blades", s->blades, "aperture blades (0: circle)");
-    cmd->add_option("--blade-rotation-deg", s->blade_rotation_deg, "rotation of the blades");
-    cmd->add_flag("--coat-unspecified", s->coat_unspecified,
-                  "give surfaces without a coating the default 550 nm coating");
     cmd->add_option("--from", s->from_deg, "first angle (deg)")->capture_default_str();
     cmd->add_option("--to", s->to_deg, "last angle (deg)")->capture_default_str();
     cmd->add_option("--step", s->step_deg, "angle step (deg)")->capture_default_str();
@@ -424,6 +412,7 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
     cmd->add_flag("--watch", s->watch, "follow the job with a progress bar until it ends");
     cmd->add_option("-o,--output", s->output, "sweep directory (below the daemon's output root)")
         ->required();
+    addCameraFlags(cmd, s->camera);
     cmd->callback([s, &out, &err, &exit_code] { exit_code = runStart(*s, out, err); });
 }
 

@@ -420,10 +420,12 @@ Status JobManager::start(const v1::StartSweepRequest& request,
     return Status::OK;
 }
 
-Status JobManager::mayControl(Entry& e,
-                              const v1::JobControlRequest& request,
+Status JobManager::mayControl(const v1::JobControlRequest& request,
                               const std::string& client,
-                              const char* what) {
+                              const char* what,
+                              Entry** entry) {
+    if (Status ok = find(request.job_id(), entry); !ok.ok()) return ok;
+    Entry& e = **entry;
     if (e.job.controller() == client) return Status::OK;
     if (!request.take_control())
         return Status(StatusCode::PERMISSION_DENIED,
@@ -440,8 +442,7 @@ Status JobManager::pause(const v1::JobControlRequest& request,
                          v1::Job* job) {
     std::lock_guard lock(mutex_);
     Entry* e = nullptr;
-    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
-    if (Status ok = mayControl(*e, request, client, "pause"); !ok.ok()) return ok;
+    if (Status ok = mayControl(request, client, "pause", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state != v1::QUEUED && state != v1::RUNNING && state != v1::PAUSED)
         return Status(StatusCode::FAILED_PRECONDITION,
@@ -464,8 +465,7 @@ Status JobManager::resume(const v1::JobControlRequest& request,
                           v1::Job* job) {
     std::lock_guard lock(mutex_);
     Entry* e = nullptr;
-    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
-    if (Status ok = mayControl(*e, request, client, "resume"); !ok.ok()) return ok;
+    if (Status ok = mayControl(request, client, "resume", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state == v1::RUNNING || state == v1::QUEUED) {
         *job = e->job;
@@ -486,8 +486,7 @@ Status JobManager::cancel(const v1::JobControlRequest& request,
                           v1::Job* job) {
     std::lock_guard lock(mutex_);
     Entry* e = nullptr;
-    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
-    if (Status ok = mayControl(*e, request, client, "cancel"); !ok.ok()) return ok;
+    if (Status ok = mayControl(request, client, "cancel", &e); !ok.ok()) return ok;
     if (ended(e->job))
         return Status(StatusCode::FAILED_PRECONDITION, "cancel " + e->job.id() + ": the job is " +
                                                            v1::JobState_Name(e->job.state()));

@@ -129,10 +129,11 @@ private:
     void emit(Entry& entry, flarelab::v1::JobEvent event);
     grpc::Status find(const std::string& id, Entry** entry);
     grpc::Status findConst(const std::string& id, const Entry** entry) const;
-    grpc::Status mayControl(Entry& entry,
-                            const flarelab::v1::JobControlRequest& request,
+    // The job named in `request`, when `client` may control it (taking control if asked).
+    grpc::Status mayControl(const flarelab::v1::JobControlRequest& request,
                             const std::string& client,
-                            const char* what);
+                            const char* what,
+                            Entry** entry);
     static bool ended(const flarelab::v1::Job& job);
 
     ManagerOptions options_;
