@@ -326,7 +326,13 @@ public:
                                                               points[static_cast<size_t>(k)].y().a};
         // Per sample and channel: the plain residual r and its gradient (when asked).
         residual_.assign(n * static_cast<size_t>(layout_.channels), 0.0);
-        if (jacobian) gradient_.assign(residual_.size() * static_cast<size_t>(np), 0.0);
+        if (jacobian) {
+            // Rows of valid samples are all written; no other row is read.
+            gradient_.resize(residual_.size() * static_cast<size_t>(np));
+            // Each row's nonzero span [first, last): empty outside the ghost's reach, one
+            // intensity deep inside it. The edge term's convolution walks only that span.
+            span_.resize(residual_.size());
+        }
         Jet border[3], inner[3];
         const Jet fi(params[layout_.innerFalloff()], layout_.innerFalloff());
         const Jet fo(params[layout_.outerFalloff()], layout_.outerFalloff());
@@ -336,11 +342,33 @@ public:
             border[c] = Jet(params[layout_.border(c)], layout_.border(c)) * intensity_scale_;
             inner[c] = Jet(params[layout_.inner(c)], layout_.inner(c)) * intensity_scale_;
         }
+        // The control points' box holds the loop. A block farther from it than the outer falloff
+        // plus the block's reach gets no light from the ghost: its weights are exactly zero, as
+        // the distance would find, so the distance is not sought (most of a crop, whose margin
+        // is wide). The bound keeps a margin far above rounding.
+        Eigen::Vector2d box_lo = loop.control_points_mm.front(), box_hi = box_lo;
+        for (const auto& p : loop.control_points_mm) {
+            box_lo = box_lo.cwiseMin(p);
+            box_hi = box_hi.cwiseMax(p);
+        }
         tbb::parallel_for(0, ny_, [&](int j) {
             for (int i = 0; i < nx_; ++i) {
                 const size_t s = static_cast<size_t>(j * nx_ + i);
                 if (!valid_[s]) continue;
                 const Eigen::Vector2d q(qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]);
+                const double reach = hx_[static_cast<size_t>(i)] + hy_[static_cast<size_t>(j)];
+                if ((box_lo - q).cwiseMax(q - box_hi).cwiseMax(0.0).norm() >
+                    (fo.a + reach) * (1.0 + 1e-9)) {
+                    for (int c = 0; c < layout_.channels; ++c) {
+                        const size_t row = s * layout_.channels + c;
+                        residual_[row] = std::asinh((0.0 + others_[c][s]) / scale_[c]) -
+                                         std::asinh(data_[c][s] / scale_[c]);
+                        if (!jacobian) continue;
+                        std::fill_n(&gradient_[row * np], np, 0.0);
+                        span_[row] = {0, 0};
+                    }
+                    continue;
+                }
                 const render::ClosestPoint cp =
                     render::closestPointFast(loop, q, options_.distance);
                 const double sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
@@ -394,8 +422,17 @@ public:
                     residual_[row] =
                         std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]);
                     const double dt = 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
-                    for (int k = 0; k < np; ++k)
-                        gradient_[row * np + static_cast<size_t>(k)] = dt * m.v[k];
+                    int first = np, last = 0;
+                    for (int k = 0; k < np; ++k) {
+                        const double g = dt * m.v[k];
+                        gradient_[row * np + static_cast<size_t>(k)] = g;
+                        if (g != 0.0) {
+                            first = std::min(first, k);
+                            last = k + 1;
+                        }
+                    }
+                    span_[row] = {static_cast<uint8_t>(std::min(first, last)),
+                                  static_cast<uint8_t>(last)};
                 }
             }
         });
@@ -427,11 +464,18 @@ public:
         if (!kernel_.empty()) {
             const int kn = 2 * radius_ + 1;
             edge_.assign(residual_.size(), 0.0);
-            if (jacobian) edge_gradient_.assign(gradient_.size(), 0.0);
+            if (jacobian) edge_gradient_.resize(gradient_.size());  // valid rows all written
+            const int channels = layout_.channels;
             tbb::parallel_for(0, ny_, [&](int j) {
+                // The valid neighbours of a sample and their weights, in the kernel's order
+                // (every output is summed in that order).
+                std::vector<size_t> from_sample(static_cast<size_t>(kn * kn));
+                std::vector<double> weight(static_cast<size_t>(kn * kn));
+                std::array<double, kMaxParams> acc;
                 for (int i = 0; i < nx_; ++i) {
                     const size_t s = static_cast<size_t>(j * nx_ + i);
                     if (!valid_[s]) continue;
+                    int taps = 0;
                     for (int dy = -radius_; dy <= radius_; ++dy) {
                         const int y = j + dy;
                         if (y < 0 || y >= ny_) continue;
@@ -440,19 +484,30 @@ public:
                             if (x < 0 || x >= nx_) continue;
                             const size_t t = static_cast<size_t>(y * nx_ + x);
                             if (!valid_[t]) continue;
-                            const double k =
+                            from_sample[static_cast<size_t>(taps)] = t;
+                            weight[static_cast<size_t>(taps)] =
                                 options_.edge_weight *
                                 kernel_[static_cast<size_t>((dy + radius_) * kn + dx + radius_)];
-                            for (int c = 0; c < layout_.channels; ++c) {
-                                const size_t row = s * layout_.channels + c;
-                                const size_t from = t * layout_.channels + c;
-                                edge_[row] += k * residual_[from];
-                                if (!jacobian) continue;
-                                double* g = &edge_gradient_[row * np];
-                                const double* h = &gradient_[from * np];
-                                for (int p = 0; p < np; ++p) g[p] += k * h[p];
-                            }
+                            ++taps;
                         }
+                    }
+                    for (int c = 0; c < channels; ++c) {
+                        const size_t row = s * channels + c;
+                        double e = 0.0;
+                        for (int q = 0; q < taps; ++q)
+                            e += weight[static_cast<size_t>(q)] *
+                                 residual_[from_sample[static_cast<size_t>(q)] * channels + c];
+                        edge_[row] = e;
+                        if (!jacobian) continue;
+                        std::fill_n(acc.begin(), np, 0.0);
+                        for (int q = 0; q < taps; ++q) {
+                            const size_t from = from_sample[static_cast<size_t>(q)] * channels + c;
+                            const double k = weight[static_cast<size_t>(q)];
+                            const double* h = &gradient_[from * np];
+                            for (int p = span_[from][0]; p < span_[from][1]; ++p)
+                                acc[static_cast<size_t>(p)] += k * h[p];
+                        }
+                        std::copy_n(acc.begin(), np, &edge_gradient_[row * np]);
                     }
                 }
             });
@@ -508,6 +563,7 @@ private:
     bool prior_ = false;
     std::vector<double> prior_values_, prior_tolerance_;
     mutable std::vector<double> residual_, gradient_, edge_, edge_gradient_;
+    mutable std::vector<std::array<uint8_t, 2>> span_;
     mutable int64_t evaluations_ = 0;
 };
 

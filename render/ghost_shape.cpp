@@ -309,12 +309,39 @@ ClosestPoint closestPointFast(const BezierLoop& loop,
     if (!isFinite(q)) return best;
     const int n = loop.segmentCount();
     const int seeds = std::max(options.seeds_per_segment, 1);
-    for (int s = 0; s < n; ++s) {
+    // A segment lies in its control polygon's box, so one whose box is farther than the best
+    // point so far cannot improve it and is skipped. The segment whose box is nearest goes first
+    // to set a small bound. The answer is the one the plain loop over all segments in order gives:
+    // a tie goes to the lower segment, and the bound has a margin far above rounding.
+    constexpr int kStackSegments = 16;
+    double box_distance[kStackSegments];
+    const bool cull = n <= kStackSegments;
+    int first = 0;
+    if (cull) {
+        for (int s = 0; s < n; ++s) {
+            const Cubic c = loop.segment(s);
+            Vec2 lo = c[0], hi = c[0];
+            for (int k = 1; k < 4; ++k) {
+                lo = lo.cwiseMin(c[k]);
+                hi = hi.cwiseMax(c[k]);
+            }
+            const Vec2 gap = (lo - q).cwiseMax(q - hi).cwiseMax(Vec2::Zero());
+            box_distance[s] = gap.norm();
+            if (box_distance[s] < box_distance[first]) first = s;
+        }
+    }
+    const auto better = [&best](double d, int s) {
+        return d < best.distance_mm || (d == best.distance_mm && s < best.segment);
+    };
+    for (int step = 0; step < n; ++step) {
+        const int s = cull ? (step == 0 ? first : (step <= first ? step - 1 : step)) : step;
+        if (cull && step > 0 && box_distance[s] > best.distance_mm * (1.0 + 1e-9) + 1e-300)
+            continue;
         const Cubic c = loop.segment(s);
         for (const double t_end : {0.0, 1.0}) {
             const Vec2& p = t_end == 0.0 ? c[0] : c[3];
             const double d = (p - q).norm();
-            if (d < best.distance_mm) best = ClosestPoint{d, s, t_end, p};
+            if (better(d, s)) best = ClosestPoint{d, s, t_end, p};
         }
         for (int k = 0; k < seeds; ++k) {
             double t = (k + 0.5) / seeds;
@@ -334,7 +361,7 @@ ClosestPoint closestPointFast(const BezierLoop& loop,
             }
             const Vec2 p = evalCubic(c, t);
             const double d = (p - q).norm();
-            if (d < best.distance_mm) best = ClosestPoint{d, s, t, p};
+            if (better(d, s)) best = ClosestPoint{d, s, t, p};
         }
     }
     return best;

@@ -207,6 +207,42 @@ TEST(GhostShape, DegenerateLoopsGiveFiniteDistances) {
     EXPECT_NEAR(signedDistanceExact(loops[0], Vec2(4.0, 5.0)), 5.0, 1e-12);
 }
 
+// The fast search skips segments whose control box is farther than the best point found, and
+// starts with the nearest box; loops of more than 16 segments take the plain pass over all.
+// Both must give the same closest point: the same loop with 16 zero-length segments appended at
+// its first point takes the plain pass and, since those segments add only that point, has the
+// same answer, bit for bit, from every query (near, far, inside, on the curve and on the
+// points where two segments meet), but where one of the added segments wins by rounding.
+TEST(GhostShape, SkippingFarSegmentsChangesNoClosestPoint) {
+    std::mt19937_64 rng(21);
+    std::uniform_real_distribution<double> u(-20.0, 20.0);
+    for (int shape = 0; shape < 20; ++shape) {
+        const BezierLoop loop = toBezierLoop(randomShape(rng));
+        BezierLoop plain = loop;
+        for (int k = 0; k < 48; ++k) plain.control_points_mm.push_back(loop.control_points_mm[0]);
+        ASSERT_EQ(plain.segmentCount(), 20);
+        for (int k = 0; k < 300; ++k) {
+            const Vec2 q = k < 12
+                               ? loop.control_points_mm[static_cast<size_t>(k)]
+                               : (k < 40 ? loop.point(k % 4, (k % 7) / 6.0) : Vec2(u(rng), u(rng)));
+            for (const FastDistanceOptions o : {FastDistanceOptions{}, FastDistanceOptions{1, 1}}) {
+                const ClosestPoint a = closestPointFast(loop, q, o);
+                const ClosestPoint b = closestPointFast(plain, q, o);
+                if (b.segment < 4) {
+                    ASSERT_EQ(a.distance_mm, b.distance_mm) << "shape " << shape << " q " << k;
+                    EXPECT_EQ(a.segment, b.segment) << "shape " << shape << " q " << k;
+                    EXPECT_EQ(a.t, b.t) << "shape " << shape << " q " << k;
+                } else {
+                    // A zero-length segment evaluates to its point only to rounding (Bernstein
+                    // weights sum to 1 only to rounding), so it may win by an ulp.
+                    EXPECT_EQ(a.segment, 0) << "shape " << shape << " q " << k;
+                    EXPECT_NEAR(a.distance_mm, b.distance_mm, 1e-12 * (1.0 + b.distance_mm));
+                }
+            }
+        }
+    }
+}
+
 TEST(GhostShape, EmptyLoopAndNonFiniteQueryAreInfiniteNotNaN) {
     EXPECT_EQ(signedDistanceExact(BezierLoop{}, Vec2(0, 0)),
               std::numeric_limits<double>::infinity());
