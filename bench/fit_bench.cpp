@@ -1,5 +1,6 @@
 #include "bench/fit_bench.h"
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <iomanip>
@@ -64,9 +65,23 @@ Result<TradeRow> fitAndScore(const hdr::Sweep& sweep,
 
 }  // namespace
 
+const std::vector<std::string>& tradeKnobs() {
+    static const std::vector<std::string> knobs = {
+        "iterations",           "distance iterations",  "samples per side",         "degree",
+        "shading refit frames", "shading refit passes", "shading refit min degree", "angular step"};
+    return knobs;
+}
+
 Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream& log) {
     if (options.sweeps.empty())
         return makeError(ErrorCode::InvalidArgument, "bench fit: give at least one sweep");
+    for (const std::string& knob : options.knobs)
+        if (std::find(tradeKnobs().begin(), tradeKnobs().end(), knob) == tradeKnobs().end()) {
+            std::string known;
+            for (const std::string& k : tradeKnobs()) known += (known.empty() ? "" : ", ") + k;
+            return makeError(ErrorCode::InvalidArgument,
+                             "bench fit: unknown knob '" + knob + "' (known: " + known + ")");
+        }
     if (options.optimizer_frames < 0)
         return makeError(ErrorCode::InvalidArgument, "bench fit: optimizer_frames must be >= 0");
     auto lens = loadBenchLens(options.lens_file);
@@ -187,15 +202,19 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
         return Ok{};
     };
     if (Status ok = run(*sweep, options.fit, "baseline", "defaults"); !ok) return ok.error();
+    const auto wants = [&](const std::string& knob) {
+        return options.knobs.empty() ||
+               std::find(options.knobs.begin(), options.knobs.end(), knob) != options.knobs.end();
+    };
     const std::vector<int> iterations =
         options.quick ? std::vector<int>{5} : std::vector<int>{3, 8, 40};
-    for (int it : iterations) {
+    for (int it : wants("iterations") ? iterations : std::vector<int>{}) {
         auto o = options.fit;
         o.frame.max_iterations = it;
         if (Status ok = run(*sweep, o, "iterations", std::to_string(it)); !ok) return ok.error();
     }
     const std::vector<int> newton = options.quick ? std::vector<int>{1} : std::vector<int>{1, 2, 8};
-    for (int it : newton) {
+    for (int it : wants("distance iterations") ? newton : std::vector<int>{}) {
         auto o = options.fit;
         o.frame.cost.distance.iterations = it;
         if (Status ok = run(*sweep, o, "distance iterations", std::to_string(it)); !ok)
@@ -203,7 +222,7 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     }
     const std::vector<int> samples =
         options.quick ? std::vector<int>{24} : std::vector<int>{16, 32, 96};
-    for (int v : samples) {
+    for (int v : wants("samples per side") ? samples : std::vector<int>{}) {
         auto o = options.fit;
         o.frame.cost.max_samples = v;
         if (Status ok = run(*sweep, o, "samples per side", std::to_string(v)); !ok)
@@ -211,14 +230,18 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     }
     const std::vector<int> degrees =
         options.quick ? std::vector<int>{1} : std::vector<int>{1, 3, 6};
-    for (int d : degrees) {
+    for (int d : wants("degree") ? degrees : std::vector<int>{}) {
         auto o = options.fit;
         o.poly.fixed_degree = d;
         if (Status ok = run(*sweep, o, "degree", "fixed " + std::to_string(d)); !ok)
             return ok.error();
     }
-    // The shading refit (fit/shading_refit.h): off, and on a fifth of its frames.
-    for (int frames : {0, std::max(2, options.fit.shading.frames_per_ghost / 5)}) {
+    // The shading refit (fit/shading_refit.h): off, and on a fifth of its frames; its passes and
+    // its series' minimum degree.
+    for (int frames :
+         wants("shading refit frames")
+             ? std::vector<int>{0, std::max(2, options.fit.shading.frames_per_ghost / 5)}
+             : std::vector<int>{}) {
         auto o = options.fit;
         o.shading.frames_per_ghost = frames;
         if (Status ok = run(*sweep, o, "shading refit frames",
@@ -227,7 +250,22 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
             return ok.error();
         if (options.quick) break;
     }
-    for (size_t i = 1; i < options.sweeps.size(); ++i) {
+    const std::vector<int> passes = options.quick ? std::vector<int>{2} : std::vector<int>{2, 4, 8};
+    for (int v : wants("shading refit passes") ? passes : std::vector<int>{}) {
+        auto o = options.fit;
+        o.shading.passes = v;
+        if (Status ok = run(*sweep, o, "shading refit passes", std::to_string(v)); !ok)
+            return ok.error();
+    }
+    const std::vector<int> min_degrees =
+        options.quick ? std::vector<int>{3} : std::vector<int>{0, 3, 5};
+    for (int v : wants("shading refit min degree") ? min_degrees : std::vector<int>{}) {
+        auto o = options.fit;
+        o.shading.min_degree = v;
+        if (Status ok = run(*sweep, o, "shading refit min degree", std::to_string(v)); !ok)
+            return ok.error();
+    }
+    for (size_t i = 1; i < options.sweeps.size() && wants("angular step"); ++i) {
         auto other = hdr::readSweep(options.sweeps[i]);
         if (!other) return other.error();
         std::ostringstream setting;

@@ -13,10 +13,11 @@
 // Trade. A whole sweep fitted and scored (fit/score.h) for each setting of one knob at a time,
 // the others at their defaults: optimizer iterations, distance iterations (Newton steps), crop
 // resolution (samples per side), polynomial degree (chosen by cross-validation or fixed), the
-// shading refit (off, or on a fifth of its frames per ghost; fit/shading_refit.h), and angular step
-// (each --sweep given; e.g. the same lens captured at 0.2, 0.5, 1 and 2 degrees). Reported per
-// setting: fit time and the median and worst held-out relative L2. The first row (the defaults) is
-// the baseline every ratio refers to, measured in the same run.
+// shading refit (off, or on a fifth of its frames per ghost; its passes; its series' minimum
+// degree; fit/shading_refit.h), and angular step (each --sweep given; e.g. the same lens captured
+// at 0.2, 0.5, 1 and 2 degrees). Reported per setting: fit time and the median and worst held-out
+// relative L2. The first row (the defaults) is the baseline every ratio refers to, measured in the
+// same run. `knobs` limits the trade to some knobs (the baseline is always run).
 #pragma once
 
 #include <ostream>
@@ -33,9 +34,10 @@ struct FitBenchOptions {
     std::string lens_file;
     int optimizer_frames = 5;  // frames of the main sweep for the optimizer table, >= 0
     bool trade = true;
-    bool frames = true;        // the per-frame table (one sweep fit)
-    bool quick = false;        // the trade over fewer settings and angles (a smoke test)
-    fit::SweepFitOptions fit;  // the defaults the trade varies from
+    bool frames = true;              // the per-frame table (one sweep fit)
+    bool quick = false;              // the trade over fewer settings and angles (a smoke test)
+    std::vector<std::string> knobs;  // trade rows of these knobs only (tradeKnobs()); empty: all
+    fit::SweepFitOptions fit;        // the defaults the trade varies from
 };
 
 struct OptimizerRow {
@@ -72,6 +74,9 @@ struct FitBenchReport {
     std::vector<FrameRow> frames;
     std::vector<TradeRow> trade;
 };
+
+// The trade's knob names, in the order the trade runs them.
+const std::vector<std::string>& tradeKnobs();
 
 Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream& log);
 void printFitBench(const FitBenchReport& report, std::ostream& out);  // Markdown tables
