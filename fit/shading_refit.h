@@ -53,8 +53,8 @@ struct ShadingRefitOptions {
     // Each shading series is raised to at least this degree (capped by the frames its piece
     // spans, less one) before the refit: cross-validated on wandering per-frame values, the
     // compression picks low degrees that no image would choose. Higher degrees follow the frames
-    // more closely and wander between them: 5 raised the Heliar's held-out median on each noise
-    // seed tried, 2 lowered it against 3. 0..12.
+    // more closely and wander between them: on the Heliar, 5 raised the held-out median on each
+    // noise seed tried; 2 instead of 3 lowered it on two seeds and left it on the others. 0..12.
     int min_degree = 2;
 };
 
