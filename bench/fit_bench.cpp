@@ -3,10 +3,12 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <iomanip>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
+#include "common/check.h"
 #include "drivers/sim_truth.h"
 #include "fit/model_eval.h"
 #include "fit/score.h"
@@ -206,64 +208,59 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
         return options.knobs.empty() ||
                std::find(options.knobs.begin(), options.knobs.end(), knob) != options.knobs.end();
     };
-    const std::vector<int> iterations =
-        options.quick ? std::vector<int>{5} : std::vector<int>{3, 8, 40};
-    for (int it : wants("iterations") ? iterations : std::vector<int>{}) {
-        auto o = options.fit;
-        o.frame.max_iterations = it;
-        if (Status ok = run(*sweep, o, "iterations", std::to_string(it)); !ok) return ok.error();
-    }
-    const std::vector<int> newton = options.quick ? std::vector<int>{1} : std::vector<int>{1, 2, 8};
-    for (int it : wants("distance iterations") ? newton : std::vector<int>{}) {
-        auto o = options.fit;
-        o.frame.cost.distance.iterations = it;
-        if (Status ok = run(*sweep, o, "distance iterations", std::to_string(it)); !ok)
-            return ok.error();
-    }
-    const std::vector<int> samples =
-        options.quick ? std::vector<int>{24} : std::vector<int>{16, 32, 96};
-    for (int v : wants("samples per side") ? samples : std::vector<int>{}) {
-        auto o = options.fit;
-        o.frame.cost.max_samples = v;
-        if (Status ok = run(*sweep, o, "samples per side", std::to_string(v)); !ok)
-            return ok.error();
-    }
-    const std::vector<int> degrees =
-        options.quick ? std::vector<int>{1} : std::vector<int>{1, 3, 6};
-    for (int d : wants("degree") ? degrees : std::vector<int>{}) {
-        auto o = options.fit;
-        o.poly.fixed_degree = d;
-        if (Status ok = run(*sweep, o, "degree", "fixed " + std::to_string(d)); !ok)
-            return ok.error();
-    }
-    // The shading refit (fit/shading_refit.h): off, and on a fifth of its frames; its passes and
-    // its series' minimum degree.
-    for (int frames :
-         wants("shading refit frames")
-             ? std::vector<int>{0, std::max(2, options.fit.shading.frames_per_ghost / 5)}
-             : std::vector<int>{}) {
-        auto o = options.fit;
-        o.shading.frames_per_ghost = frames;
-        if (Status ok = run(*sweep, o, "shading refit frames",
-                            frames == 0 ? std::string("off") : std::to_string(frames));
-            !ok)
-            return ok.error();
-        if (options.quick) break;
-    }
-    const std::vector<int> passes = options.quick ? std::vector<int>{2} : std::vector<int>{2, 4, 8};
-    for (int v : wants("shading refit passes") ? passes : std::vector<int>{}) {
-        auto o = options.fit;
-        o.shading.passes = v;
-        if (Status ok = run(*sweep, o, "shading refit passes", std::to_string(v)); !ok)
-            return ok.error();
-    }
-    const std::vector<int> min_degrees =
-        options.quick ? std::vector<int>{3} : std::vector<int>{0, 3, 5};
-    for (int v : wants("shading refit min degree") ? min_degrees : std::vector<int>{}) {
-        auto o = options.fit;
-        o.shading.min_degree = v;
-        if (Status ok = run(*sweep, o, "shading refit min degree", std::to_string(v)); !ok)
-            return ok.error();
+    // One knob at a time: each setting applied to the defaults, then fitted and scored. The
+    // shading refit (fit/shading_refit.h): off, and on a fifth of its frames; its passes; its
+    // series' minimum degree.
+    struct Knob {
+        std::string name;
+        std::vector<int> quick, full;
+        std::function<void(fit::SweepFitOptions&, int)> set;
+        std::function<std::string(int)> label;
+    };
+    const auto number = [](int v) { return std::to_string(v); };
+    const int fifth = std::max(2, options.fit.shading.frames_per_ghost / 5);
+    const Knob knobs[] = {
+        {"iterations", {5}, {3, 8, 40}, [](auto& o, int v) { o.frame.max_iterations = v; }, number},
+        {"distance iterations",
+         {1},
+         {1, 2, 8},
+         [](auto& o, int v) { o.frame.cost.distance.iterations = v; },
+         number},
+        {"samples per side",
+         {24},
+         {16, 32, 96},
+         [](auto& o, int v) { o.frame.cost.max_samples = v; },
+         number},
+        {"degree",
+         {1},
+         {1, 3, 6},
+         [](auto& o, int v) { o.poly.fixed_degree = v; },
+         [](int v) { return "fixed " + std::to_string(v); }},
+        {"shading refit frames",
+         {0},
+         {0, fifth},
+         [](auto& o, int v) { o.shading.frames_per_ghost = v; },
+         [](int v) { return v == 0 ? std::string("off") : std::to_string(v); }},
+        {"shading refit passes",
+         {2},
+         {2, 4, 8},
+         [](auto& o, int v) { o.shading.passes = v; },
+         number},
+        {"shading refit min degree",
+         {3},
+         {0, 3, 5},
+         [](auto& o, int v) { o.shading.min_degree = v; },
+         number},
+    };
+    for (const Knob& k : knobs) {
+        FLARELAB_CHECK(std::find(tradeKnobs().begin(), tradeKnobs().end(), k.name) !=
+                       tradeKnobs().end());
+        if (!wants(k.name)) continue;
+        for (int v : options.quick ? k.quick : k.full) {
+            auto o = options.fit;
+            k.set(o, v);
+            if (Status ok = run(*sweep, o, k.name, k.label(v)); !ok) return ok.error();
+        }
     }
     for (size_t i = 1; i < options.sweeps.size() && wants("angular step"); ++i) {
         auto other = hdr::readSweep(options.sweeps[i]);
