@@ -73,6 +73,22 @@ inline v1::SweepConfig simConfig(const std::string& output_dir,
     return c;
 }
 
+// A sweep from 0 to `to_deg` in 0.2 degree steps, fitted, on frames large enough to hold ghosts
+// (160 x 107): a fit of a few seconds.
+inline v1::SweepConfig fitConfig(const std::string& output_dir, double to_deg) {
+    v1::SweepConfig c = simConfig(output_dir, 0.0, to_deg, 0.2);
+    c.set_width_px(160);
+    c.set_height_px(107);
+    c.set_fit(true);
+    return c;
+}
+
+inline bool ended(const v1::Job& j) {
+    return j.state() == v1::SUCCEEDED || j.state() == v1::FAILED || j.state() == v1::CANCELLED;
+}
+
+inline bool fittingOrEnded(const v1::Job& j) { return j.phase() == v1::FITTING || ended(j); }
+
 class Daemon {
 public:
     explicit Daemon(const std::string& state_dir,

@@ -18,8 +18,14 @@ namespace {
 
 using namespace testing;
 
-bool ended(const v1::Job& j) {
-    return j.state() == v1::SUCCEEDED || j.state() == v1::FAILED || j.state() == v1::CANCELLED;
+// The journal of the state directory `dir` holds one job record: `record`.
+void readOnlyRecord(const std::string& dir, v1::Job* record) {
+    auto journal = Journal::open(dir);
+    ASSERT_TRUE(journal);
+    auto loaded = journal->load();
+    ASSERT_TRUE(loaded);
+    ASSERT_EQ(loaded->jobs.size(), 1u);
+    *record = loaded->jobs[0];
 }
 
 // Every frame of `a` equals the frame of `b` at the same index: angle, file name, bracket
@@ -53,12 +59,9 @@ TEST(Resume, AStoppedDaemonInterruptsItsJobAndTheNextOneFinishesItIdentically) {
         waitFor(*stub, job.id(), [](const v1::Job& j) { return j.frames_done() >= 3; });
         daemon.stop();
     }
-    auto journal = Journal::open(dir.path);
-    ASSERT_TRUE(journal);
-    auto loaded = journal->load();
-    ASSERT_TRUE(loaded);
-    ASSERT_EQ(loaded->jobs.size(), 1u);
-    EXPECT_EQ(loaded->jobs[0].state(), v1::INTERRUPTED);
+    v1::Job record;
+    ASSERT_NO_FATAL_FAILURE(readOnlyRecord(dir.path, &record));
+    EXPECT_EQ(record.state(), v1::INTERRUPTED);
     auto partial = hdr::readSweepManifest(output);
     ASSERT_TRUE(partial);
     EXPECT_GE(partial->frames.size(), 3u);
@@ -85,26 +88,18 @@ TEST(Resume, ADaemonStoppedDuringAFitFitsAgainAtItsNextStart) {
     {
         Daemon daemon(dir.path);
         auto stub = daemon.stub();
-        v1::SweepConfig config = simConfig("fit-stopped", 0.0, 3.0, 0.2);
-        config.set_width_px(160);
-        config.set_height_px(107);
-        config.set_fit(true);
         v1::Job job;
-        ASSERT_TRUE(startSweep(*stub, config, &job).ok());
+        ASSERT_TRUE(startSweep(*stub, fitConfig("fit-stopped", 3.0), &job).ok());
         job_id = job.id();
         output = job.output_dir();
-        const v1::Job fitting = waitFor(
-            *stub, job.id(), [](const v1::Job& j) { return j.phase() == v1::FITTING || ended(j); });
+        const v1::Job fitting = waitFor(*stub, job.id(), fittingOrEnded);
         ASSERT_EQ(fitting.phase(), v1::FITTING);
         daemon.stop();
     }
-    auto journal = Journal::open(dir.path);
-    ASSERT_TRUE(journal);
-    auto loaded = journal->load();
-    ASSERT_TRUE(loaded);
-    ASSERT_EQ(loaded->jobs.size(), 1u);
-    EXPECT_EQ(loaded->jobs[0].state(), v1::INTERRUPTED);
-    EXPECT_EQ(loaded->jobs[0].phase(), v1::FITTING);
+    v1::Job record;
+    ASSERT_NO_FATAL_FAILURE(readOnlyRecord(dir.path, &record));
+    EXPECT_EQ(record.state(), v1::INTERRUPTED);
+    EXPECT_EQ(record.phase(), v1::FITTING);
     EXPECT_FALSE(fs::exists(output + "/model.flm"));
 
     Daemon again(dir.path);

@@ -17,10 +17,6 @@ namespace {
 
 using namespace testing;
 
-bool ended(const v1::Job& j) {
-    return j.state() == v1::SUCCEEDED || j.state() == v1::FAILED || j.state() == v1::CANCELLED;
-}
-
 TEST(Service, RunsAWholeSweepWithFitAndPreviewsAndReportsItsProducts) {
     TempDir dir;
     Daemon daemon(dir.path);
@@ -396,8 +392,7 @@ TEST(Service, TheRigGoesOnWithTheNextJobWhileTheLastOneFits) {
     v1::Job a, b;
     ASSERT_TRUE(startSweep(*stub, fitted, &a).ok());
     ASSERT_TRUE(startSweep(*stub, simConfig("next", 0.0, 0.2, 0.2), &b).ok());
-    const v1::Job fitting = waitFor(
-        *stub, a.id(), [](const v1::Job& j) { return j.phase() == v1::FITTING || ended(j); });
+    const v1::Job fitting = waitFor(*stub, a.id(), fittingOrEnded);
     EXPECT_EQ(fitting.phase(), v1::FITTING);
     // A fit holds no device: it cannot pause, but b captures meanwhile and ends first.
     v1::JobControlRequest pause;
@@ -419,13 +414,9 @@ TEST(Service, CancellingAFitStopsItAndKeepsTheSweep) {
     TempDir dir;
     Daemon daemon(dir.path);
     auto stub = daemon.stub();
-    v1::SweepConfig fitted = simConfig("cancelled-fit", 0.0, 3.0, 0.2);
-    fitted.set_width_px(160);
-    fitted.set_height_px(107);
-    fitted.set_fit(true);
     v1::Job job;
-    ASSERT_TRUE(startSweep(*stub, fitted, &job).ok());
-    waitFor(*stub, job.id(), [](const v1::Job& j) { return j.phase() == v1::FITTING || ended(j); });
+    ASSERT_TRUE(startSweep(*stub, fitConfig("cancelled-fit", 3.0), &job).ok());
+    waitFor(*stub, job.id(), fittingOrEnded);
     v1::JobControlRequest cancel;
     cancel.set_job_id(job.id());
     v1::Job out;
