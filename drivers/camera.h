@@ -1,12 +1,15 @@
 // ============================================================================
-//  flarelab drivers: Camera, CameraCapabilities, CameraRegistry
+//  flarelab drivers: Camera, CameraCapabilities, CameraResponse, CameraRegistry
 // ============================================================================
 //
-// The interface every camera backend implements: the simulated camera (sim_camera.h) now,
-// V4L2, libcamera and GigE Vision (Aravis) later. A camera has one exposure time and one gain
-// at a time; capture() takes one raw frame with them and returns it with everything the bracket
-// merge needs (hdr/raw_frame.h): exposure, gain, black and white level, bit depth, read noise
-// and conversion gain when the camera knows them, timestamp and sequence number.
+// The interface every camera backend implements: the simulated camera (sim_camera.h), GigE
+// Vision through Aravis (aravis_camera.h), V4L2 (v4l2_camera.h) and libcamera
+// (libcamera_camera.h). A camera has one exposure time and one gain at a time; capture() takes
+// one raw frame with them and returns it with everything the bracket merge needs
+// (hdr/raw_frame.h): the exposure and gain the camera applied (read back from it where it can
+// say), black and white level, bit depth, read noise and conversion gain when the camera knows
+// them, the camera's and the host's timestamps and what the camera's marks, and the sequence
+// number.
 //
 // Errors are device errors (device.h): a setting outside the camera's range is [out-of-range]
 // naming the field (exposure_s, gain, format); a frame that does not arrive within the timeout
@@ -17,6 +20,7 @@
 #include <cstdint>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "common/result.h"
@@ -24,6 +28,13 @@
 #include "hdr/raw_frame.h"
 
 namespace flarelab::drivers {
+
+// Whether a camera's samples are proportional to the light (after the black level), as the
+// bracket merge assumes. A camera known to be NonLinear (a webcam's gamma curve, Aravis's fake
+// camera, whose test pattern grows with the logarithm of the exposure) must have its response
+// calibrated (calibration.h) before its brackets are merged; Unknown is a camera whose backend
+// cannot tell (`flarelab calibrate` measures it).
+enum class CameraResponse { Linear, NonLinear, Unknown };
 
 struct CameraCapabilities {
     int64_t width_px = 0;  // of the frames capture() returns
@@ -39,6 +50,8 @@ struct CameraCapabilities {
     // At gain 1; 0 where the camera does not say. Per frame, RawFrame carries them at its gain.
     double read_noise_e = 0.0;
     double electrons_per_dn = 0.0;
+    CameraResponse response = CameraResponse::Linear;
+    std::string response_note;  // why the backend says so, for messages; may be empty
 };
 
 class Camera {
@@ -65,10 +78,15 @@ public:
     // [timeout] when it does not come, [disconnected] when the camera is gone,
     // [out-of-range] naming timeout_s when it is not a positive finite number.
     virtual Result<hdr::RawFrame> capture(double timeout_s) = 0;
+
+    // Counters of the camera's transport since it was opened, for the log of a sweep (GigE
+    // Vision: completed and failed buffers, underruns, resent and missing packets). Empty where
+    // the backend keeps none.
+    virtual std::vector<std::pair<std::string, int64_t>> statistics() const { return {}; }
 };
 
-// Cameras by URI: "sim:?lens=data/lenses/heliar-tronnier.csv" (sim_camera.h), later
-// "v4l2:/dev/video0" and friends.
+// Cameras by URI: "sim:?lens=data/lenses/heliar-tronnier.csv" (sim_camera.h),
+// "aravis:Fake_1", "v4l2:/dev/video0", "libcamera:NAME" (rig.h opens them all).
 using CameraRegistry = DeviceRegistry<Camera>;
 
 }  // namespace flarelab::drivers

@@ -1,5 +1,5 @@
 // ============================================================================
-//  flarelab drivers: DeviceIdentity, DeviceFault, DeviceUri, DeviceRegistry
+//  flarelab drivers: DeviceIdentity, DeviceListing, DeviceFault, DeviceUri, DeviceRegistry
 // ============================================================================
 //
 // What every device backend (cameras, heads; simulated or real) shares: how it names itself,
@@ -33,6 +33,19 @@ struct DeviceIdentity {
     std::string uri;  // the URI it was opened with, if any
 
     std::string describe() const { return model + " " + serial; }
+};
+
+// One device a backend can see now, for `flarelab rig devices`: how to open it and what a lab
+// needs to recognise it (a camera's formats, a serial port's USB vendor, product and serial).
+struct DeviceListing {
+    std::string uri;      // opens it: "v4l2:/dev/video0", "aravis:Fake_1", "zaber:/dev/ttyUSB0"
+    std::string kind;     // "camera", "head" or "serial-port" (a port that may hold a stage)
+    std::string backend;  // URI scheme
+    std::string model;
+    std::string serial;
+    // "key: value" lines: formats, sizes, USB ids, driver, bus; free text, one fact a line.
+    std::vector<std::string> details;
+    bool operator==(const DeviceListing&) const = default;
 };
 
 enum class DeviceFault {
@@ -83,7 +96,7 @@ template <typename Device>
 class DeviceRegistry {
 public:
     using Opener = std::function<Result<std::unique_ptr<Device>>(const DeviceUri&)>;
-    using Lister = std::function<std::vector<std::string>()>;
+    using Lister = std::function<std::vector<DeviceListing>()>;
 
     // InvalidArgument when the scheme is malformed or already taken.
     Status addBackend(const std::string& scheme,
@@ -128,13 +141,13 @@ public:
         return backend->second.open(*uri);
     }
 
-    // URIs of the devices every backend with a lister sees now, in scheme order.
-    std::vector<std::string> enumerate() const {
-        std::vector<std::string> uris;
+    // The devices every backend with a lister sees now, in scheme order.
+    std::vector<DeviceListing> enumerate() const {
+        std::vector<DeviceListing> found;
         for (const auto& [scheme, backend] : backends_)
             if (backend.list)
-                for (std::string& uri : backend.list()) uris.push_back(std::move(uri));
-        return uris;
+                for (DeviceListing& d : backend.list()) found.push_back(std::move(d));
+        return found;
     }
 
     // (scheme, description) of every backend.

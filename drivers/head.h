@@ -1,11 +1,12 @@
 // ============================================================================
-//  flarelab drivers: Head, HeadLimits
+//  flarelab drivers: Head, HeadLimits, HeadRegistry
 // ============================================================================
 //
 // The interface of a motorized panorama head that turns the camera about a vertical axis, away
-// from the light: the simulated head (sim_head.h) now, serial and USB heads later. Angles are in
-// degrees in the head's own frame: 0 is where home() puts it (the camera facing the light on a
-// calibrated rig), positive turns the light towards +x in the image.
+// from the light: the simulated head (sim_head.h), and rotation stages on a serial line: Zaber
+// (zaber_head.h) and Thorlabs APT (apt_head.h). Angles are in degrees in the head's own frame: 0 is
+// where home() puts it (the camera facing the light on a calibrated rig), positive turns the light
+// towards +x in the image.
 //
 // A head must be homed before it knows its position: until then, and after it lost position,
 // position() and moveTo() answer [not-homed]. moveTo blocks until the head has arrived and
@@ -53,5 +54,8 @@ public:
     // nothing when the head stands still.
     virtual Status stop() = 0;
 };
+
+// Heads by URI: "sim:", "zaber:/dev/ttyUSB0?axis=1", "apt:/dev/ttyUSB0" (rig.h opens them all).
+using HeadRegistry = DeviceRegistry<Head>;
 
 }  // namespace flarelab::drivers

@@ -507,6 +507,9 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
     frame.read_noise_dn = options_.read_noise_e / frame.electrons_per_dn;
     frame.angle_deg = stamp_deg;
     frame.timestamp_ns = clock_->now_ns();
+    // host_timestamp_ns stays 0: a simulated frame is a function of (seed, sequence) alone, so
+    // that a resumed sweep's raw files equal an uninterrupted one's.
+    frame.timestamp_marks = hdr::TimestampMark::ExposureStart;
     frame.sequence = sequence_++;
     frame.camera = identity().describe();
     frame.samples.resize(static_cast<size_t>(frame.width * frame.height));
@@ -539,64 +542,91 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
     return frame;
 }
 
+Result<SimCameraSetup> simCameraSetup(const DeviceUri& uri,
+                                      const SimCameraOptions& defaults,
+                                      const std::optional<optics::Lens>& lens) {
+    if (Status ok =
+            uri.onlyParams({"lens", "width", "height", "bits", "seed", "format", "angle_deg"});
+        !ok)
+        return ok.error();
+    SimCameraOptions options = defaults;
+    std::optional<optics::Lens> chosen = lens;
+    if (auto it = uri.params.find("lens"); it != uri.params.end()) {
+        auto prescription = optics::loadPrescription(it->second);
+        if (!prescription) return prescription.error().withContext("sim camera lens");
+        auto made = optics::Lens::make(*prescription, optics::CameraDescription{});
+        if (!made) return made.error().withContext("sim camera lens");
+        chosen = std::move(*made);
+    }
+    if (!chosen)
+        return makeError(ErrorCode::NotFound, "device uri '" + uri.text +
+                                                  "': the sim camera needs a lens "
+                                                  "(sim:?lens=data/lenses/<file>.csv)");
+    const auto integer = [&](const std::string& key, int64_t& field) -> Status {
+        auto value = uri.number(key, static_cast<double>(field));
+        if (!value) return value.error();
+        if (*value != std::floor(*value) || std::abs(*value) > 9.007199254740992e15)
+            return makeError(ErrorCode::InvalidArgument,
+                             "device uri '" + uri.text + "': " + key + " must be an integer");
+        field = static_cast<int64_t>(*value);
+        return Ok{};
+    };
+    int64_t bits = options.bit_depth, seed = static_cast<int64_t>(options.seed);
+    for (auto [key, field] : {std::pair<const char*, int64_t*>{"width", &options.width_px},
+                              {"height", &options.height_px},
+                              {"bits", &bits},
+                              {"seed", &seed}})
+        if (Status ok = integer(key, *field); !ok) return ok.error();
+    if (bits < 8 || bits > 16)
+        return makeError(ErrorCode::InvalidArgument,
+                         "device uri '" + uri.text + "': bits must lie in 8..16");
+    options.bit_depth = static_cast<int>(bits);
+    options.seed = static_cast<uint64_t>(seed);
+    if (auto it = uri.params.find("format"); it != uri.params.end()) {
+        if (it->second == "mono")
+            options.format = hdr::RawFormat::Mono;
+        else if (it->second == "rggb")
+            options.format = hdr::RawFormat::BayerRGGB;
+        else
+            return makeError(ErrorCode::InvalidArgument,
+                             "device uri '" + uri.text + "': format must be mono or rggb");
+    }
+    auto angle = uri.number("angle_deg", options.fixed_angle_deg);
+    if (!angle) return angle.error();
+    options.fixed_angle_deg = *angle;
+    if (Status ok = options.validate(); !ok)
+        return ok.error().withContext("device uri '" + uri.text + "'");
+    return SimCameraSetup{std::move(*chosen), options};
+}
+
 Status addSimCameraBackend(CameraRegistry& registry,
                            std::shared_ptr<SimHead> head,
                            const SimCameraOptions& defaults,
                            std::optional<optics::Lens> lens) {
     auto open = [head, defaults, lens](const DeviceUri& uri) -> Result<std::unique_ptr<Camera>> {
-        if (Status ok =
-                uri.onlyParams({"lens", "width", "height", "bits", "seed", "format", "angle_deg"});
-            !ok)
-            return ok.error();
-        SimCameraOptions options = defaults;
-        std::optional<optics::Lens> chosen = lens;
-        if (auto it = uri.params.find("lens"); it != uri.params.end()) {
-            auto prescription = optics::loadPrescription(it->second);
-            if (!prescription) return prescription.error().withContext("sim camera lens");
-            auto made = optics::Lens::make(*prescription, optics::CameraDescription{});
-            if (!made) return made.error().withContext("sim camera lens");
-            chosen = std::move(*made);
-        }
-        if (!chosen)
-            return makeError(ErrorCode::NotFound, "device uri '" + uri.text +
-                                                      "': the sim camera needs a lens "
-                                                      "(sim:?lens=data/lenses/<file>.csv)");
-        const auto integer = [&](const std::string& key, int64_t& field) -> Status {
-            auto value = uri.number(key, static_cast<double>(field));
-            if (!value) return value.error();
-            if (*value != std::floor(*value))
-                return makeError(ErrorCode::InvalidArgument,
-                                 "device uri '" + uri.text + "': " + key + " must be an integer");
-            field = static_cast<int64_t>(*value);
-            return Ok{};
-        };
-        int64_t bits = options.bit_depth, seed = static_cast<int64_t>(options.seed);
-        for (auto [key, field] : {std::pair<const char*, int64_t*>{"width", &options.width_px},
-                                  {"height", &options.height_px},
-                                  {"bits", &bits},
-                                  {"seed", &seed}})
-            if (Status ok = integer(key, *field); !ok) return ok.error();
-        options.bit_depth = static_cast<int>(bits);
-        options.seed = static_cast<uint64_t>(seed);
-        if (auto it = uri.params.find("format"); it != uri.params.end()) {
-            if (it->second == "mono")
-                options.format = hdr::RawFormat::Mono;
-            else if (it->second == "rggb")
-                options.format = hdr::RawFormat::BayerRGGB;
-            else
-                return makeError(ErrorCode::InvalidArgument,
-                                 "device uri '" + uri.text + "': format must be mono or rggb");
-        }
-        auto angle = uri.number("angle_deg", options.fixed_angle_deg);
-        if (!angle) return angle.error();
-        options.fixed_angle_deg = *angle;
-        auto camera = head ? SimCamera::make(std::move(*chosen), options, head)
-                           : SimCamera::make(std::move(*chosen), options);
+        auto setup = simCameraSetup(uri, defaults, lens);
+        if (!setup) return setup.error();
+        auto camera = head ? SimCamera::make(std::move(setup->lens), setup->options, head)
+                           : SimCamera::make(std::move(setup->lens), setup->options);
         if (!camera) return camera.error();
         return std::unique_ptr<Camera>(std::move(*camera));
     };
-    return registry.addBackend("sim", "simulated camera (flarelab renderer)", std::move(open),
-                               [] { return std::vector<std::string>{"sim:"}; });
+    const SimCameraOptions listed = defaults;
+    return registry.addBackend(
+        "sim", "simulated camera (flarelab renderer)", std::move(open), [listed] {
+            DeviceListing d;
+            d.uri = "sim:";
+            d.kind = "camera";
+            d.backend = "sim";
+            d.model = "flarelab simulated camera";
+            d.serial = listed.serial;
+            d.details = {"size: " + std::to_string(listed.width_px) + "x" +
+                             std::to_string(listed.height_px) + " (uri: width=, height=)",
+                         "bits: " + std::to_string(listed.bit_depth),
+                         "formats: mono, rggb (uri: format=)",
+                         "lens: uri parameter lens=<prescription csv>"};
+            return std::vector<DeviceListing>{d};
+        });
 }
 
 }  // namespace flarelab::drivers

@@ -210,6 +210,17 @@ private:
     double last_render_ms_ = 0.0;
 };
 
+// The lens and options a "sim:" camera URI asks for (the parameters as for addSimCameraBackend
+// below), from `defaults` and `lens`; NotFound naming the lens parameter when there is no lens,
+// InvalidArgument naming the parameter that is out of range.
+struct SimCameraSetup {
+    optics::Lens lens;
+    SimCameraOptions options;
+};
+Result<SimCameraSetup> simCameraSetup(const DeviceUri& uri,
+                                      const SimCameraOptions& defaults,
+                                      const std::optional<optics::Lens>& lens);
+
 // Adds the "sim" scheme to a registry: "sim:" opens a SimCamera bound to `head` (or with no head
 // when null) with `defaults`, its lens `lens` when given. URI parameters override: lens=<path of
 // a prescription> (loaded with the default camera description), width, height, bits, seed,

@@ -299,4 +299,55 @@ Status SimHead::home(double timeout_s) {
     return Ok{};
 }
 
+Status addSimHeadBackend(HeadRegistry& registry,
+                         const SimHeadOptions& defaults,
+                         std::shared_ptr<SimClock> clock) {
+    auto open = [defaults, clock](const DeviceUri& uri) -> Result<std::unique_ptr<Head>> {
+        if (Status ok = uri.onlyParams({"speed_deg_s", "acceleration_deg_s2", "settle_s",
+                                        "backlash_deg", "position_noise_deg", "seed", "time"});
+            !ok)
+            return ok.error();
+        SimHeadOptions options = defaults;
+        for (auto [key, field] :
+             {std::pair<const char*, double*>{"speed_deg_s", &options.speed_deg_s},
+              {"acceleration_deg_s2", &options.acceleration_deg_s2},
+              {"settle_s", &options.settle_s},
+              {"backlash_deg", &options.backlash_deg},
+              {"position_noise_deg", &options.position_noise_deg}}) {
+            auto value = uri.number(key, *field);
+            if (!value) return value.error();
+            *field = *value;
+        }
+        auto seed = uri.number("seed", static_cast<double>(options.seed));
+        if (!seed) return seed.error();
+        if (*seed < 0.0 || *seed != std::floor(*seed) || *seed > 9.007199254740992e15)
+            return makeError(ErrorCode::InvalidArgument,
+                             "device uri '" + uri.text + "': seed must be a whole number >= 0");
+        options.seed = static_cast<uint64_t>(*seed);
+        std::shared_ptr<SimClock> chosen = clock;
+        if (auto it = uri.params.find("time"); it != uri.params.end()) {
+            if (it->second != "fast" && it->second != "real")
+                return makeError(ErrorCode::InvalidArgument,
+                                 "device uri '" + uri.text + "': time must be fast or real");
+            chosen = std::make_shared<SimClock>(it->second == "fast" ? SimTime::Fast
+                                                                     : SimTime::RealTime);
+        }
+        auto head = SimHead::make(options, chosen);
+        if (!head) return head.error().withContext("device uri '" + uri.text + "'");
+        return std::unique_ptr<Head>(std::move(*head));
+    };
+    const SimHeadOptions listed = defaults;
+    return registry.addBackend("sim", "simulated panorama head", std::move(open), [listed] {
+        DeviceListing d;
+        d.uri = "sim:";
+        d.kind = "head";
+        d.backend = "sim";
+        d.model = "flarelab simulated head";
+        d.serial = listed.serial;
+        d.details = {"range: " + std::to_string(listed.min_deg) + " .. " +
+                     std::to_string(listed.max_deg) + " deg"};
+        return std::vector<DeviceListing>{d};
+    });
+}
+
 }  // namespace flarelab::drivers

@@ -1,5 +1,5 @@
 // ============================================================================
-//  flarelab drivers: SimHead, SimHeadOptions, SimHeadFaults
+//  flarelab drivers: SimHead, SimHeadOptions, SimHeadFaults, addSimHeadBackend
 // ============================================================================
 //
 // A simulated panorama head for the simulated rig and the daemon's tests.
@@ -145,5 +145,14 @@ private:
     double last_move_s_ = 0.0;
     std::mt19937_64 rng_;
 };
+
+// Adds the "sim" scheme to a head registry: "sim:" opens a SimHead with `defaults` on `clock`
+// (a new fast clock per head when null). URI parameters override: speed_deg_s,
+// acceleration_deg_s2, settle_s, backlash_deg, position_noise_deg, seed, and time=fast|real (a
+// clock of its own in that mode). InvalidArgument naming the parameter when one is unknown or
+// out of range.
+Status addSimHeadBackend(HeadRegistry& registry,
+                         const SimHeadOptions& defaults = {},
+                         std::shared_ptr<SimClock> clock = nullptr);
 
 }  // namespace flarelab::drivers

@@ -24,12 +24,22 @@ enum class RawFormat {
     BayerGBRG,
 };
 
+// What RawFrame::timestamp_ns marks on the camera's clock.
+enum class TimestampMark {
+    Unknown,        // the camera does not say
+    ExposureStart,  // the start of the exposure (the simulated camera; GigE Vision's default)
+    ExposureEnd,    // the end of the exposure
+    FrameArrival,   // when the frame reached the host's driver (V4L2's buffer timestamp)
+};
+
 struct RawFrame {
     int64_t width = 0;
     int64_t height = 0;
     RawFormat format = RawFormat::Mono;
     std::vector<uint16_t> samples;  // width * height, row-major, top row first
 
+    // What the camera applied, read back from it where it can say (a camera rounds a requested
+    // exposure to its line time, a gain to its steps), else what was set.
     double exposure_s = 0.0;  // > 0
     double gain = 1.0;        // linear, > 0 (1: the sensor's unity setting)
     int bit_depth = 16;       // of the converter, 8..16
@@ -42,8 +52,12 @@ struct RawFrame {
 
     double angle_deg = 0.0;    // head angle when the frame was taken
     int64_t timestamp_ns = 0;  // camera clock, monotonic within a sweep
-    int64_t sequence = 0;      // frame counter of the camera
-    std::string camera;        // model and serial, free text
+    TimestampMark timestamp_marks = TimestampMark::Unknown;  // what timestamp_ns marks
+    // The host's clock (CLOCK_REALTIME, ns since the Unix epoch) when the host had the frame;
+    // 0 when unknown. Beside the camera's clock it dates a frame and shows transfer delays.
+    int64_t host_timestamp_ns = 0;
+    int64_t sequence = 0;  // frame counter of the camera
+    std::string camera;    // model and serial, free text
 
     bool operator==(const RawFrame&) const = default;
 };

@@ -20,7 +20,8 @@
 namespace flarelab::hdr {
 namespace {
 
-constexpr std::string_view kMagic = "P5\n# flarelab-raw 1\n";
+constexpr std::string_view kMagicV1 = "P5\n# flarelab-raw 1\n";
+constexpr std::string_view kMagic = "P5\n# flarelab-raw 2\n";
 
 const std::array<std::pair<RawFormat, std::string_view>, 5> kFormats = {{
     {RawFormat::Mono, "mono"},
@@ -30,10 +31,19 @@ const std::array<std::pair<RawFormat, std::string_view>, 5> kFormats = {{
     {RawFormat::BayerGBRG, "bayer-gbrg"},
 }};
 
-constexpr std::array<std::string_view, 12> kKeys = {
+constexpr std::array<std::string_view, 12> kKeysV1 = {
     "format",         "exposure_s",     "gain",          "bit_depth",
     "black_level_dn", "white_level_dn", "read_noise_dn", "electrons_per_dn",
     "angle_deg",      "timestamp_ns",   "sequence",      "camera"};
+// Version 2 adds these.
+constexpr std::array<std::string_view, 2> kKeysV2 = {"timestamp_marks", "host_timestamp_ns"};
+
+const std::array<std::pair<TimestampMark, std::string_view>, 4> kMarks = {{
+    {TimestampMark::Unknown, "unknown"},
+    {TimestampMark::ExposureStart, "exposure-start"},
+    {TimestampMark::ExposureEnd, "exposure-end"},
+    {TimestampMark::FrameArrival, "frame-arrival"},
+}};
 
 Error invalid(const std::string& what) {
     return makeError(ErrorCode::InvalidArgument, "raw frame: " + what);
@@ -95,6 +105,10 @@ Status writeRaw(const std::string& path, const RawFrame& frame) {
     header += "# electrons_per_dn " + shortest(frame.electrons_per_dn) + "\n";
     header += "# angle_deg " + shortest(frame.angle_deg) + "\n";
     header += "# timestamp_ns " + std::to_string(frame.timestamp_ns) + "\n";
+    for (const auto& [mark, name] : kMarks)
+        if (mark == frame.timestamp_marks)
+            header += "# timestamp_marks " + std::string(name) + "\n";
+    header += "# host_timestamp_ns " + std::to_string(frame.host_timestamp_ns) + "\n";
     header += "# sequence " + std::to_string(frame.sequence) + "\n";
     header += "# camera " + frame.camera + "\n";
     header += std::to_string(frame.width) + " " + std::to_string(frame.height) + "\n";
@@ -142,11 +156,20 @@ Result<RawFrame> readRawFromMemory(std::span<const uint8_t> bytes,
         return makeError(ErrorCode::ParseError, name + ": " + what);
     };
     const std::string_view text(reinterpret_cast<const char*>(bytes.data()), bytes.size());
-    if (text.substr(0, kMagic.size()) != kMagic)
+    const bool v1 = text.substr(0, kMagicV1.size()) == kMagicV1;
+    if (!v1 && text.substr(0, kMagic.size()) != kMagic)
         return parse_error(
             "not a flarelab raw frame (expected a PGM starting \"P5\" and "
-            "\"# flarelab-raw 1\")");
-    size_t at = kMagic.size();
+            "\"# flarelab-raw 2\" or \"# flarelab-raw 1\")");
+    size_t at = kMagic.size();  // both magics are as long
+    const auto is_key = [&](std::string_view key) {
+        for (const std::string_view k : kKeysV1)
+            if (k == key) return true;
+        if (!v1)
+            for (const std::string_view k : kKeysV2)
+                if (k == key) return true;
+        return false;
+    };
     // Header lines up to the size line; every one ends in '\n' and has no NUL.
     const auto next_line = [&]() -> std::optional<std::string_view> {
         const size_t end = text.find('\n', at);
@@ -163,16 +186,18 @@ Result<RawFrame> readRawFromMemory(std::span<const uint8_t> bytes,
         const size_t space = body.find(' ');
         const std::string key(body.substr(0, space));
         const std::string value(space == std::string_view::npos ? "" : body.substr(space + 1));
-        bool known = false;
-        for (const std::string_view k : kKeys) known = known || k == key;
-        if (!known) return parse_error("unknown header key \"" + key + "\"");
+        if (!is_key(key)) return parse_error("unknown header key \"" + key + "\"");
         if (!values.emplace(key, value).second)
             return parse_error("header key \"" + key + "\" appears twice");
     }
     if (!line) return parse_error("the header ends before the size line");
-    for (const std::string_view k : kKeys)
+    for (const std::string_view k : kKeysV1)
         if (!values.contains(k))
             return parse_error("header key \"" + std::string(k) + "\" is missing");
+    if (!v1)
+        for (const std::string_view k : kKeysV2)
+            if (!values.contains(k))
+                return parse_error("header key \"" + std::string(k) + "\" is missing");
 
     RawFrame f;
     const auto number = [&](const char* key, double& out) -> Status {
@@ -208,6 +233,17 @@ Result<RawFrame> readRawFromMemory(std::span<const uint8_t> bytes,
     if (bit_depth < 8 || bit_depth > 16) return parse_error("bit_depth must lie in 8..16");
     f.bit_depth = static_cast<int>(bit_depth);
     f.camera = values.find("camera")->second;
+    if (!v1) {
+        if (Status s = integer("host_timestamp_ns", f.host_timestamp_ns); !s) return s.error();
+        const std::string& mark_name = values.find("timestamp_marks")->second;
+        bool mark_known = false;
+        for (const auto& [mark, mname] : kMarks)
+            if (mname == mark_name) {
+                f.timestamp_marks = mark;
+                mark_known = true;
+            }
+        if (!mark_known) return parse_error("timestamp_marks \"" + mark_name + "\" is unknown");
+    }
 
     // The size line (already read) and MAXVAL.
     int64_t width = 0, height = 0;

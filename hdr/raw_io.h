@@ -3,10 +3,10 @@
 // ============================================================================
 //
 // Raw brackets are kept on disk as binary PGM (Netpbm P5), 16-bit, so any image viewer shows
-// them, with flarelab's metadata in header comments. Format version 1:
+// them, with flarelab's metadata in header comments. Format version 2:
 //
 //   P5
-//   # flarelab-raw 1
+//   # flarelab-raw 2
 //   # format mono | bayer-rggb | bayer-bggr | bayer-grbg | bayer-gbrg
 //   # exposure_s 0.25
 //   # gain 1
@@ -17,11 +17,16 @@
 //   # electrons_per_dn 0.8
 //   # angle_deg 1.4
 //   # timestamp_ns 123456789
+//   # timestamp_marks exposure-start | exposure-end | frame-arrival | unknown
+//   # host_timestamp_ns 1764625473000000000
 //   # sequence 42
 //   # camera sim camera, serial 0     (the rest of the line; no line breaks)
 //   WIDTH HEIGHT
 //   MAXVAL                            (2^bit_depth - 1)
 //   <width x height samples, 2 bytes each, most significant byte first, rows top to bottom>
+//
+// Version 1 files (written before 2026-12) lack the two timestamp keys and read with
+// TimestampMark::Unknown and host_timestamp_ns 0; the writer writes version 2.
 //
 // Every key appears exactly once, in any order, before the size line; numbers are written so
 // that they read back to the same double. The reader refuses, naming the file and the key or
@@ -41,7 +46,7 @@
 
 namespace flarelab::hdr {
 
-inline constexpr int kRawFormatVersion = 1;
+inline constexpr int kRawFormatVersion = 2;
 
 struct RawReadOptions {
     int64_t max_side = int64_t{1} << 15;    // width and height, pixels

@@ -91,7 +91,8 @@ TEST(DeviceRegistry, OpensByUriAndAliasAndEnumerates) {
             return std::unique_ptr<Camera>(std::make_unique<NamedCamera>(uri.text));
         },
         [] {
-            return std::vector<std::string>{"fake:a", "fake:b"};
+            return std::vector<DeviceListing>{{.uri = "fake:a", .kind = "camera"},
+                                              {.uri = "fake:b", .kind = "camera"}};
         }));
     ASSERT_TRUE(registry.addAlias("bench", "fake:b"));
     const auto direct = registry.open("fake:a");
@@ -100,7 +101,10 @@ TEST(DeviceRegistry, OpensByUriAndAliasAndEnumerates) {
     const auto aliased = registry.open("bench");
     ASSERT_TRUE(aliased);
     EXPECT_EQ((*aliased)->identity().uri, "fake:b");
-    EXPECT_EQ(registry.enumerate(), (std::vector<std::string>{"fake:a", "fake:b"}));
+    const auto listed = registry.enumerate();
+    ASSERT_EQ(listed.size(), 2u);
+    EXPECT_EQ(listed[0].uri, "fake:a");
+    EXPECT_EQ(listed[1].uri, "fake:b");
     ASSERT_EQ(registry.backends().size(), 1u);
 
     const auto missing = registry.open("v4l2:/dev/video0");

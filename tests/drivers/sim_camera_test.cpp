@@ -368,7 +368,10 @@ TEST(SimCamera, RealTimeCaptureTakesTheExposure) {
 TEST(SimCameraBackend, OpensByUriWithALensParameter) {
     CameraRegistry registry;
     ASSERT_TRUE(addSimCameraBackend(registry, nullptr, tiny()));
-    EXPECT_EQ(registry.enumerate(), std::vector<std::string>{"sim:"});
+    const auto listed = registry.enumerate();
+    ASSERT_EQ(listed.size(), 1u);
+    EXPECT_EQ(listed[0].uri, "sim:");
+    EXPECT_EQ(listed[0].kind, "camera");
     const auto none = registry.open("sim:");
     ASSERT_FALSE(none);
     EXPECT_NE(none.error().message.find("lens"), std::string::npos);

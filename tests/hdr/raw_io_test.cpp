@@ -24,6 +24,8 @@ RawFrame sample() {
     f.electrons_per_dn = 0.8125;
     f.angle_deg = -1.4;
     f.timestamp_ns = 1234567890123;
+    f.timestamp_marks = TimestampMark::ExposureEnd;
+    f.host_timestamp_ns = 1764625473123456789;
     f.sequence = 42;
     f.camera = "sim camera, serial 0";
     return f;
@@ -83,7 +85,13 @@ TEST(RawIo, RefusesBrokenHeadersNamingTheKey) {
     EXPECT_NE(message(replaced("# gain 1.7\n", "# gain -1\n")).find("gain"), std::string::npos);
     EXPECT_NE(message(replaced("# gain 1.7\n", "# colour red\n")).find("unknown header key"),
               std::string::npos);
-    EXPECT_NE(message(replaced("flarelab-raw 1", "flarelab-raw 2")).find("not a flarelab raw"),
+    EXPECT_NE(message(replaced("flarelab-raw 2", "flarelab-raw 3")).find("not a flarelab raw"),
+              std::string::npos);
+    EXPECT_NE(message(replaced("# timestamp_marks exposure-end", "# timestamp_marks sometime"))
+                  .find("timestamp_marks"),
+              std::string::npos);
+    EXPECT_NE(message(replaced("# host_timestamp_ns 1764625473123456789\n", ""))
+                  .find("\"host_timestamp_ns\" is missing"),
               std::string::npos);
     EXPECT_NE(message(replaced("\n4095\n", "\n65535\n")).find("MAXVAL"), std::string::npos);
     EXPECT_NE(message(replaced("\n5 3\n", "\n5 4\n")).find("bytes of samples"), std::string::npos);
@@ -98,6 +106,25 @@ TEST(RawIo, RefusesBrokenHeadersNamingTheKey) {
     EXPECT_NE(message(high).find("above MAXVAL"), std::string::npos);
     EXPECT_FALSE(parse(""));
     EXPECT_EQ(readRaw(tempPath("missing.pgm")).error().code, ErrorCode::NotFound);
+}
+
+TEST(RawIo, ReadsVersion1FilesWithoutTheTimestampKeys) {
+    const std::string path = tempPath("v2.pgm");
+    ASSERT_TRUE(writeRaw(path, sample()));
+    std::string text = slurp(path);
+    for (const std::string line :
+         {"# timestamp_marks exposure-end\n", "# host_timestamp_ns 1764625473123456789\n"})
+        text.erase(text.find(line), line.size());
+    text.replace(text.find("flarelab-raw 2"), 14, "flarelab-raw 1");
+    const auto v1 = parse(text);
+    ASSERT_TRUE(v1) << v1.error().message;
+    RawFrame expected = sample();
+    expected.timestamp_marks = TimestampMark::Unknown;
+    expected.host_timestamp_ns = 0;
+    EXPECT_EQ(*v1, expected);
+    // Version 1 knows no such keys.
+    text.insert(text.find("# camera"), "# host_timestamp_ns 5\n");
+    EXPECT_NE(parse(text).error().message.find("unknown header key"), std::string::npos);
 }
 
 TEST(RawIo, RefusesToWriteFramesThatBreakTheRulesAndKeepsTheOldFile) {

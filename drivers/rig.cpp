@@ -1,0 +1,147 @@
+#include "drivers/rig.h"
+
+#include <utility>
+
+// The hardware backends. Each header declares add<Name>Backend(registry); those of backends
+// that need a library are compiled only with it (drivers/CMakeLists.txt sets FLARELAB_HAVE_*).
+#if __has_include("drivers/apt_head.h")
+#include "drivers/apt_head.h"
+#define FLARELAB_HAVE_APT 1
+#endif
+#if __has_include("drivers/serial_port.h")
+#include "drivers/serial_port.h"
+#define FLARELAB_HAVE_SERIAL 1
+#endif
+#if __has_include("drivers/v4l2_camera.h")
+#include "drivers/v4l2_camera.h"
+#define FLARELAB_HAVE_V4L2 1
+#endif
+#if __has_include("drivers/zaber_head.h")
+#include "drivers/zaber_head.h"
+#define FLARELAB_HAVE_ZABER 1
+#endif
+#if FLARELAB_HAVE_ARAVIS
+#include "drivers/aravis_camera.h"
+#endif
+#if FLARELAB_HAVE_LIBCAMERA
+#include "drivers/libcamera_camera.h"
+#endif
+
+namespace flarelab::drivers {
+namespace {
+
+// A scheme whose backend this build left out: opening it says what is missing.
+template <typename Device>
+Status addMissingBackend(DeviceRegistry<Device>& registry,
+                         const std::string& scheme,
+                         const std::string& description,
+                         const std::string& library) {
+    auto open = [scheme, library](const DeviceUri& uri) -> Result<std::unique_ptr<Device>> {
+        return makeError(ErrorCode::Unsupported,
+                         "device uri '" + uri.text + "': this build of flarelab has no " + scheme +
+                             " backend: " + library +
+                             " was not installed when it was built (install it, then build "
+                             "again; README, 'Which library does what')");
+    };
+    return registry.addBackend(scheme, description + " (not in this build: needs " + library + ")",
+                               std::move(open));
+}
+
+}  // namespace
+
+std::vector<BackendStatus> backendStatus(){return {
+    {"sim", "camera", "simulated camera", true, ""},
+    {"aravis", "camera", "GigE Vision and USB3 Vision cameras through Aravis",
+#if FLARELAB_HAVE_ARAVIS
+     true, ""},
+#else
+     false, "aravis-0.8 (Debian: libaravis-dev)"},
+#endif
+    {"v4l2", "camera", "Video4Linux2 cameras", true, ""},
+    {"libcamera", "camera", "libcamera cameras",
+#if FLARELAB_HAVE_LIBCAMERA
+     true, ""},
+#else
+     false, "libcamera (Debian: libcamera-dev)"},
+#endif
+    {"sim", "head", "simulated panorama head", true, ""},
+    {"zaber", "head", "Zaber rotation stages (ASCII protocol, serial)", true, ""},
+    {"apt", "head", "Thorlabs rotation mounts (APT protocol, serial)", true, ""},
+};
+}  // namespace flarelab::drivers
+
+Result<RigRegistries> makeRigRegistries(const RigOptions& options) {
+    RigRegistries r;
+    if (Status ok = addSimCameraBackend(r.cameras, nullptr, options.sim_camera, options.sim_lens);
+        !ok)
+        return ok.error();
+#if FLARELAB_HAVE_ARAVIS
+    if (Status ok = addAravisCameraBackend(r.cameras); !ok) return ok.error();
+#else
+    if (Status ok = addMissingBackend(r.cameras, "aravis", "GigE Vision cameras", "aravis-0.8");
+        !ok)
+        return ok.error();
+#endif
+#if FLARELAB_HAVE_V4L2
+    if (Status ok = addV4l2CameraBackend(r.cameras); !ok) return ok.error();
+#endif
+#if FLARELAB_HAVE_LIBCAMERA
+    if (Status ok = addLibcameraCameraBackend(r.cameras); !ok) return ok.error();
+#else
+    if (Status ok = addMissingBackend(r.cameras, "libcamera", "libcamera cameras", "libcamera");
+        !ok)
+        return ok.error();
+#endif
+    if (Status ok = addSimHeadBackend(r.heads, options.sim_head, options.sim_clock); !ok)
+        return ok.error();
+#if FLARELAB_HAVE_ZABER
+    if (Status ok = addZaberHeadBackend(r.heads); !ok) return ok.error();
+#endif
+#if FLARELAB_HAVE_APT
+    if (Status ok = addAptHeadBackend(r.heads); !ok) return ok.error();
+#endif
+    return r;
+}
+
+Result<Rig> openRig(const RigRegistries& registries,
+                    const std::string& camera_uri,
+                    const std::string& head_uri,
+                    const RigOptions& options) {
+    Rig rig;
+    auto head = registries.heads.open(head_uri);
+    if (!head) return head.error().withContext("head '" + head_uri + "'");
+    rig.head = std::shared_ptr<Head>(std::move(*head));
+    rig.sim_head = std::dynamic_pointer_cast<SimHead>(rig.head);
+
+    auto parsed = parseDeviceUri(camera_uri);
+    if (parsed && parsed->scheme == "sim") {
+        // Bound to the head: it renders where the head points.
+        auto setup = simCameraSetup(*parsed, options.sim_camera, options.sim_lens);
+        if (!setup) return setup.error().withContext("camera '" + camera_uri + "'");
+        auto clock =
+            options.sim_clock ? options.sim_clock : std::make_shared<SimClock>(SimTime::RealTime);
+        auto camera = rig.sim_head
+                          ? SimCamera::make(std::move(setup->lens), setup->options, rig.sim_head)
+                          : SimCamera::make(std::move(setup->lens), setup->options, rig.head,
+                                            std::move(clock));
+        if (!camera) return camera.error().withContext("camera '" + camera_uri + "'");
+        rig.sim_camera = camera->get();
+        rig.camera = std::shared_ptr<Camera>(std::move(*camera));
+        return rig;
+    }
+    auto camera = registries.cameras.open(camera_uri);
+    if (!camera) return camera.error().withContext("camera '" + camera_uri + "'");
+    rig.camera = std::shared_ptr<Camera>(std::move(*camera));
+    return rig;
+}
+
+std::vector<DeviceListing> listDevices(const RigRegistries& registries) {
+    std::vector<DeviceListing> found = registries.cameras.enumerate();
+    for (DeviceListing& d : registries.heads.enumerate()) found.push_back(std::move(d));
+#if FLARELAB_HAVE_SERIAL
+    for (DeviceListing& d : listSerialPorts()) found.push_back(std::move(d));
+#endif
+    return found;
+}
+
+}  // namespace flarelab::drivers
