@@ -13,8 +13,7 @@
 #include <vector>
 
 #include "apps/camera_flags.h"
-#include "drivers/sim_camera.h"
-#include "drivers/sim_head.h"
+#include "drivers/rig.h"
 #include "hdr/merge.h"
 #include "hdr/raw_io.h"
 #include "hdr/sweep.h"
@@ -25,6 +24,9 @@ namespace {
 
 struct CaptureState {
     bool sim = false;
+    std::string camera_uri;  // empty: "sim:" with --sim
+    std::string head_uri;
+    double pixel_um = 0.0;  // the sensor's pixel pitch, for cameras other than the simulated one
     std::string lens_file;
     CameraFlags camera;
     double from_deg = 0.0;
@@ -60,9 +62,11 @@ void progress(std::ostream& err, bool terminal, size_t done, size_t total, doubl
 }
 
 int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
-    if (!s.sim) {
-        err << "flarelab: capture needs a rig: only --sim (the simulated rig) is available in this "
-               "build; hardware backends come with the daemon\n";
+    const std::string camera_uri = !s.camera_uri.empty() ? s.camera_uri : s.sim ? "sim:" : "";
+    const std::string head_uri = !s.head_uri.empty() ? s.head_uri : s.sim ? "sim:" : "";
+    if (camera_uri.empty() || head_uri.empty()) {
+        err << "flarelab: capture needs a rig: --camera URI and --head URI (see `flarelab rig "
+               "devices`), or --sim for the simulated rig\n";
         return 1;
     }
     const auto times = parseBrackets(s.brackets);
@@ -75,60 +79,80 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: capture needs --from <= --to and --step > 0\n";
         return 1;
     }
+    if (!(s.pixel_um >= 0.0) || !std::isfinite(s.pixel_um)) {
+        err << "flarelab: --pixel-um must be a positive number of micrometres\n";
+        return 1;
+    }
     const double span = s.to_deg - s.from_deg;
     const size_t frames = static_cast<size_t>(std::floor(span / s.step_deg + 1e-9)) + 1;
     if (frames > 100000) {
         err << "flarelab: capture: " << frames << " frames is more than 100000\n";
         return 1;
     }
-    const auto lens = loadLens(s.lens_file, s.camera, err);
-    if (!lens) return 1;
+    std::optional<optics::Lens> lens;
+    if (!s.lens_file.empty()) {
+        lens = loadLens(s.lens_file, s.camera, err);
+        if (!lens) return 1;
+    }
 
-    const auto clock = std::make_shared<drivers::SimClock>(s.fast ? drivers::SimTime::Fast
-                                                                  : drivers::SimTime::RealTime);
-    drivers::SimHeadOptions head_options;
-    head_options.seed = s.seed;
-    auto head_made = drivers::SimHead::make(head_options, clock);
-    if (!head_made) {
-        err << "flarelab: " << head_made.error().message << "\n";
+    drivers::RigOptions rig_options;
+    rig_options.sim_clock = std::make_shared<drivers::SimClock>(
+        s.fast ? drivers::SimTime::Fast : drivers::SimTime::RealTime);
+    rig_options.sim_head.seed = s.seed;
+    rig_options.sim_camera.width_px = s.width;
+    rig_options.sim_camera.height_px = s.height;
+    rig_options.sim_camera.seed = s.seed;
+    rig_options.sim_lens = lens;
+    auto registries = drivers::makeRigRegistries(rig_options);
+    if (!registries) {
+        err << "flarelab: " << registries.error().message << "\n";
         return 1;
     }
-    std::shared_ptr<drivers::SimHead> head = std::move(*head_made);
-    drivers::SimCameraOptions camera_options;
-    camera_options.width_px = s.width;
-    camera_options.height_px = s.height;
-    camera_options.seed = s.seed;
-    auto camera_made = drivers::SimCamera::make(*lens, camera_options, head);
-    if (!camera_made) {
-        err << "flarelab: " << camera_made.error().message << "\n";
+    auto rig = drivers::openRig(*registries, camera_uri, head_uri, rig_options);
+    if (!rig) {
+        err << "flarelab: " << rig.error().message << "\n";
         return 1;
     }
-    drivers::SimCamera& camera = **camera_made;
+    drivers::Camera& camera = *rig->camera;
+    drivers::Head& head = *rig->head;
+    const drivers::CameraCapabilities caps = camera.capabilities();
     constexpr double kTimeout_s = 600.0;
-    if (Status homed = head->home(kTimeout_s); !homed) {
+    if (Status homed = head.home(kTimeout_s); !homed) {
         err << "flarelab: " << homed.error().message << "\n";
         return 1;
     }
 
     hdr::SweepHeader header;
-    header.software_version = "flarelab capture (simulated rig)";
-    header.lens.description = lens->name();
+    header.software_version = rig->sim_camera
+                                  ? "flarelab capture (simulated rig)"
+                                  : "flarelab capture (" + camera_uri + ", " + head_uri + ")";
+    const optics::Lens* sim_lens = rig->sim_camera ? &rig->sim_camera->lens() : nullptr;
+    if (sim_lens)
+        header.lens.description = sim_lens->name();
+    else if (lens)
+        header.lens.description = lens->name();
     header.camera.description = camera.identity().model;
     header.camera.serial = camera.identity().serial;
-    header.camera.bit_depth = camera.capabilities().bit_depth;
-    // The sensor's geometry and the lens settings, so that a fit maps pixels to sensor mm.
-    header.camera.pixel_pitch_um =
-        1000.0 * lens->camera().sensor_width_mm / static_cast<double>(s.width);
-    if (lens->camera().f_number > 0.0) header.lens.f_number = lens->camera().f_number;
-    if (lens->camera().focal_length_mm > 0.0)
-        header.lens.focal_length_mm = lens->camera().focal_length_mm;
+    header.camera.bit_depth = caps.bit_depth;
+    // The sensor's geometry and the lens settings, so that a fit maps pixels to sensor mm: the
+    // simulated camera's own; for other cameras what --pixel-um says.
+    const optics::Lens* described = sim_lens ? sim_lens : lens ? &*lens : nullptr;
+    if (s.pixel_um > 0.0)
+        header.camera.pixel_pitch_um = s.pixel_um;
+    else if (sim_lens)
+        header.camera.pixel_pitch_um =
+            1000.0 * sim_lens->camera().sensor_width_mm / static_cast<double>(caps.width_px);
+    if (described && described->camera().f_number > 0.0)
+        header.lens.f_number = described->camera().f_number;
+    if (described && described->camera().focal_length_mm > 0.0)
+        header.lens.focal_length_mm = described->camera().focal_length_mm;
     header.capture.from_deg = s.from_deg;
     header.capture.to_deg = s.to_deg;
     header.capture.step_deg = s.step_deg;
     header.capture.exposure_times_s = *times;
     header.capture.gain = camera.gain();
-    header.capture.width_px = s.width;
-    header.capture.height_px = s.height;
+    header.capture.width_px = caps.width_px;
+    header.capture.height_px = caps.height_px;
     hdr::SweepWriteOptions write_options;
     write_options.resume = s.resume;
     auto writer = hdr::SweepWriter::create(s.output, header, write_options);
@@ -154,7 +178,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
             ++skipped;
             continue;
         }
-        const auto at = head->moveTo(angle, kTimeout_s);
+        const auto at = head.moveTo(angle, kTimeout_s);
         if (!at) {
             err << "\nflarelab: " << at.error().message << "\n";
             return 1;
@@ -236,8 +260,9 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: warning: " << w << "\n";
     out << "capture: " << written << " frames"
         << (skipped ? " (" + std::to_string(skipped) + " already there)" : "") << " of "
-        << lens->name() << ", " << s.from_deg << " to " << s.to_deg << " deg in steps of "
-        << s.step_deg << ", brackets " << s.brackets << " s, " << s.width << "x" << s.height << ", "
+        << (header.lens.description.empty() ? camera_uri : header.lens.description) << ", "
+        << s.from_deg << " to " << s.to_deg << " deg in steps of " << s.step_deg << ", brackets "
+        << s.brackets << " s, " << caps.width_px << "x" << caps.height_px << ", "
         << seconds(elapsed()) << (s.fast ? " (fast)" : "") << " -> " << s.output << "\n";
     return 0;
 }
@@ -270,18 +295,27 @@ Result<std::vector<double>> parseBrackets(const std::string& text) {
 void addCaptureCommand(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {
     auto state = std::make_shared<CaptureState>();
     CLI::App* cmd = app.add_subcommand("capture", "take a sweep of bracketed frames on a rig");
-    cmd->add_flag("--sim", state->sim, "use the simulated rig (camera and head)");
-    cmd->add_option("--lens", state->lens_file, "the simulated camera's lens (CSV, format v1)")
-        ->required();
+    cmd->add_flag("--sim", state->sim,
+                  "use the simulated rig: --camera sim: --head sim: unless they say otherwise");
+    cmd->add_option("--camera", state->camera_uri,
+                    "camera URI or alias (sim:, aravis:ID, v4l2:/dev/videoN, libcamera:NAME)");
+    cmd->add_option("--head", state->head_uri,
+                    "head URI or alias (sim:, zaber:/dev/ttyUSB0?axis=1, apt:/dev/ttyUSB0)");
+    cmd->add_option("--lens", state->lens_file,
+                    "the lens (CSV, format v1): the simulated camera's, or the one a real camera "
+                    "wears, for the sweep's description");
+    cmd->add_option("--pixel-um", state->pixel_um,
+                    "pixel pitch of a real camera's sensor in micrometres (the fit maps pixels to "
+                    "sensor mm with it)");
     cmd->add_option("--from", state->from_deg, "first angle (deg)")->capture_default_str();
     cmd->add_option("--to", state->to_deg, "last angle (deg)")->capture_default_str();
     cmd->add_option("--step", state->step_deg, "angle step (deg)")->capture_default_str();
     cmd->add_option("--brackets", state->brackets, "exposure times in seconds, comma separated")
         ->capture_default_str();
-    cmd->add_option("--width", state->width, "frame width")
+    cmd->add_option("--width", state->width, "frame width of the simulated camera")
         ->check(CLI::Range(int64_t{1}, int64_t{32768}))
         ->capture_default_str();
-    cmd->add_option("--height", state->height, "frame height")
+    cmd->add_option("--height", state->height, "frame height of the simulated camera")
         ->check(CLI::Range(int64_t{1}, int64_t{32768}))
         ->capture_default_str();
     cmd->add_flag("--fast", state->fast, "simulated time: do not wait for exposures and moves");

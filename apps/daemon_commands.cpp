@@ -16,6 +16,7 @@
 
 #include "apps/camera_flags.h"
 #include "apps/capture_command.h"
+#include "apps/rig_commands.h"
 #include "proto/daemon.grpc.pb.h"
 
 namespace flarelab::apps {
@@ -230,6 +231,8 @@ struct StartState {
     double preview_stops = 0.0;
     std::string request_id;
     std::string output;
+    std::string camera_uri, head_uri, lens_description;
+    double pixel_um = 0.0;
 };
 
 int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
@@ -238,12 +241,13 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: " << times.error().message << "\n";
         return 2;
     }
-    if (s.sim && s.lens_file.empty()) {
-        err << "flarelab: sweep start: --sim needs --lens FILE (the simulated camera's lens)\n";
+    if (!s.lens_file.empty() && !s.sim) {
+        err << "flarelab: sweep start: --lens is the simulated camera's lens: add --sim, or name "
+               "a real camera's lens with --lens-description\n";
         return 2;
     }
     std::string text;
-    if (s.sim) {
+    if (!s.lens_file.empty()) {
         std::ifstream lens(s.lens_file, std::ios::binary);
         if (!lens) {
             err << "flarelab: --lens " << s.lens_file << ": cannot open it\n";
@@ -269,7 +273,9 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
         v1::SimSettings& sim = *c.mutable_sim();
         sim.set_fast(s.fast);
         sim.set_seed(s.seed);
-        v1::SimLens& l = *sim.mutable_lens();
+    }
+    if (s.sim && !s.lens_file.empty()) {
+        v1::SimLens& l = *c.mutable_sim()->mutable_lens();
         l.set_prescription_csv(text);
         l.set_name(fs::path(s.lens_file).filename().string());
         l.set_focal_length_mm(s.camera.focal_mm);
@@ -295,6 +301,10 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
     c.set_preview_stops(s.preview_stops);
     c.set_fit(s.fit);
     c.set_resume_existing(s.resume_existing);
+    c.set_camera(s.camera_uri);
+    c.set_head(s.head_uri);
+    c.set_pixel_pitch_um(s.pixel_um);
+    c.set_lens_description(s.lens_description);
 
     auto client = Client::connect(s.connection, err);
     if (!client) return 2;
@@ -372,8 +382,17 @@ int runRigStatus(const JobState& s, std::ostream& out, std::ostream& err) {
         << rig.max_exposure_s() << " s, " << rig.bit_depth() << " bits\n"
         << "head: " << rig.head().model() << " " << rig.head().serial() << ", "
         << rig.head_min_deg() << " to " << rig.head_max_deg() << " deg at "
-        << rig.head_speed_deg_s() << " deg/s\n"
-        << "running: " << (rig.running_job_id().empty() ? "nothing" : rig.running_job_id()) << ", "
+        << rig.head_speed_deg_s() << " deg/s\n";
+    for (const auto& [kind, list] :
+         {std::pair{"cameras", &rig.cameras()}, std::pair{"heads", &rig.heads()}}) {
+        if (list->empty()) continue;
+        out << kind << " jobs may name:";
+        for (const v1::DeviceDescription& d : *list)
+            out << " " << d.uri()
+                << (d.model().empty() ? "" : " (" + d.model() + " " + d.serial() + ")");
+        out << "\n";
+    }
+    out << "running: " << (rig.running_job_id().empty() ? "nothing" : rig.running_job_id()) << ", "
         << rig.queued_jobs() << " queued\n"
         << "output root: " << rig.output_root() << "\n";
     return 0;
@@ -386,9 +405,17 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
     CLI::App* cmd = sweep.add_subcommand("start", "start a sweep as a job of flarelabd");
     addConnectionFlags(cmd, s->connection);
     cmd->add_flag("--sim", s->sim,
-                  "on the daemon's simulated rig (without it: the rig the daemon drives, e.g. a "
-                  "replay)");
+                  "simulate what the daemon has no device for (its settings: --lens, --fast, "
+                  "--seed)");
     cmd->add_option("--lens", s->lens_file, "the simulated camera's lens (CSV, format v1)");
+    cmd->add_option("--camera", s->camera_uri,
+                    "one of the daemon's cameras by URI (default: its first; see rig status)");
+    cmd->add_option("--head", s->head_uri,
+                    "one of the daemon's heads by URI (default: its first; see rig status)");
+    cmd->add_option("--pixel-um", s->pixel_um,
+                    "a real camera's pixel pitch in micrometres (to fit the sweep)");
+    cmd->add_option("--lens-description", s->lens_description,
+                    "the lens a real camera wears, for the sweep's description");
     cmd->add_option("--from", s->from_deg, "first angle (deg)")->capture_default_str();
     cmd->add_option("--to", s->to_deg, "last angle (deg)")->capture_default_str();
     cmd->add_option("--step", s->step_deg, "angle step (deg)")->capture_default_str();
@@ -417,8 +444,10 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
 }
 
 void addRigCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {
-    CLI::App* rig = app.add_subcommand("rig", "the rig flarelabd drives");
+    CLI::App* rig =
+        app.add_subcommand("rig", "the rig: its devices by hand, and the one flarelabd drives");
     rig->require_subcommand(1);
+    addRigDeviceCommands(rig, out, err, exit_code);
     auto s = std::make_shared<JobState>();
     CLI::App* status = rig->add_subcommand("status", "the daemon, its devices and its jobs");
     addConnectionFlags(status, s->connection);

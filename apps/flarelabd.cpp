@@ -2,7 +2,12 @@
 //
 //     flarelabd --state-dir DIR [--output-root DIR] [--listen HOST:PORT [--allow-remote]]
 //               [--token-file FILE] [--no-resume] [--camera-retries N] [--min-free-mb N]
-//               [--replay RECORDED_SWEEP]
+//               [--camera URI ...] [--head URI ...] | [--replay RECORDED_SWEEP]
+//
+// Without --camera and --head every job runs on the simulated rig its config describes; with
+// them, jobs run on those devices (drivers/rig.h URIs: aravis:ID, v4l2:/dev/video0, zaber:...,
+// apt:..., sim:...), each opened when a job starts and closed when it ends, so that a device
+// that comes and goes between jobs needs no restart.
 //
 // It keeps its journal in DIR/jobs, listens on DIR/flarelabd.sock (mode 0660), holds
 // DIR/flarelabd.lock so that one daemon owns a rig, and stops cleanly on SIGTERM or SIGINT: a
@@ -24,6 +29,7 @@
 #include "daemon/log.h"
 #include "daemon/service.h"
 #include "daemon/sweep_runner.h"
+#include "drivers/device.h"
 #include "hdr/sweep.h"
 
 namespace {
@@ -43,6 +49,7 @@ int run(int argc, char** argv) {
     settleAllocator();
     CLI::App app{"flarelabd: the flarelab rig daemon (sweeps as jobs, over gRPC)"};
     std::string state_dir, output_root, listen, token_file, replay, log_level = "info";
+    std::vector<std::string> cameras, heads;
     bool no_resume = false, allow_remote = false;
     int camera_retries = 3, head_retries = 2;
     int64_t min_free_mb = 64;
@@ -59,6 +66,12 @@ int run(int argc, char** argv) {
                    "ask every call for this shared token (metadata authorization: Bearer TOKEN)");
     app.add_option("--replay", replay,
                    "drive a recorded sweep played back instead of the simulated rig");
+    app.add_option("--camera", cameras,
+                   "a camera jobs may use, by URI (repeat for several; the first is the "
+                   "default; none: jobs simulate theirs)");
+    app.add_option("--head", heads,
+                   "a head jobs may use, by URI (repeat for several; the first is the default; "
+                   "none: jobs simulate theirs)");
     app.add_flag("--no-resume", no_resume,
                  "do not resume interrupted jobs at start (they wait for a client's resume)");
     app.add_option("--camera-retries", camera_retries, "camera timeouts retried per exposure")
@@ -146,6 +159,28 @@ int run(int argc, char** argv) {
     options.runner.min_free_bytes = min_free_mb << 20;
     options.runner.software_version = "flarelabd 0.1.0";
     ServerOptions server_options;
+    if (!replay.empty() && (!cameras.empty() || !heads.empty())) {
+        std::cerr
+            << "flarelabd: --replay drives a recorded sweep: it takes no --camera or --head\n";
+        return 2;
+    }
+    for (const auto& [flag, uris] :
+         {std::pair<const char*, const std::vector<std::string>*>{"--camera", &cameras},
+          {"--head", &heads}})
+        for (const std::string& uri : *uris)
+            if (auto parsed = drivers::parseDeviceUri(uri); !parsed || uri.empty()) {
+                std::cerr << "flarelabd: " << flag << " '" << uri
+                          << "': " << (parsed ? "empty" : parsed.error().message) << "\n";
+                return 2;
+            }
+    options.runner.limits.cameras = cameras;
+    options.runner.limits.heads = heads;
+    if (!cameras.empty() || !heads.empty()) {
+        ServiceOptions& s = server_options.service;
+        s.rig = "devices";
+        s.cameras = cameras;
+        s.heads = heads;
+    }
     if (!replay.empty()) {
         auto recorded = hdr::readSweep(fs::absolute(replay).lexically_normal().string());
         if (!recorded) {

@@ -163,7 +163,7 @@ Setup setup() {
 
 // The rig alone: home, then per frame a move and the bracket.
 double rigOnly(const PreparedSweep& p, const SweepLimits& limits) {
-    auto rig = makeSimRig(p, limits);
+    auto rig = openJobRig(p, limits);
     if (!rig) throw std::runtime_error(rig.error().message);
     if (Status ok = rig->head->home(600.0); !ok) throw std::runtime_error(ok.error().message);
     const auto start = Clock::now();
@@ -249,7 +249,7 @@ int rigMemory(const Args& a) {
     spanTwentyDegrees(c, a.frames);
     auto p = prepareSweep(c, s.root, s.limits);
     if (!p) throw std::runtime_error(p.error().message);
-    auto rig = makeSimRig(*p, s.limits);
+    auto rig = openJobRig(*p, s.limits);
     if (!rig) throw std::runtime_error(rig.error().message);
     if (Status ok = rig->head->home(600.0); !ok) throw std::runtime_error(ok.error().message);
     const auto points = samplePoints(static_cast<uint32_t>(a.frames));

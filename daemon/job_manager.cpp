@@ -118,6 +118,13 @@ public:
         manager_.emit(manager_.jobs_.at(number_), std::move(event));
     }
 
+    void deviceOpened(const std::string& uri,
+                      const std::string& model,
+                      const std::string& serial) override {
+        std::lock_guard lock(manager_.mutex_);
+        manager_.devices_seen_[uri] = {model, serial};
+    }
+
 private:
     JobManager& manager_;
     const uint64_t number_;
@@ -588,6 +595,12 @@ size_t JobManager::queuedJobs() const {
     size_t n = 0;
     for (const auto& [number, e] : jobs_) n += e.job.state() == v1::QUEUED;
     return n;
+}
+
+std::pair<std::string, std::string> JobManager::deviceIdentity(const std::string& uri) const {
+    std::lock_guard lock(mutex_);
+    const auto it = devices_seen_.find(uri);
+    return it == devices_seen_.end() ? std::pair<std::string, std::string>{} : it->second;
 }
 
 }  // namespace flarelab::daemon

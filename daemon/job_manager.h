@@ -106,6 +106,8 @@ public:
                            WatchBatch* batch) const;
 
     std::string runningJob() const;
+    // Model and serial of the device a job last opened by `uri`; empty before.
+    std::pair<std::string, std::string> deviceIdentity(const std::string& uri) const;
     size_t queuedJobs() const;
     const ManagerOptions& options() const { return options_; }
 
@@ -139,6 +141,7 @@ private:
     ManagerOptions options_;
     Journal journal_;
     mutable std::mutex mutex_;
+    std::map<std::string, std::pair<std::string, std::string>> devices_seen_;  // uri: model, serial
     mutable std::condition_variable changed_cv_;  // job states and events
     std::map<uint64_t, Entry> jobs_;              // by job number
     std::map<std::string, uint64_t> by_request_;

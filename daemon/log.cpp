@@ -65,6 +65,10 @@ std::string logValue(std::string_view value) {
 }
 
 void logEvent(LogLevel level, std::string_view event, std::initializer_list<LogField> fields) {
+    logEvent(level, event, std::span<const LogField>(fields.begin(), fields.size()));
+}
+
+void logEvent(LogLevel level, std::string_view event, std::span<const LogField> fields) {
     auto& log = logger();
     if (!log->should_log(toSpd(level))) return;
     std::string line = "event=" + logValue(event);

@@ -12,6 +12,7 @@
 #pragma once
 
 #include <initializer_list>
+#include <span>
 #include <string>
 #include <string_view>
 #include <utility>
@@ -23,6 +24,8 @@ enum class LogLevel { Debug, Info, Warn, Error };
 using LogField = std::pair<std::string_view, std::string>;
 
 void logEvent(LogLevel level, std::string_view event, std::initializer_list<LogField> fields = {});
+// The same with fields only known at run time (a camera's statistics).
+void logEvent(LogLevel level, std::string_view event, std::span<const LogField> fields);
 // Messages below `level` are dropped (Info by default).
 void setLogLevel(LogLevel level);
 // The logfmt text of one value (quoted and escaped where needed).

@@ -12,6 +12,7 @@
 #include <mutex>
 
 #include "daemon/log.h"
+#include "drivers/device.h"
 #include "proto/daemon.grpc.pb.h"
 
 namespace flarelab::daemon {
@@ -78,6 +79,18 @@ public:
         head->set_model(options_.head_model);
         head->set_serial(options_.head_serial);
         head->set_uri(options_.device_uri);
+        for (const auto& [uris, list] : {std::pair{&options_.cameras, out->mutable_cameras()},
+                                         std::pair{&options_.heads, out->mutable_heads()}})
+            for (const std::string& uri : *uris) {
+                auto* d = list->Add();
+                d->set_uri(uri);
+                if (auto parsed = drivers::parseDeviceUri(uri)) d->set_backend(parsed->scheme);
+                const auto seen = manager_.deviceIdentity(uri);
+                d->set_model(seen.first);
+                d->set_serial(seen.second);
+            }
+        if (!options_.cameras.empty()) *out->mutable_camera() = out->cameras(0);
+        if (!options_.heads.empty()) *out->mutable_head() = out->heads(0);
         out->set_head_min_deg(l.head_min_deg);
         out->set_head_max_deg(l.head_max_deg);
         out->set_head_speed_deg_s(l.head_speed_deg_s);

@@ -14,6 +14,7 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "common/result.h"
 #include "daemon/job_manager.h"
@@ -33,6 +34,9 @@ struct ServiceOptions {
     std::string head_model = "flarelab simulated head", head_serial = "SIMHEAD-0";
     std::string device_uri = "sim:";
     int bit_depth = 12;
+    // The rig's devices (rig "devices"), by URI, as flarelabd was given them.
+    std::vector<std::string> cameras;
+    std::vector<std::string> heads;
 };
 
 struct ServerOptions {

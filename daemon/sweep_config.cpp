@@ -87,13 +87,6 @@ Status prepareSimLens(v1::SweepConfig& c, const SweepLimits& limits, PreparedSwe
     auto lens = optics::Lens::make(*prescription, camera);
     if (!lens) return bad("config.sim.lens", lens.error().message);
     p.lens = sl.table_stop() ? lens->withStopSemiAperture(lens->tableStopSemiAperture_mm()) : *lens;
-    if (c.sim().seed() == 0) c.mutable_sim()->set_seed(1);
-    const v1::SimFaults& faults = c.sim().faults();
-    if (faults.has_head_stall_at_deg() && !std::isfinite(faults.head_stall_at_deg()))
-        return bad("config.sim.faults.head_stall_at_deg", "must be a finite angle");
-    if (faults.camera_timeouts() > 1000 || faults.head_hangs() > 1000)
-        return bad("config.sim.faults", "at most 1000 injected timeouts");
-
     return Ok{};
 }
 
@@ -151,13 +144,79 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
             return bad("config.sim", "this daemon replays the recorded sweep in " +
                                          limits.replay->directory +
                                          " (flarelabd --replay): leave sim out");
+        if (!c.camera().empty() || !c.head().empty())
+            return bad(c.camera().empty() ? "config.head" : "config.camera",
+                       "this daemon replays a recorded sweep: it has no devices to choose");
     } else {
-        if (!c.has_sim())
-            return bad("config.sim",
-                       "is missing: this daemon drives the built-in simulated rig, whose lens "
-                       "and settings go here (hardware backends are not built yet)");
-        if (Status ok = prepareSimLens(c, limits, p); !ok) return ok.error();
+        // The devices: one the daemon has, by URI or alias, else simulated from config.sim.
+        const auto choose = [&](const std::string& field, const std::string& asked,
+                                const std::vector<std::string>& have,
+                                std::string& chosen) -> Status {
+            if (asked.size() > 1024 || hasControl(asked))
+                return bad(field, "must be a device URI of at most 1024 printable characters");
+            if (asked.empty()) {
+                if (!have.empty()) chosen = have.front();
+                return Ok{};
+            }
+            for (const std::string& uri : have)
+                if (uri == asked) {
+                    chosen = uri;
+                    return Ok{};
+                }
+            std::string list;
+            for (const std::string& uri : have) list += (list.empty() ? "" : ", ") + uri;
+            return bad(field, "'" + asked + "' is not a device of this daemon (" +
+                                  (have.empty() ? std::string("it drives the simulated rig only")
+                                                : "it has " + list) +
+                                  ")");
+        };
+        if (Status ok = choose("config.camera", c.camera(), limits.cameras, p.camera_uri); !ok)
+            return ok.error();
+        if (Status ok = choose("config.head", c.head(), limits.heads, p.head_uri); !ok)
+            return ok.error();
+        if (!p.camera_uri.empty() && !p.head_uri.empty()) {
+            if (c.has_sim())
+                return bad("config.sim", "this job runs on real devices (camera " + p.camera_uri +
+                                             ", head " + p.head_uri +
+                                             "): leave sim out, it has nothing to simulate");
+        } else if (!c.has_sim()) {
+            return bad("config.sim", "is missing: this job's " +
+                                         std::string(p.camera_uri.empty() ? "camera" : "head") +
+                                         " is simulated (the daemon has no --" +
+                                         (p.camera_uri.empty() ? "camera" : "head") +
+                                         "), and its settings go here");
+        }
+        if (p.camera_uri.empty()) {
+            if (Status ok = prepareSimLens(c, limits, p); !ok) return ok.error();
+        } else if (c.has_sim() && !c.sim().lens().prescription_csv().empty()) {
+            return bad("config.sim.lens",
+                       "the camera is " + p.camera_uri + ", not simulated: leave the lens out");
+        }
+        if (c.has_sim() && c.sim().seed() == 0) c.mutable_sim()->set_seed(1);
+        if (c.has_sim()) {
+            const v1::SimFaults& faults = c.sim().faults();
+            if (faults.has_head_stall_at_deg() && !std::isfinite(faults.head_stall_at_deg()))
+                return bad("config.sim.faults.head_stall_at_deg", "must be a finite angle");
+            if (faults.camera_timeouts() > 1000 || faults.head_hangs() > 1000)
+                return bad("config.sim.faults", "at most 1000 injected timeouts");
+            if (!p.camera_uri.empty() && faults.camera_timeouts() > 0)
+                return bad("config.sim.faults.camera_timeouts",
+                           "the camera is " + p.camera_uri +
+                               ": faults are injected only into "
+                               "simulated devices");
+            if (!p.head_uri.empty() && (faults.head_hangs() > 0 || faults.has_head_stall_at_deg()))
+                return bad("config.sim.faults", "the head is " + p.head_uri +
+                                                    ": faults are injected only into simulated "
+                                                    "devices");
+        }
     }
+    if (!std::isfinite(c.pixel_pitch_um()) || c.pixel_pitch_um() < 0.0 ||
+        c.pixel_pitch_um() > 1000.0)
+        return bad("config.pixel_pitch_um",
+                   "must be 0 (unknown) or a pixel pitch up to 1000 um (got " +
+                       num(c.pixel_pitch_um()) + ")");
+    if (c.lens_description().size() > 255 || hasControl(c.lens_description()))
+        return bad("config.lens_description", "must be at most 255 printable characters");
 
     // Angles.
     if (Status ok =
@@ -217,8 +276,10 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
         return ok.error();
     const int64_t default_width = limits.replay ? limits.replay->header.capture.width_px : 640;
     const int64_t default_height = limits.replay ? limits.replay->header.capture.height_px : 427;
-    if (c.width_px() == 0) c.set_width_px(static_cast<uint32_t>(default_width));
-    if (c.height_px() == 0) c.set_height_px(static_cast<uint32_t>(default_height));
+    // A real camera's size is what it delivers: 0 stays 0 until the job has opened it.
+    const bool real_camera = !limits.replay && !p.camera_uri.empty();
+    if (c.width_px() == 0 && !real_camera) c.set_width_px(static_cast<uint32_t>(default_width));
+    if (c.height_px() == 0 && !real_camera) c.set_height_px(static_cast<uint32_t>(default_height));
     if (limits.replay && (c.width_px() != default_width || c.height_px() != default_height))
         return bad("config.width_px",
                    "the recorded sweep's frames are " + std::to_string(default_width) + " x " +

@@ -42,6 +42,10 @@ struct SweepLimits {
     // The rig is a recorded sweep played back (flarelabd --replay) when set: then a config must
     // leave `sim` out, its angles must be recorded ones, and its frame size is the recording's.
     std::shared_ptr<const hdr::Sweep> replay;
+    // The rig's devices (flarelabd --camera, --head): URIs or aliases a job may name; the first
+    // is a job's default. Empty: that device is simulated per job from config.sim.
+    std::vector<std::string> cameras;
+    std::vector<std::string> heads;
 };
 
 struct PreparedSweep {
@@ -49,8 +53,12 @@ struct PreparedSweep {
     std::vector<double> angles_deg;    // increasing, on the step grid, rounded to a nanodegree
     std::vector<double> exposure_times_s;
     std::string output_dir;            // absolute, normalised, below the output root
-    std::optional<optics::Lens> lens;  // the simulated camera's; none when replaying
-    double rig_time_s = 0.0;           // exposures, readouts and moves, from angle 0
+    std::optional<optics::Lens> lens;  // the simulated camera's (config.sim); none otherwise
+    // The devices the job runs on: URIs of the daemon's, or empty for the one simulated from
+    // config.sim (and none when replaying).
+    std::string camera_uri;
+    std::string head_uri;
+    double rig_time_s = 0.0;  // exposures, readouts and moves, from angle 0
     std::vector<std::string> warnings;
 };
 

@@ -16,6 +16,7 @@
 
 #include "common/file_descriptor.h"
 #include "daemon/bounded_queue.h"
+#include "daemon/log.h"
 #include "drivers/replay.h"
 #include "drivers/sim_camera.h"
 #include "drivers/sim_head.h"
@@ -126,6 +127,14 @@ private:
     void processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writer);
     Status writeFrame(Captured& captured, hdr::SweepWriter& writer);
     void fitModel();
+    // The camera's transport counters, one log line per run of the capture.
+    void logStatistics() const {
+        const auto stats = camera_->statistics();
+        if (stats.empty()) return;
+        std::vector<LogField> fields = {{"job", job_.id()}, {"camera", camera_->identity().uri}};
+        for (const auto& [name, value] : stats) fields.emplace_back(name, std::to_string(value));
+        logEvent(LogLevel::Info, "sweep.camera_statistics", fields);
+    }
     void fail(const std::string& reason) {
         std::lock_guard lock(mutex_);
         if (result_.outcome != RunOutcome::Failed || result_.reason.empty()) {
@@ -141,7 +150,9 @@ private:
     PreparedSweep sweep_;
     std::shared_ptr<drivers::Head> head_;
     std::shared_ptr<drivers::Camera> camera_;
-    drivers::SimCamera* sim_camera_ = nullptr;  // camera_, when the rig is the simulated one
+    drivers::SimCamera* sim_camera_ = nullptr;  // camera_, when it is simulated
+    int64_t width_px_ = 0;                      // of the camera's frames
+    int64_t height_px_ = 0;
     std::mutex mutex_;
     RunResult result_;
     std::atomic<bool> failed_{false};
@@ -157,13 +168,38 @@ Status SweepJob::makeRig() {
         auto head = std::make_shared<drivers::ReplayHead>(replay);
         camera_ = std::make_shared<drivers::ReplayCamera>(replay, head);
         head_ = std::move(head);
-        return Ok{};
+    } else {
+        auto rig = openJobRig(sweep_, options_.limits);
+        if (!rig) return rig.error();
+        head_ = std::move(rig->head);
+        sim_camera_ = rig->sim_camera;
+        camera_ = std::move(rig->camera);
     }
-    auto rig = makeSimRig(sweep_, options_.limits);
-    if (!rig) return rig.error();
-    head_ = std::move(rig->head);
-    sim_camera_ = rig->camera.get();
-    camera_ = std::move(rig->camera);
+    const drivers::CameraCapabilities caps = camera_->capabilities();
+    const v1::SweepConfig& c = sweep_.config;
+    if ((c.width_px() != 0 && c.width_px() != caps.width_px) ||
+        (c.height_px() != 0 && c.height_px() != caps.height_px))
+        return makeError(ErrorCode::InvalidArgument,
+                         "config.width_px: the camera " + camera_->identity().describe() +
+                             " delivers " + std::to_string(caps.width_px) + " x " +
+                             std::to_string(caps.height_px) + " frames, not " +
+                             std::to_string(c.width_px()) + " x " + std::to_string(c.height_px()) +
+                             " (leave the size 0, or set a region of interest in its URI)");
+    if (caps.width_px * caps.height_px > options_.limits.max_pixels)
+        return makeError(ErrorCode::InvalidArgument,
+                         "camera " + camera_->identity().describe() + ": its " +
+                             std::to_string(caps.width_px) + " x " +
+                             std::to_string(caps.height_px) + " frames are more than the " +
+                             std::to_string(options_.limits.max_pixels) + " pixels a job may have");
+    width_px_ = caps.width_px;
+    height_px_ = caps.height_px;
+    if (!sweep_.camera_uri.empty())
+        control_.deviceOpened(sweep_.camera_uri, camera_->identity().model,
+                              camera_->identity().serial);
+    if (!sweep_.head_uri.empty())
+        control_.deviceOpened(sweep_.head_uri, head_->identity().model, head_->identity().serial);
+    if (!options_.limits.replay && !sim_camera_)
+        if (Status ok = camera_->setGain(c.gain()); !ok) return ok.error();
     return Ok{};
 }
 
@@ -178,25 +214,37 @@ Result<hdr::SweepWriter> SweepJob::openSweep() {
         header.camera = replay->header.camera;
         header.camera.bit_depth = camera_->capabilities().bit_depth;
     } else {
-        const optics::Lens& lens = *sweep_.lens;
-        header.software_version = options_.software_version + " (simulated rig)";
-        header.lens.description = lens.name();
+        const auto named = [](const std::string& uri) {
+            return uri.empty() ? std::string("simulated") : uri;
+        };
+        header.software_version =
+            options_.software_version + (sweep_.camera_uri.empty() && sweep_.head_uri.empty()
+                                             ? std::string(" (simulated rig)")
+                                             : " (camera " + named(sweep_.camera_uri) + ", head " +
+                                                   named(sweep_.head_uri) + ")");
+        const optics::Lens* lens = sweep_.lens   ? &*sweep_.lens
+                                   : sim_camera_ ? &sim_camera_->lens()
+                                                 : nullptr;
+        header.lens.description = lens ? lens->name() : c.lens_description();
         header.camera.description = camera_->identity().model;
         header.camera.serial = camera_->identity().serial;
         header.camera.bit_depth = camera_->capabilities().bit_depth;
-        header.camera.pixel_pitch_um =
-            1000.0 * lens.camera().sensor_width_mm / static_cast<double>(c.width_px());
-        if (lens.camera().f_number > 0.0) header.lens.f_number = lens.camera().f_number;
-        if (lens.camera().focal_length_mm > 0.0)
-            header.lens.focal_length_mm = lens.camera().focal_length_mm;
+        if (c.pixel_pitch_um() > 0.0)
+            header.camera.pixel_pitch_um = c.pixel_pitch_um();
+        else if (lens)
+            header.camera.pixel_pitch_um =
+                1000.0 * lens->camera().sensor_width_mm / static_cast<double>(width_px_);
+        if (lens && lens->camera().f_number > 0.0) header.lens.f_number = lens->camera().f_number;
+        if (lens && lens->camera().focal_length_mm > 0.0)
+            header.lens.focal_length_mm = lens->camera().focal_length_mm;
     }
     header.capture.from_deg = c.from_deg();
     header.capture.to_deg = c.to_deg();
     header.capture.step_deg = c.step_deg();
     header.capture.exposure_times_s = sweep_.exposure_times_s;
     header.capture.gain = camera_->gain();
-    header.capture.width_px = c.width_px();
-    header.capture.height_px = c.height_px();
+    header.capture.width_px = width_px_;
+    header.capture.height_px = height_px_;
 
     hdr::SweepWriteOptions write;
     std::error_code ec;
@@ -289,6 +337,10 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
                              std::to_string(options_.camera_retries) + ")");
             continue;
         }
+        if (fault == drivers::DeviceFault::OutOfRange) {
+            fail("camera: " + where);  // a setting the camera refuses: no resume changes that
+            return std::nullopt;
+        }
         std::string reason;
         if (fault == drivers::DeviceFault::Timeout)
             reason = "camera timed out " + std::to_string(timeouts + 1) + " times: " + where +
@@ -355,8 +407,8 @@ Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
     const v1::SweepConfig& c = sweep_.config;
     const std::string dir = sweep_.output_dir;
     // Room for this frame (float RGB, and the raw brackets when kept) and the margin.
-    int64_t need = c.width_px() * int64_t{c.height_px()} * 12 + options_.min_free_bytes;
-    if (c.keep_raw()) need += c.width_px() * int64_t{c.height_px()} * 2 * captured.bracket.size();
+    int64_t need = width_px_ * height_px_ * 12 + options_.min_free_bytes;
+    if (c.keep_raw()) need += width_px_ * height_px_ * 2 * int64_t(captured.bracket.size());
     const int64_t free = options_.free_bytes ? options_.free_bytes(dir) : statvfsFree(dir);
     if (free >= 0 && free < need)
         return makeError(ErrorCode::IoError, "disk full: " + std::to_string(free >> 20) +
@@ -470,7 +522,7 @@ void SweepJob::fitModel() {
         if (control_.stopFlag()) return;  // stopped, not failed
         return fail("fit: " + model.error().message);
     }
-    if (sweep_.lens) {
+    if (sweep_.lens && sweep_.config.has_sim()) {
         model->lens.prescription_file = sweep_.config.sim().lens().name();
         if (!model->lens.f_number && sweep_.lens->camera().f_number > 0.0)
             model->lens.f_number = sweep_.lens->camera().f_number;
@@ -494,9 +546,26 @@ RunResult SweepJob::run() {
         return result_;
     }
     sweep_ = std::move(*prepared);
-    if (Status ok = makeRig(); !ok) {
-        result_.reason = "rig: " + ok.error().message;
-        return result_;
+    // A device that cannot be opened now (unplugged, powered off, busy) pauses the job, and a
+    // resume tries again; a request the devices cannot serve fails it.
+    for (;;) {
+        if (!control_.checkpoint()) {
+            result_.outcome = RunOutcome::Stopped;
+            return result_;
+        }
+        Status ok = makeRig();
+        if (ok) break;
+        const ErrorCode code = ok.error().code;
+        if (code == ErrorCode::InvalidArgument || code == ErrorCode::Unsupported ||
+            code == ErrorCode::ParseError) {
+            result_.reason = "rig: " + ok.error().message;
+            return result_;
+        }
+        if (!control_.pauseForFault("rig: " + ok.error().message +
+                                    "; resume the job when the device is back")) {
+            result_.outcome = RunOutcome::Stopped;
+            return result_;
+        }
     }
     control_.setStopHook([head = head_] { (void)head->stop(); });
     control_.setPhase(v1::HOMING);
@@ -555,6 +624,7 @@ RunResult SweepJob::run() {
     processing.join();
     result_.queue_high_water = queue.highWater();
     result_.capture_wall_s = secondsSince(capture_start_);
+    logStatistics();
     result_.frames_on_disk = on_disk_;
     if (failed_) return result_;
     if (on_disk_ < sweep_.angles_deg.size()) {
@@ -582,12 +652,14 @@ RunResult SweepJob::fit() {
 
 void settleAllocator() { ::mallopt(M_MMAP_THRESHOLD, 256 * 1024); }
 
-Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits) {
-    const v1::SimSettings& sim = sweep.config.sim();
-    auto clock = std::make_shared<drivers::SimClock>(sim.fast() ? drivers::SimTime::Fast
-                                                                : drivers::SimTime::RealTime);
-    drivers::SimHeadOptions head;
-    head.seed = sim.seed();
+Result<drivers::Rig> openJobRig(const PreparedSweep& sweep, const SweepLimits& limits) {
+    const v1::SweepConfig& c = sweep.config;
+    const v1::SimSettings& sim = c.sim();  // the defaults when the job simulates nothing
+    drivers::RigOptions options;
+    options.sim_clock = std::make_shared<drivers::SimClock>(
+        c.has_sim() && sim.fast() ? drivers::SimTime::Fast : drivers::SimTime::RealTime);
+    drivers::SimHeadOptions& head = options.sim_head;
+    head.seed = c.has_sim() ? sim.seed() : 1;
     head.min_deg = limits.head_min_deg;
     head.max_deg = limits.head_max_deg;
     head.speed_deg_s = limits.head_speed_deg_s;
@@ -596,20 +668,17 @@ Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits)
     if (sim.faults().has_head_stall_at_deg())
         head.faults.stall_at_deg = sim.faults().head_stall_at_deg();
     head.faults.hang_moves = static_cast<int>(sim.faults().head_hangs());
-    auto made_head = drivers::SimHead::make(head, clock);
-    if (!made_head) return made_head.error();
-    SimRig rig;
-    rig.head = std::move(*made_head);
-    drivers::SimCameraOptions camera;
-    camera.width_px = sweep.config.width_px();
-    camera.height_px = sweep.config.height_px();
-    camera.seed = sim.seed();
-    camera.gain = sweep.config.gain();
+    drivers::SimCameraOptions& camera = options.sim_camera;
+    if (c.width_px() > 0) camera.width_px = c.width_px();
+    if (c.height_px() > 0) camera.height_px = c.height_px();
+    camera.seed = head.seed;
+    camera.gain = c.gain();
     camera.readout_s = limits.readout_s;
-    auto made_camera = drivers::SimCamera::make(*sweep.lens, camera, rig.head);
-    if (!made_camera) return made_camera.error();
-    rig.camera = std::move(*made_camera);
-    return rig;
+    options.sim_lens = sweep.lens;
+    auto registries = drivers::makeRigRegistries(options);
+    if (!registries) return registries.error();
+    return drivers::openRig(*registries, sweep.camera_uri.empty() ? "sim:" : sweep.camera_uri,
+                            sweep.head_uri.empty() ? "sim:" : sweep.head_uri, options);
 }
 
 RunResult runSweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control) {

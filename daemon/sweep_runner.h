@@ -1,10 +1,11 @@
 // ============================================================================
-//  flarelab daemon: JobControl, RunnerOptions, RunOutcome, RunResult, SimRig, makeSimRig,
-//                   runSweepJob, fitSweepJob
+//  flarelab daemon: JobControl, RunnerOptions, RunOutcome, RunResult, openJobRig, runSweepJob,
+//                   fitSweepJob
 // ============================================================================
 //
-// One sweep job from start to end: the rig is made (the simulated rig, from the job's
-// configuration), the head homed, then a pipeline of two threads runs the capture:
+// One sweep job from start to end: the rig is opened (the daemon's devices by URI, and whatever
+// the daemon does not have simulated from the job's configuration; drivers/rig.h), the head
+// homed, then a pipeline of two threads runs the capture:
 //
 //     capture thread:    move head ─► exposure 1 … n ─► queue (bounded) ─┐
 //     processing thread: ◄──────────────────────────────────────────────┘
@@ -25,10 +26,11 @@
 // Faults. A camera timeout is retried camera_retries times, then the job pauses with the reason
 // (resume retries); a head that does not arrive likewise with head_retries; a head that lost
 // position is homed again; a stalled head is stopped and the job paused ("the rig is stopped");
-// a camera or head that is gone pauses the job. Too little free disk space (below
-// min_free_bytes plus a frame), or a write that fails, ends the job as failed, with every frame
-// written before it intact. Whatever was captured when a job stops (cancel, shutdown, failure of
-// a later stage) is still merged and written.
+// a camera or head that is gone (or cannot be opened) pauses the job, and resuming it opens the
+// device again; a setting the device refuses (out of range) fails the job. Too little free disk
+// space (below min_free_bytes plus a frame), or a write that fails, ends the job as failed, with
+// every frame written before it intact. Whatever was captured when a job stops (cancel, shutdown,
+// failure of a later stage) is still merged and written.
 #pragma once
 
 #include <atomic>
@@ -38,8 +40,7 @@
 #include <string>
 
 #include "daemon/sweep_config.h"
-#include "drivers/sim_camera.h"
-#include "drivers/sim_head.h"
+#include "drivers/rig.h"
 #include "proto/daemon.pb.h"
 
 namespace flarelab::daemon {
@@ -63,6 +64,13 @@ public:
     virtual void warning(const std::string& message) = 0;
     // An EXPOSURE, FRAME or FIT_PROGRESS event; the owner numbers it and adds the job's state.
     virtual void event(flarelab::v1::JobEvent event) = 0;
+    // The job opened a device of the daemon's (by the URI it was configured with), which names
+    // itself so; for DescribeRig.
+    virtual void deviceOpened(const std::string& uri,
+                              const std::string& model,
+                              const std::string& serial) {
+        (void)uri, (void)model, (void)serial;
+    }
 };
 
 struct RunnerOptions {
@@ -91,14 +99,11 @@ struct RunResult {
     size_t queue_high_water = 0;
 };
 
-// The simulated rig a prepared sweep runs on: a head with the limits' motion and the config's
-// injected faults, and a camera with the lens, size, gain and seed, sharing one clock (simulated
-// time when config.sim.fast, else real time).
-struct SimRig {
-    std::shared_ptr<drivers::SimHead> head;
-    std::unique_ptr<drivers::SimCamera> camera;
-};
-Result<SimRig> makeSimRig(const PreparedSweep& sweep, const SweepLimits& limits);
+// The rig a prepared sweep runs on: the daemon's devices it names (sweep.camera_uri, head_uri),
+// and for each it leaves empty a simulated one: a head with the limits' motion and the config's
+// injected faults, a camera with the lens, size, gain and seed, sharing one clock (simulated
+// time when config.sim.fast, else real time). Errors carry "camera" or "head" and the URI.
+Result<drivers::Rig> openJobRig(const PreparedSweep& sweep, const SweepLimits& limits);
 
 // glibc's malloc, set for a process that runs sweeps for hours: buffers of 256 KiB and more (the
 // brackets, merged frames, EXR and PNG encodings) are always mapped and returned to the system

@@ -163,6 +163,7 @@ public:
     int64_t renders() const { return renders_; }  // renderScene calls so far (cache misses)
     double lastRender_ms() const { return last_render_ms_; }
     const std::shared_ptr<SimClock>& clock() const { return clock_; }
+    const optics::Lens& lens() const { return lens_; }
 
 private:
     struct Key {

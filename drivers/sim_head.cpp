@@ -344,8 +344,9 @@ Status addSimHeadBackend(HeadRegistry& registry,
         d.backend = "sim";
         d.model = "flarelab simulated head";
         d.serial = listed.serial;
-        d.details = {"range: " + std::to_string(listed.min_deg) + " .. " +
-                     std::to_string(listed.max_deg) + " deg"};
+        std::ostringstream range;
+        range << "range: " << listed.min_deg << " .. " << listed.max_deg << " deg";
+        d.details = {range.str()};
         return std::vector<DeviceListing>{d};
     });
 }

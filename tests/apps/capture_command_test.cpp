@@ -90,6 +90,30 @@ TEST(Capture, RecordsEachExposuresClippingAndWarnsOfASaturatedSweep) {
     EXPECT_EQ(run.err.find("warning"), std::string::npos) << run.err;
 }
 
+TEST(Capture, TakesItsDevicesByUri) {
+    const std::string dir = freshDir("uri");
+    CommandRun run = capture({"--camera",
+                              "sim:?lens=" + flarelab::testing::lensPath("lensbaby-toy.csv") +
+                                  "&width=40&height=30&format=rggb",
+                              "--head", "sim:?time=fast&settle_s=0", "--from", "0", "--to", "0.2",
+                              "--step", "0.2", "--brackets", "0.5,2", "-o", dir});
+    ASSERT_EQ(run.code, 0) << run.err;
+    auto sweep = hdr::readSweep(dir);
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    EXPECT_EQ(sweep->frames.size(), 2u);
+    EXPECT_EQ(sweep->header.capture.width_px, 40);  // the camera's size, not --width's
+    EXPECT_GT(sweep->header.camera.pixel_pitch_um, 0.0);
+    EXPECT_NE(sweep->header.lens.description.find("ensbaby"), std::string::npos)
+        << sweep->header.lens.description;
+
+    run = capture({"--camera", "sim:", "--head", "sim:", "-o", freshDir("nolens")});
+    EXPECT_EQ(run.code, 1);
+    EXPECT_NE(run.err.find("needs a lens"), std::string::npos) << run.err;
+    run = capture({"--camera", "aravis:", "--head", "warp:", "-o", freshDir("nohead")});
+    EXPECT_EQ(run.code, 1);
+    EXPECT_NE(run.err.find("head 'warp:'"), std::string::npos) << run.err;
+}
+
 TEST(Capture, RefusesBadRequestsNamingWhatIsWrong) {
     const std::string dir = freshDir("bad");
     auto args = small(dir);
