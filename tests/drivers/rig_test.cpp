@@ -83,7 +83,9 @@ TEST(BackendStatus, NamesEverySchemeOfTheIssueAndTheLibraryAMissingOneNeeds) {
     std::set<std::string> schemes;
     for (const BackendStatus& b : backendStatus()) {
         schemes.insert(b.kind + ":" + b.scheme);
-        if (!b.built) EXPECT_FALSE(b.missing.empty()) << b.scheme;
+        if (!b.built) {
+            EXPECT_FALSE(b.missing.empty()) << b.scheme;
+        }
     }
     EXPECT_EQ(schemes,
               (std::set<std::string>{"camera:sim", "camera:aravis", "camera:v4l2",
