@@ -30,12 +30,24 @@
 namespace flarelab::drivers {
 namespace {
 
-// A scheme whose backend this build left out: opening it says what is missing.
+#if FLARELAB_HAVE_ARAVIS
+constexpr bool kHaveAravis = true;
+#else
+constexpr bool kHaveAravis = false;
+#endif
+#if FLARELAB_HAVE_LIBCAMERA
+constexpr bool kHaveLibcamera = true;
+#else
+constexpr bool kHaveLibcamera = false;
+#endif
+
+}  // namespace
+
 template <typename Device>
-Status addMissingBackend(DeviceRegistry<Device>& registry,
-                         const std::string& scheme,
-                         const std::string& description,
-                         const std::string& library) {
+Status addUnavailableBackend(DeviceRegistry<Device>& registry,
+                             const std::string& scheme,
+                             const std::string& description,
+                             const std::string& library) {
     auto open = [scheme, library](const DeviceUri& uri) -> Result<std::unique_ptr<Device>> {
         return makeError(ErrorCode::Unsupported,
                          "device uri '" + uri.text + "': this build of flarelab has no " + scheme +
@@ -46,29 +58,28 @@ Status addMissingBackend(DeviceRegistry<Device>& registry,
     return registry.addBackend(scheme, description + " (not in this build: needs " + library + ")",
                                std::move(open));
 }
+template Status addUnavailableBackend(CameraRegistry&,
+                                      const std::string&,
+                                      const std::string&,
+                                      const std::string&);
+template Status addUnavailableBackend(HeadRegistry&,
+                                      const std::string&,
+                                      const std::string&,
+                                      const std::string&);
 
-}  // namespace
-
-std::vector<BackendStatus> backendStatus(){return {
-    {"sim", "camera", "simulated camera", true, ""},
-    {"aravis", "camera", "GigE Vision and USB3 Vision cameras through Aravis",
-#if FLARELAB_HAVE_ARAVIS
-     true, ""},
-#else
-     false, "aravis-0.8 (Debian: libaravis-dev)"},
-#endif
-    {"v4l2", "camera", "Video4Linux2 cameras", true, ""},
-    {"libcamera", "camera", "libcamera cameras",
-#if FLARELAB_HAVE_LIBCAMERA
-     true, ""},
-#else
-     false, "libcamera (Debian: libcamera-dev)"},
-#endif
-    {"sim", "head", "simulated panorama head", true, ""},
-    {"zaber", "head", "Zaber rotation stages (ASCII protocol, serial)", true, ""},
-    {"apt", "head", "Thorlabs rotation mounts (APT protocol, serial)", true, ""},
-};
-}  // namespace flarelab::drivers
+std::vector<BackendStatus> backendStatus() {
+    return {
+        {"sim", "camera", "simulated camera", true, ""},
+        {"aravis", "camera", "GigE Vision and USB3 Vision cameras through Aravis", kHaveAravis,
+         kHaveAravis ? "" : "aravis-0.8 (Debian: libaravis-dev)"},
+        {"v4l2", "camera", "Video4Linux2 cameras", true, ""},
+        {"libcamera", "camera", "libcamera cameras", kHaveLibcamera,
+         kHaveLibcamera ? "" : "libcamera (Debian: libcamera-dev)"},
+        {"sim", "head", "simulated panorama head", true, ""},
+        {"zaber", "head", "Zaber rotation stages (ASCII protocol, serial)", true, ""},
+        {"apt", "head", "Thorlabs rotation mounts (APT protocol, serial)", true, ""},
+    };
+}
 
 Result<RigRegistries> makeRigRegistries(const RigOptions& options) {
     RigRegistries r;
@@ -78,7 +89,7 @@ Result<RigRegistries> makeRigRegistries(const RigOptions& options) {
 #if FLARELAB_HAVE_ARAVIS
     if (Status ok = addAravisCameraBackend(r.cameras); !ok) return ok.error();
 #else
-    if (Status ok = addMissingBackend(r.cameras, "aravis", "GigE Vision cameras", "aravis-0.8");
+    if (Status ok = addUnavailableBackend(r.cameras, "aravis", "GigE Vision cameras", "aravis-0.8");
         !ok)
         return ok.error();
 #endif
@@ -88,7 +99,7 @@ Result<RigRegistries> makeRigRegistries(const RigOptions& options) {
 #if FLARELAB_HAVE_LIBCAMERA
     if (Status ok = addLibcameraCameraBackend(r.cameras); !ok) return ok.error();
 #else
-    if (Status ok = addMissingBackend(r.cameras, "libcamera", "libcamera cameras", "libcamera");
+    if (Status ok = addUnavailableBackend(r.cameras, "libcamera", "libcamera cameras", "libcamera");
         !ok)
         return ok.error();
 #endif

@@ -60,6 +60,14 @@ struct BackendStatus {
 };
 std::vector<BackendStatus> backendStatus();
 
+// Registers `scheme` for a backend this build left out: opening one of its URIs answers
+// Unsupported, naming the scheme and the missing library.
+template <typename Device>
+Status addUnavailableBackend(DeviceRegistry<Device>& registry,
+                             const std::string& scheme,
+                             const std::string& description,
+                             const std::string& library);
+
 // The registries with every backend of this build (see the top of this file). The sim camera of
 // this registry has no head (its light stays at sim_camera.fixed_angle_deg); openRig binds it.
 Result<RigRegistries> makeRigRegistries(const RigOptions& options);

@@ -79,6 +79,19 @@ TEST(OpenRig, NamesTheDeviceThatCouldNotBeOpened) {
     EXPECT_EQ(no_head.error().code, ErrorCode::NotFound);
 }
 
+TEST(UnavailableBackend, AnswersUnsupportedNamingTheMissingLibrary) {
+    CameraRegistry cameras;
+    ASSERT_TRUE(addUnavailableBackend(cameras, "aravis", "GigE Vision cameras", "aravis-0.8"));
+    const auto opened = cameras.open("aravis:Basler-123");
+    ASSERT_FALSE(opened);
+    EXPECT_EQ(opened.error().code, ErrorCode::Unsupported);
+    EXPECT_NE(opened.error().message.find("no aravis backend: aravis-0.8 was not installed"),
+              std::string::npos)
+        << opened.error().message;
+    EXPECT_NE(cameras.backends()[0].second.find("not in this build"), std::string::npos);
+    EXPECT_TRUE(cameras.enumerate().empty());
+}
+
 TEST(BackendStatus, NamesEverySchemeOfTheIssueAndTheLibraryAMissingOneNeeds) {
     std::set<std::string> schemes;
     for (const BackendStatus& b : backendStatus()) {
