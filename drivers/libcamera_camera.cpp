@@ -160,6 +160,12 @@ std::string withLog(std::string message) {
 
 std::string errnoText(int negative_errno) { return std::strerror(-negative_errno); }
 
+std::string fmt(double x) {
+    std::ostringstream out;
+    out << x;
+    return out.str();
+}
+
 // ---------------------------------------------------------------------------------------------
 // The process's CameraManager. libcamera 0.0.3 aborts the process ("Multiple IPAManager objects
 // are not allowed") when a second one is made while one lives, so every user shares this one;
@@ -468,15 +474,17 @@ Result<std::unique_ptr<LibcameraCamera>> LibcameraCamera::open(const DeviceUri& 
             break;
     }
     state->format = *chosen;
-    state->stride_bytes = stream_config.stride;
-    if (state->stride_bytes < libcameraLineBytes(state->format.format, state->format.size.width))
-        return makeError(ErrorCode::IoError, name + ": the camera's stride of " +
-                                                 std::to_string(stream_config.stride) +
-                                                 " bytes is shorter than a line of " +
-                                                 std::string(state->format.format.name));
     if (const int ret = state->camera->configure(state->config.get()); ret < 0)
         return makeError(ErrorCode::IoError,
                          withLog(name + ": configure failed: " + errnoText(ret)));
+    // The stride as configured (validate() and configure() set it).
+    state->stride_bytes = stream_config.stride;
+    if (state->stride_bytes < libcameraLineBytes(state->format.format, state->format.size.width))
+        return makeError(ErrorCode::IoError,
+                         name + ": the camera's stride of " + std::to_string(stream_config.stride) +
+                             " bytes is shorter than a line of " +
+                             std::to_string(state->format.size.width) + " samples of " +
+                             std::string(state->format.format.name));
     state->stream = stream_config.stream();
     if (!state->stream)
         return makeError(ErrorCode::IoError, name + ": configure gave the raw stream no Stream");
@@ -665,7 +673,7 @@ Result<hdr::RawFrame> LibcameraCamera::capture(double timeout_s) {
         return frame;
     }
     return deviceError(DeviceFault::Timeout, s.name,
-                       "no frame within timeout_s = " + std::to_string(timeout_s) + " (" +
+                       "no frame within timeout_s = " + fmt(timeout_s) + " (" +
                            std::to_string(s.tracker.framesSinceChange()) +
                            " frames since the settings changed, " +
                            std::to_string(s.frames_failed) + " failed frames so far)");

@@ -55,7 +55,8 @@ std::string knownFormatsText() {
     return text;
 }
 
-constexpr int64_t kMaxSide = 65536;
+// As RawFrame allows (hdr/raw_io.h, validateRawFrame).
+constexpr int64_t kMaxSide = 32768;
 
 int64_t area(const PixelSize& size) { return size.width * size.height; }
 
@@ -125,8 +126,19 @@ Result<std::vector<uint16_t>> unpackLibcameraRaw(std::span<const uint8_t> data,
                 if (format.bit_depth == 8) {
                     for (int64_t x = 0; x < width; ++x) dst[x] = row[x];
                 } else {
-                    for (int64_t x = 0; x < width; ++x)
-                        dst[x] = static_cast<uint16_t>(row[2 * x] | row[2 * x + 1] << 8);
+                    const int max = (1 << format.bit_depth) - 1;
+                    for (int64_t x = 0; x < width; ++x) {
+                        const int sample = row[2 * x] | row[2 * x + 1] << 8;
+                        // Right-justified, as V4L2 and libcamera define these formats; anything
+                        // above is a buffer that is not what it says (left-justified, garbage).
+                        if (sample > max)
+                            return makeError(ErrorCode::ParseError,
+                                             what + ": sample (" + std::to_string(x) + ", " +
+                                                 std::to_string(y) +
+                                                 ") = " + std::to_string(sample) + " exceeds " +
+                                                 std::to_string(format.bit_depth) + " bits");
+                        dst[x] = static_cast<uint16_t>(sample);
+                    }
                 }
                 break;
             case RawPacking::Csi2:
@@ -165,7 +177,10 @@ Result<LibcameraFormatChoice> chooseLibcameraFormat(std::span<const LibcameraFor
     std::vector<std::pair<const LibcameraRawFormat*, const LibcameraFormatOffer*>> readable;
     for (const LibcameraFormatOffer& offer : offers) {
         const LibcameraRawFormat* format = findLibcameraRawFormat(offer.fourcc, offer.modifier);
-        if (format && !offer.sizes.empty()) readable.emplace_back(format, &offer);
+        const bool sized = std::any_of(offer.sizes.begin(), offer.sizes.end(), [](const PixelSize& s) {
+            return s.width >= 1 && s.height >= 1 && s.width <= kMaxSide && s.height <= kMaxSide;
+        });
+        if (format && sized) readable.emplace_back(format, &offer);
     }
     if (readable.empty())
         return makeError(
@@ -198,6 +213,7 @@ Result<LibcameraFormatChoice> chooseLibcameraFormat(std::span<const LibcameraFor
 
     std::optional<PixelSize> size;
     for (const PixelSize& s : offer->sizes) {
+        if (s.width < 1 || s.height < 1 || s.width > kMaxSide || s.height > kMaxSide) continue;
         if (request.width != 0 && s.width != request.width) continue;
         if (request.height != 0 && s.height != request.height) continue;
         if (!size || area(s) > area(*size)) size = s;
@@ -355,6 +371,10 @@ Result<hdr::RawFrame> rawFrameFromLibcamera(const LibcameraFrameMetadata& metada
         }
         // Given on a 16-bit scale: a b-bit converter's DN are 2^(16 - b) times smaller.
         frame.black_level_dn = sum / 4.0 / std::ldexp(1.0, 16 - frame.bit_depth);
+        if (!(frame.black_level_dn < frame.white_level_dn))
+            return bad("the metadata's SensorBlackLevels put black at " +
+                       fmt(frame.black_level_dn) + " DN, not below white (" +
+                       fmt(frame.white_level_dn) + ")");
     }
 
     if (metadata.sensor_timestamp_ns) {

@@ -156,9 +156,10 @@ const LibcameraRawFormat* findLibcameraRawFormat(std::string_view name);
 int64_t libcameraLineBytes(const LibcameraRawFormat& format, int64_t width);
 
 // The image of a raw buffer as 16-bit samples (width * height, row-major), each in
-// 0 .. 2^bit_depth - 1 for packed formats; unpacked 10..16-bit containers are copied as they are.
-// InvalidArgument naming width, height or stride when width or height < 1 or the stride is
-// shorter than a line; ParseError naming the buffer's size when it ends before the last line.
+// 0 .. 2^bit_depth - 1. InvalidArgument naming width, height or stride when width or height lies
+// outside 1..32768 (RawFrame's limit) or the stride is shorter than a line; ParseError naming the
+// buffer's size when it ends before the last line, and naming the sample when an unpacked 10- or
+// 12-bit container holds more bits (a buffer that is not right-justified as the format says).
 Result<std::vector<uint16_t>> unpackLibcameraRaw(std::span<const uint8_t> data,
                                                  const LibcameraRawFormat& format,
                                                  int64_t width,
@@ -195,7 +196,8 @@ struct LibcameraFormatChoice {
 // with the most bits, unpacked before CSI-2 packed before IPU3 packed (no unpacking work when the
 // camera can do it), then the first offered. Without a requested size: the largest offered
 // size of that format (the full sensor, unbinned where the sensor offers it). A requested width
-// or height must be offered exactly (with the other, when given).
+// or height must be offered exactly (with the other, when given). Sizes outside 1..32768 (what a
+// RawFrame may hold) are not offers.
 // Unsupported when the camera offers no raw format flarelab reads (the message lists what it
 // offers); [out-of-range] naming format when the requested one is unknown or not offered, naming
 // width / height when no offered size matches (the messages list what is offered).
@@ -274,8 +276,8 @@ struct LibcameraFrameMetadata {
 // the mean of SensorBlackLevels scaled to bit_depth (0 without it: `flarelab calibrate` measures
 // it); white is 2^bit_depth - 1. IoError naming the control when the metadata holds an exposure
 // <= 0, a gain not finite or <= 0, a negative timestamp or a black level outside 0..65535 (a
-// device reply flarelab will not pass on), and naming samples when their count is not
-// width * height.
+// device reply flarelab will not pass on) or black levels not below white, and naming samples
+// when their count is not width * height. A frame it returns passes hdr::validateRawFrame.
 Result<hdr::RawFrame> rawFrameFromLibcamera(const LibcameraFrameMetadata& metadata,
                                             const LibcameraSettings& requested,
                                             const LibcameraFormatChoice& format,

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "drivers/libcamera_mapping.h"
+#include "hdr/raw_io.h"
 
 #if FLARELAB_HAVE_LIBCAMERA
 #include "drivers/libcamera_camera.h"
@@ -198,11 +199,17 @@ TEST(UnpackLibcameraRaw, RefusesShortStridesAndBuffersNamingThem) {
     EXPECT_TRUE(mentions(truncated.error(), "size = 98"));
     EXPECT_TRUE(unpackLibcameraRaw(std::vector<uint8_t>(99, 0), f, 5, 10, 10));
     for (auto [w, h, field] :
-         {std::tuple{0, 1, "width"}, std::tuple{1, 0, "height"}, std::tuple{70000, 1, "width"}}) {
+         {std::tuple{0, 1, "width"}, std::tuple{1, 0, "height"}, std::tuple{32769, 1, "width"}}) {
         const auto bad = unpackLibcameraRaw(buffer, f, w, h, 9);
         ASSERT_FALSE(bad);
         EXPECT_TRUE(mentions(bad.error(), field)) << bad.error().message;
     }
+    // Unpacked 10-bit containers with bits above the 10th: not the format they claim.
+    const std::vector<uint8_t> left_justified = {0x00, 0x00, 0xc0, 0xff};
+    const auto high = unpackLibcameraRaw(left_justified, format("SRGGB10"), 2, 1, 4);
+    ASSERT_FALSE(high);
+    EXPECT_EQ(high.error().code, ErrorCode::ParseError);
+    EXPECT_TRUE(mentions(high.error(), "sample (1, 0) = 65472 exceeds 10 bits"));
     // A huge stride must not overflow the size check.
     EXPECT_FALSE(unpackLibcameraRaw(buffer, f, 5, 3, int64_t{1} << 62));
 }
@@ -390,6 +397,7 @@ TEST(RawFrameFromLibcamera, CarriesWhatTheMetadataSaysTheSensorDid) {
     EXPECT_EQ(frame->height, 2);
     EXPECT_EQ(frame->samples, (std::vector<uint16_t>{1, 2, 3, 4, 5, 6}));
     EXPECT_EQ(frame->camera, "imx477 /base/i2c@1");
+    EXPECT_TRUE(hdr::validateRawFrame(*frame));
 }
 
 TEST(RawFrameFromLibcamera, FallsBackToTheRequestWhereThePipelineSaysNothing) {
@@ -401,6 +409,7 @@ TEST(RawFrameFromLibcamera, FallsBackToTheRequestWhereThePipelineSaysNothing) {
     EXPECT_EQ(frame->timestamp_marks, hdr::TimestampMark::Unknown);
     EXPECT_DOUBLE_EQ(frame->black_level_dn, 0.0);
     EXPECT_DOUBLE_EQ(frame->white_level_dn, 4095.0);
+    EXPECT_TRUE(hdr::validateRawFrame(*frame));
 }
 
 TEST(RawFrameFromLibcamera, RefusesImpossibleMetadataNamingTheControl) {
@@ -415,6 +424,11 @@ TEST(RawFrameFromLibcamera, RefusesImpossibleMetadataNamingTheControl) {
         {with([](LibcameraFrameMetadata& m) { m.analogue_gain = std::nan(""); }), "AnalogueGain"},
         {with([](LibcameraFrameMetadata& m) { m.analogue_gain = 0.0; }), "AnalogueGain"},
         {with([](LibcameraFrameMetadata& m) { m.sensor_timestamp_ns = -1; }), "SensorTimestamp"},
+        // 8-bit black at 65280 / 256 = 255: not below white.
+        {with([](LibcameraFrameMetadata& m) {
+             m.black_levels = std::array<int64_t, 4>{65280, 65280, 65280, 65280};
+         }),
+         "SensorBlackLevels"},
         {with([](LibcameraFrameMetadata& m) {
              m.black_levels = std::array<int64_t, 4>{0, 0, 0, 70000};
          }),
@@ -579,7 +593,9 @@ TEST(LibcameraBackend, ListsNoCameraOnAMachineWithoutOneAndStaysQuiet) {
     testing::internal::CaptureStderr();
     const std::vector<DeviceListing> found = listLibcameraCameras();
     const std::string logged = testing::internal::GetCapturedStderr();
-    if (!libcameraLogRequested()) EXPECT_EQ(logged, "") << "libcamera's log reached stderr";
+    if (!libcameraLogRequested()) {
+        EXPECT_EQ(logged, "") << "libcamera's log reached stderr";
+    }
     for (const DeviceListing& d : found) {
         EXPECT_EQ(d.backend, "libcamera");
         EXPECT_EQ(d.uri.rfind("libcamera:", 0), 0u) << d.uri;
@@ -602,7 +618,9 @@ TEST(LibcameraBackend, OpeningACameraThatIsNotThereNamesIt) {
     EXPECT_EQ(camera.error().code, ErrorCode::NotFound);
     EXPECT_TRUE(mentions(camera.error(), "libcamera camera 'flarelab-no-such-camera': not found"))
         << camera.error().message;
-    if (!libcameraLogRequested()) EXPECT_EQ(logged, "");
+    if (!libcameraLogRequested()) {
+        EXPECT_EQ(logged, "");
+    }
     // Twice in a row: the shared CameraManager is made again after the last user let go
     // (libcamera 0.0.3 aborts on a second one alive at once).
     const auto again = registry.open("libcamera:flarelab-no-such-camera");
