@@ -6,13 +6,13 @@
 // Every camera and head backend of this build in one place, so that every program that chooses
 // a device (flarelab capture, rig, calibrate; flarelabd) opens it by the same URI:
 //
-//     camera  sim:?lens=FILE       the simulated camera (sim_camera.h)
-//             aravis:ID            GigE Vision through Aravis: device id, or address
-//             (aravis_camera.h) v4l2:/dev/videoN     Video4Linux2 (v4l2_camera.h) libcamera:NAME
-//             libcamera (libcamera_camera.h)
-//     head    sim:                 the simulated head (sim_head.h)
-//             zaber:/dev/ttyUSB0?axis=1   Zaber ASCII protocol (zaber_head.h)
-//             apt:/dev/ttyUSB0     Thorlabs APT protocol (apt_head.h)
+//     camera  sim:?lens=FILE                the simulated camera (sim_camera.h)
+//             aravis:ID                     GigE Vision through Aravis (aravis_camera.h)
+//             v4l2:/dev/videoN              Video4Linux2 (v4l2_camera.h)
+//             libcamera:NAME                libcamera (libcamera_camera.h)
+//     head    sim:                          the simulated head (sim_head.h)
+//             zaber:/dev/ttyUSB0?axis=1     Zaber ASCII protocol (zaber_head.h)
+//             apt:/dev/ttyUSB0              Thorlabs APT protocol (apt_head.h)
 //
 // A backend whose library was not installed when flarelab was built keeps its scheme: opening it
 // answers Unsupported, saying which library is missing, instead of "no backend".

@@ -91,8 +91,10 @@ TEST(DeviceRegistry, OpensByUriAndAliasAndEnumerates) {
             return std::unique_ptr<Camera>(std::make_unique<NamedCamera>(uri.text));
         },
         [] {
-            return std::vector<DeviceListing>{{.uri = "fake:a", .kind = "camera"},
-                                              {.uri = "fake:b", .kind = "camera"}};
+            DeviceListing a, b;
+            a.uri = "fake:a";
+            b.uri = "fake:b";
+            return std::vector<DeviceListing>{a, b};
         }));
     ASSERT_TRUE(registry.addAlias("bench", "fake:b"));
     const auto direct = registry.open("fake:a");
