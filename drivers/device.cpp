@@ -11,7 +11,7 @@ namespace {
 constexpr DeviceFault kFaults[] = {
     DeviceFault::OutOfRange, DeviceFault::Timeout,      DeviceFault::Stalled,
     DeviceFault::NotHomed,   DeviceFault::LostPosition, DeviceFault::Stopped,
-    DeviceFault::Busy,       DeviceFault::Disconnected,
+    DeviceFault::Busy,       DeviceFault::Disconnected, DeviceFault::BadFrame,
 };
 
 ErrorCode codeOf(DeviceFault fault) {
@@ -27,6 +27,7 @@ ErrorCode codeOf(DeviceFault fault) {
         case DeviceFault::Stalled:
         case DeviceFault::LostPosition:
         case DeviceFault::Stopped:
+        case DeviceFault::BadFrame:
             return ErrorCode::IoError;
     }
     return ErrorCode::Internal;
@@ -56,6 +57,8 @@ const char* deviceFaultName(DeviceFault fault) {
             return "busy";
         case DeviceFault::Disconnected:
             return "disconnected";
+        case DeviceFault::BadFrame:
+            return "bad-frame";
     }
     return "unknown";
 }

@@ -57,10 +57,11 @@ enum class DeviceFault {
     Stopped,       // a move was interrupted by stop() (IoError)
     Busy,          // another command is still running (Unsupported)
     Disconnected,  // the device is gone (unplugged, powered off) (NotFound)
+    BadFrame,      // a frame arrived damaged: packets lost, wrong size (IoError); retaking may help
 };
 
 // The tag written in brackets: "out-of-range", "timeout", "stalled", "not-homed",
-// "lost-position", "stopped", "busy", "disconnected".
+// "lost-position", "stopped", "busy", "disconnected", "bad-frame".
 const char* deviceFaultName(DeviceFault fault);
 
 // An Error "[tag] <device>: <detail>" with the ErrorCode noted above.

@@ -61,7 +61,7 @@ TEST(DeviceError, TagSurvivesContextAndMapsToACode) {
     EXPECT_EQ(deviceFaultOf(makeError(ErrorCode::IoError, "disk full")), std::nullopt);
     for (DeviceFault f : {DeviceFault::OutOfRange, DeviceFault::Timeout, DeviceFault::Stalled,
                           DeviceFault::NotHomed, DeviceFault::LostPosition, DeviceFault::Stopped,
-                          DeviceFault::Busy, DeviceFault::Disconnected})
+                          DeviceFault::Busy, DeviceFault::Disconnected, DeviceFault::BadFrame})
         EXPECT_EQ(deviceFaultOf(deviceError(f, "d", "m")), f) << deviceFaultName(f);
 }
 
