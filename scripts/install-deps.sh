@@ -15,6 +15,8 @@ packages=(
     python3 python3-grpcio python3-protobuf python3-grpc-tools
     # devices
     libaravis-dev libcamera-dev libusb-1.0-0-dev libv4l-dev
+    # Aravis's fake GigE Vision camera (tests/aravis) and arv-tool-0.8 (docs: the lab procedure)
+    aravis-tools aravis-tools-cli
     # command line, logs, JSON
     libcli11-dev libspdlog-dev libfmt-dev nlohmann-json3-dev
     # tests and benchmarks
