@@ -693,11 +693,21 @@ Result<double> AptHead::position() {
     return *counts / counts_per_deg_;
 }
 
+bool AptHead::beginMotion() {
+    // Under the state lock, so that a stop() either finds nothing moving or sets its flag after
+    // this motion cleared it: never lost in between.
+    std::lock_guard lock(state_mutex_);
+    if (moving_) return false;
+    moving_ = true;
+    stop_requested_ = false;
+    return true;
+}
+
 Status AptHead::stop() {
-    if (!moving_) return Ok{};
-    stop_requested_ = true;
     {
         std::lock_guard lock(state_mutex_);
+        if (!moving_) return Ok{};
+        stop_requested_ = true;
         wake_.notify_all();
     }
     std::lock_guard io(io_mutex_);
@@ -716,6 +726,7 @@ Result<uint32_t> AptHead::waitMotion(Motion kind,
     Events seen;
     int standing = 0;  // polls in a row that found the motor standing away from its target
     bool stop_seen = false;
+    bool stop_repeated = false;
     for (;;) {
         auto bits = statusBits();
         if (!bits) {
@@ -736,8 +747,15 @@ Result<uint32_t> AptHead::waitMotion(Motion kind,
             return faultFromBits(*bits | faults, doing);
         }
         const bool moving = (*bits & apt::kMovingBits) != 0;
+        if (moving && stop_requested_ && !stop_repeated) {
+            // stop() may have reached the controller before the move did: say it again.
+            stop_repeated = true;
+            halt();
+        }
         if (kind == Motion::Move) {
-            if (seen.completed) return *bits;
+            // A completion that names another position is a late one of an earlier move.
+            if (seen.completed && (!seen.completed->full || seen.completed->position == target))
+                return *bits;
             if (!moving) {
                 auto at = positionCounts();
                 if (!at) return at.error();
@@ -778,14 +796,11 @@ Result<double> AptHead::moveTo(double angle_deg, double timeout_s) {
         std::lock_guard lock(state_mutex_);
         if (!homed_) return deviceError(DeviceFault::NotHomed, name(), "cannot move: home first");
     }
-    bool idle = false;
-    if (!moving_.compare_exchange_strong(idle, true))
-        return deviceError(DeviceFault::Busy, name(), "another move is running");
+    if (!beginMotion()) return deviceError(DeviceFault::Busy, name(), "another move is running");
     struct Done {
         std::atomic<bool>& flag;
         ~Done() { flag = false; }
     } done{moving_};
-    stop_requested_ = false;
     const auto deadline = deadlineAfter(timeout_s);
     const int32_t target = targetCounts(angle_deg);
     const std::string what =
@@ -818,14 +833,11 @@ Result<double> AptHead::moveTo(double angle_deg, double timeout_s) {
 Status AptHead::home(double timeout_s) {
     if (!std::isfinite(timeout_s) || !(timeout_s > 0.0))
         return deviceError(DeviceFault::OutOfRange, name(), "timeout_s must be positive");
-    bool idle = false;
-    if (!moving_.compare_exchange_strong(idle, true))
-        return deviceError(DeviceFault::Busy, name(), "another move is running");
+    if (!beginMotion()) return deviceError(DeviceFault::Busy, name(), "another move is running");
     struct Done {
         std::atomic<bool>& flag;
         ~Done() { flag = false; }
     } done{moving_};
-    stop_requested_ = false;
     {
         std::lock_guard lock(state_mutex_);
         homed_ = false;

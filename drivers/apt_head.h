@@ -278,6 +278,8 @@ private:
     Error faultFromBits(uint32_t bits, const std::string& doing);
     Status initialise();
     std::string name() const;
+    // Marks a move or homing as under way: false when one already is.
+    bool beginMotion();
 
     const AptHeadOptions options_;
     std::mutex io_mutex_;

@@ -731,11 +731,21 @@ Result<double> ZaberHead::position() {
     return static_cast<double>(*steps) / units_per_deg_;
 }
 
+bool ZaberHead::beginMotion() {
+    // Under the state lock, so that a stop() either finds nothing moving or sets its flag after
+    // this motion cleared it: never lost in between.
+    std::lock_guard lock(state_mutex_);
+    if (moving_) return false;
+    moving_ = true;
+    stop_requested_ = false;
+    return true;
+}
+
 Status ZaberHead::stop() {
-    if (!moving_) return Ok{};
-    stop_requested_ = true;
     {
         std::lock_guard lock(state_mutex_);
+        if (!moving_) return Ok{};
+        stop_requested_ = true;
         wake_.notify_all();
     }
     auto reply = command("stop");
@@ -745,10 +755,16 @@ Status ZaberHead::stop() {
 
 Result<ZaberReply> ZaberHead::waitIdle(SerialClock::time_point deadline, const std::string& doing) {
     bool stop_seen = false;
+    bool stop_repeated = false;
     for (;;) {
         auto reply = command("get pos");
         if (!reply) return reply.error();
         if (!reply->busy) return reply;
+        if (stop_requested_ && !stop_repeated) {
+            // stop() may have reached the device before the move command did: say it again.
+            stop_repeated = true;
+            if (auto stopped = command("stop"); !stopped) return stopped.error();
+        }
         if (SerialClock::now() >= deadline) {
             // Do not leave the axis running past its caller's patience.
             (void)command("stop");
@@ -778,14 +794,11 @@ Result<double> ZaberHead::moveTo(double angle_deg, double timeout_s) {
         std::lock_guard lock(state_mutex_);
         if (!homed_) return deviceError(DeviceFault::NotHomed, name(), "cannot move: home first");
     }
-    bool idle = false;
-    if (!moving_.compare_exchange_strong(idle, true))
-        return deviceError(DeviceFault::Busy, name(), "another move is running");
+    if (!beginMotion()) return deviceError(DeviceFault::Busy, name(), "another move is running");
     struct Done {
         std::atomic<bool>& flag;
         ~Done() { flag = false; }
     } done{moving_};
-    stop_requested_ = false;
     const auto deadline = deadlineAfter(timeout_s);
     const int64_t target = targetSteps(angle_deg);
     const std::string what =
@@ -822,14 +835,11 @@ Result<double> ZaberHead::moveTo(double angle_deg, double timeout_s) {
 Status ZaberHead::home(double timeout_s) {
     if (!std::isfinite(timeout_s) || !(timeout_s > 0.0))
         return deviceError(DeviceFault::OutOfRange, name(), "timeout_s must be positive");
-    bool idle = false;
-    if (!moving_.compare_exchange_strong(idle, true))
-        return deviceError(DeviceFault::Busy, name(), "another move is running");
+    if (!beginMotion()) return deviceError(DeviceFault::Busy, name(), "another move is running");
     struct Done {
         std::atomic<bool>& flag;
         ~Done() { flag = false; }
     } done{moving_};
-    stop_requested_ = false;
     {
         std::lock_guard lock(state_mutex_);
         homed_ = false;

@@ -187,6 +187,8 @@ private:
     Result<ZaberReply> waitIdle(SerialClock::time_point deadline, const std::string& doing);
     Status initialise();
     std::string name() const;
+    // Marks a move or homing as under way: false when one already is.
+    bool beginMotion();
 
     const ZaberHeadOptions options_;
     std::mutex io_mutex_;  // the line: one exchange at a time
