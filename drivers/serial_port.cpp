@@ -452,9 +452,17 @@ std::vector<DeviceListing> listSerialPorts(const std::string& sysfs_root,
         if (!fs::exists(device_link, dev_ec)) continue;  // virtual consoles, ptys, console
         const fs::path device_dir = fs::canonical(device_link, dev_ec);
         if (dev_ec) continue;
+        // Kernels since 6.5 put "serial-base" port and controller devices between a UART's tty
+        // and the device that holds it: look past them.
+        fs::path holder = device_dir;
+        fs::path subsystem = fs::read_symlink(holder / "subsystem", dev_ec);
+        while (!dev_ec && subsystem.filename() == "serial-base" && holder.has_parent_path() &&
+               holder != devices_root) {
+            holder = holder.parent_path();
+            subsystem = fs::read_symlink(holder / "subsystem", dev_ec);
+        }
         // The 8250 driver registers ttyS0..ttyS31 whether or not a UART exists; those hang off
         // the platform bus, while real ports sit on pnp, pci or usb.
-        const fs::path subsystem = fs::read_symlink(device_dir / "subsystem", dev_ec);
         if (!dev_ec && subsystem.filename() == "platform") continue;
 
         DeviceListing listing;
@@ -462,7 +470,7 @@ std::vector<DeviceListing> listSerialPorts(const std::string& sysfs_root,
         const std::string dev_path = (fs::path(dev_root) / tty).string();
         listing.details.push_back("device: " + dev_path);
         std::error_code driver_ec;
-        const fs::path driver = fs::read_symlink(device_dir / "driver", driver_ec);
+        const fs::path driver = fs::read_symlink(holder / "driver", driver_ec);
         if (!driver_ec) listing.details.push_back("driver: " + driver.filename().string());
 
         SerialUsbInfo usb;

@@ -134,7 +134,8 @@ struct SerialUsbInfo {
 std::string suggestedStageScheme(const SerialUsbInfo& usb);
 
 // Every serial port with a device behind it (sysfs_root/class/tty/*/device), skipping the
-// placeholder ports of the legacy 8250 driver (their device is the "platform" bus): kind
+// placeholder ports of the legacy 8250 driver (their device is on the "platform" bus, directly or,
+// since Linux 6.5, behind "serial-base" port and controller devices): kind
 // "serial-port", uri "zaber:DEV" / "apt:DEV" when the USB identity suggests a stage (backend
 // then that scheme), else the device path itself (backend ""). Details: "device: /dev/ttyUSB0",
 // "driver: ftdi_sio", "usb: 0403:faf0 Thorlabs APT Stepper Motor Controller, serial 55000001",

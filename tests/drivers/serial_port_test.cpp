@@ -335,6 +335,27 @@ TEST_F(FakeSysfs, ListsRealPortsWithTheirUsbIdentityAndSuggestsStageUris) {
     EXPECT_EQ(ports[3].model, "FT232R USB UART");
 }
 
+TEST_F(FakeSysfs, LooksPastTheSerialBaseDevicesOfNewerKernels) {
+    // Linux 6.5 and later: tty -> serial-base port -> serial-base controller -> the UART's holder.
+    fs::create_directories(sys_ / "bus" / "serial-base");
+    fs::create_directories(sys_ / "bus" / "pnp" / "drivers" / "serial");
+    const std::string pnp = "devices/pnp0/00:00";
+    link(sys_ / pnp / "subsystem", "bus/pnp");
+    link(sys_ / pnp / "driver", "bus/pnp/drivers/serial");
+    link(sys_ / pnp / "00:00:0" / "subsystem", "bus/serial-base");
+    tty("ttyS0", pnp + "/00:00:0/00:00:0.0", "serial-base", "");
+    const std::string legacy = "devices/platform/serial8250";
+    link(sys_ / legacy / "subsystem", "bus/platform");
+    link(sys_ / legacy / "serial8250:0" / "subsystem", "bus/serial-base");
+    tty("ttyS1", legacy + "/serial8250:0/serial8250:0.1", "serial-base", "");
+
+    const auto ports = listSerialPorts(sys_.string(), dev_.string());
+    ASSERT_EQ(ports.size(), 1u);
+    EXPECT_EQ(ports[0].uri, dev_.string() + "/ttyS0");
+    EXPECT_EQ(ports[0].details, (std::vector<std::string>{"device: " + dev_.string() + "/ttyS0",
+                                                          "driver: serial", "bus: pnp"}));
+}
+
 TEST_F(FakeSysfs, AMissingTreeListsNothing) {
     EXPECT_TRUE(listSerialPorts((root_ / "nowhere").string(), dev_.string()).empty());
     EXPECT_TRUE(listSerialPorts(sys_.string(), dev_.string()).empty());
