@@ -318,7 +318,9 @@ std::string formatZaberReply(const ZaberReply& reply) {
         body += reply.busy ? " BUSY " : " IDLE ";
         body += reply.warning;
     }
-    if (!reply.data.empty() || reply.kind == ZaberReply::Kind::Reply) body += " " + reply.data;
+    // A reply always has a data field; the '\' of a continued message is a word of its own.
+    if (!reply.data.empty() || reply.kind == ZaberReply::Kind::Reply || reply.continues)
+        body += " " + reply.data;
     if (reply.continues) body += "\\";
     const char type = reply.kind == ZaberReply::Kind::Reply  ? '@'
                       : reply.kind == ZaberReply::Kind::Info ? '#'

@@ -13,9 +13,9 @@
 namespace flarelab::drivers {
 namespace {
 
-using testing::faultOf;
-using testing::messageOf;
-using testing::waitUntil;
+using stage_testing::faultOf;
+using stage_testing::messageOf;
+using stage_testing::waitUntil;
 
 // ---------------------------------------------------------------------------------------------
 // The protocol

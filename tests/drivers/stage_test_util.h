@@ -9,7 +9,7 @@
 #include "common/result.h"
 #include "drivers/device.h"
 
-namespace flarelab::drivers::testing {
+namespace flarelab::drivers::stage_testing {
 
 // Polls `ready` until it holds or timeout_s passed; whether it held. Tests wait on conditions
 // with this, never on a fixed sleep.
@@ -36,4 +36,4 @@ std::string messageOf(const Result<T>& result) {
     return result ? std::string("(success)") : result.error().message;
 }
 
-}  // namespace flarelab::drivers::testing
+}  // namespace flarelab::drivers::stage_testing

@@ -8,13 +8,14 @@
 #include "drivers/rig.h"
 #include "drivers/stage_sim.h"
 #include "stage_test_util.h"
+#include "tests/test_paths.h"
 
 namespace flarelab::drivers {
 namespace {
 
-using testing::faultOf;
-using testing::messageOf;
-using testing::waitUntil;
+using stage_testing::faultOf;
+using stage_testing::messageOf;
+using stage_testing::waitUntil;
 
 // ---------------------------------------------------------------------------------------------
 // The protocol
@@ -121,6 +122,13 @@ TEST(ZaberFormat, CommandsAndRepliesRoundTrip) {
     c.had_checksum = true;
     EXPECT_EQ(*back, c);
     EXPECT_EQ(formatZaberCommand(ZaberCommand{2, 0, std::nullopt, "", false}, false), "/2 0\n");
+
+    // Found by the fuzz target: an info line that continues but carries no data.
+    auto bare = parseZaberReply("#01 0 \\");
+    ASSERT_TRUE(bare) << bare.error().message;
+    EXPECT_TRUE(bare->continues);
+    EXPECT_EQ(formatZaberReply(*bare), "#01 0 \\\r\n");
+    EXPECT_EQ(*parseZaberReply(formatZaberReply(*bare)), *bare);
 
     for (const bool checksum : {false, true}) {
         ZaberReply r;
@@ -586,6 +594,32 @@ TEST(ZaberHead, OpensThroughTheRigRegistry) {
     EXPECT_NE(bad.error().message.find("'axes'"), std::string::npos);
     auto gone = registries->heads.open("zaber:/dev/flarelab-no-such-port");
     EXPECT_EQ(faultOf(gone), DeviceFault::Disconnected) << messageOf(gone);
+}
+
+TEST(ZaberHead, TurnsTheSimulatedCameraOfARig) {
+    auto sim = ZaberSim::start(fastStage());
+    ASSERT_TRUE(sim);
+    RigOptions options;
+    options.sim_camera.width_px = 48;
+    options.sim_camera.height_px = 32;
+    options.sim_camera.render.base_grid = 16;
+    options.sim_camera.render.probe_grid = 6;
+    options.sim_camera.render.starburst_options.mask_size = 32;
+    options.sim_camera.render.starburst_options.fft_size = 128;
+    options.sim_clock = std::make_shared<SimClock>(SimTime::Fast);
+    auto registries = makeRigRegistries(options);
+    ASSERT_TRUE(registries);
+    auto rig =
+        openRig(*registries, "sim:?lens=" + flarelab::testing::lensPath("heliar-tronnier.csv"),
+                uriOf(**sim), options);
+    ASSERT_TRUE(rig) << messageOf(rig);
+    EXPECT_EQ(rig->sim_head, nullptr);
+    ASSERT_TRUE(rig->head->home(5.0));
+    ASSERT_TRUE(rig->head->moveTo(7.0, 2.0));
+    auto frame = rig->camera->capture(10.0);
+    ASSERT_TRUE(frame) << messageOf(frame);
+    // The simulated light sits where the stage reports it stands, to the microstep.
+    EXPECT_DOUBLE_EQ(frame->angle_deg, std::llround(7.0 * kUnitsPerDeg) / kUnitsPerDeg);
 }
 
 }  // namespace
