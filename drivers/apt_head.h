@@ -32,7 +32,9 @@
 // whatever is under way with the controller's code and text. Homing is MOT_MOVE_HOME, finished by
 // MOT_MOVE_HOMED or the "homed" status bit; stop() sends MOT_MOVE_STOP (profiled), answered by
 // MOT_MOVE_STOPPED. A request without a valid answer is sent once more (every request this driver
-// makes can be repeated without harm).
+// makes can be repeated without harm), so it takes at most 2 x reply_timeout_s, and home() and
+// moveTo() return within their timeout_s plus a few reply_timeout_s (the poll under way, the
+// stop).
 //
 // Opening follows the manual's initialisation of the FTDI chip, transposed to termios: 115200
 // baud, 8N1, RTS/CTS flow control; RTS lowered, 50 ms, purge, 50 ms, RTS raised. A pty has no RTS

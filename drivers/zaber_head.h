@@ -39,7 +39,9 @@
 // with an older id is a late answer to an earlier command and is skipped), checksum when
 // present, reply flag, warning flag. A bad reply (garbled, bad checksum, wrong address) or no
 // reply is retried once, since every command this driver sends can be repeated without harm
-// (absolute moves, queries, stop).
+// (absolute moves, queries, stop). So an exchange takes at most 2 x reply_timeout_s, and home()
+// and moveTo() return within their timeout_s plus a few reply_timeout_s (the poll under way, the
+// stop).
 //
 // URI: zaber:/dev/ttyUSB0?device=1&axis=1&baud=115200&units_per_deg=4266.67 and, optional,
 // min_deg, max_deg, max_speed_deg_s, checksum=0|1, message_ids=0|1, reply_timeout_s, poll_s.
