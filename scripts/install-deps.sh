@@ -17,6 +17,9 @@ packages=(
     libaravis-dev libcamera-dev libusb-1.0-0-dev libv4l-dev
     # Aravis's fake GigE Vision camera (tests/aravis) and arv-tool-0.8 (docs: the lab procedure)
     aravis-tools aravis-tools-cli
+    # the V4L2 test in a VM (scripts/vivid_test.sh): qemu, a static busybox for its initramfs,
+    # v4l2-ctl for the dumps
+    qemu-system-x86 busybox-static v4l-utils
     # command line, logs, JSON
     libcli11-dev libspdlog-dev libfmt-dev nlohmann-json3-dev
     # tests and benchmarks
