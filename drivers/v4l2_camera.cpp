@@ -6,6 +6,7 @@
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
+#include <cctype>
 #include <cerrno>
 #include <climits>
 #include <cmath>
@@ -1089,6 +1090,31 @@ std::vector<std::pair<std::string, int64_t>> V4l2Camera::statistics() const {
 
 // ---- listing ---------------------------------------------------------------------------------
 
+namespace {
+
+// A control's name as v4l2-ctl writes it (and takes it in --set-ctrl): "Exposure Time, Absolute"
+// is exposure_time_absolute.
+std::string ctlName(const std::string& name) {
+    std::string out;
+    for (const char c : name) {
+        if (std::isalnum(static_cast<unsigned char>(c)))
+            out += static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+        else if (!out.empty() && out.back() != '_')
+            out += '_';
+    }
+    while (!out.empty() && out.back() == '_') out.pop_back();
+    return out;
+}
+
+std::string readSysfs(const std::string& path) {
+    std::ifstream in(path);
+    std::string line;
+    if (in) std::getline(in, line);
+    return line;
+}
+
+}  // namespace
+
 DeviceListing describeV4l2Device(V4l2Device& device, const std::string& uri) {
     DeviceListing d;
     d.uri = uri;
@@ -1140,8 +1166,8 @@ DeviceListing describeV4l2Device(V4l2Device& device, const std::string& uri) {
         if (device.ioctl(VIDIOC_QUERY_EXT_CTRL, &q) != 0 || q.id != id ||
             (q.flags & V4L2_CTRL_FLAG_DISABLED))
             return false;
-        d.details.push_back(role + ": " + text(q.name) + " " + std::to_string(q.minimum) + ".." +
-                            std::to_string(q.maximum) + unit);
+        d.details.push_back(role + ": " + ctlName(text(q.name)) + " " + std::to_string(q.minimum) +
+                            ".." + std::to_string(q.maximum) + unit);
         return true;
     };
     if (!describeControl(V4L2_CID_EXPOSURE_ABSOLUTE, "exposure", " x 100 us") &&
@@ -1152,17 +1178,6 @@ DeviceListing describeV4l2Device(V4l2Device& device, const std::string& uri) {
         d.details.push_back("gain: no control");
     return d;
 }
-
-namespace {
-
-std::string readSysfs(const std::string& path) {
-    std::ifstream in(path);
-    std::string line;
-    if (in) std::getline(in, line);
-    return line;
-}
-
-}  // namespace
 
 std::vector<DeviceListing> listV4l2Devices(const std::string& dev_dir) {
     std::vector<std::pair<int, std::string>> nodes;

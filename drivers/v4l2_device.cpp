@@ -83,7 +83,10 @@ Result<std::unique_ptr<V4l2Device>> openV4l2Node(const std::string& path) {
         const int error = errno;
         std::string message = path + ": cannot open: " + osMessage(error);
         if (error == EACCES) {
-            const group* owner = ::getgrgid(info.st_gid);
+            group entry{};
+            group* owner = nullptr;
+            char buffer[1024];
+            ::getgrgid_r(info.st_gid, &entry, buffer, sizeof buffer, &owner);
             message += " (the node belongs to group '" +
                        std::string(owner ? owner->gr_name : std::to_string(info.st_gid)) +
                        "': add the user to it, or install a udev rule; docs/lab.md)";

@@ -212,7 +212,7 @@ set -e
 vm_s=$(since "$t_vm")
 
 # ---- results -----------------------------------------------------------------------------------
-guest() { grep -a "VIVID-TIME $1 " "$run/console.log" | awk '{print $3}' | tail -n 1; }
+guest() { { grep -a "VIVID-TIME $1 " "$run/console.log" || true; } | awk '{print $3}' | tail -n 1; }
 boot=$(guest boot)
 vivid=$(guest vivid)
 gadget=$(guest gadget)
