@@ -1,25 +1,14 @@
 #include "drivers/rig.h"
 
+#include <algorithm>
 #include <utility>
 
 // The hardware backends. Each header declares add<Name>Backend(registry); those of backends
 // that need a library are compiled only with it (drivers/CMakeLists.txt sets FLARELAB_HAVE_*).
-#if __has_include("drivers/apt_head.h")
 #include "drivers/apt_head.h"
-#define FLARELAB_HAVE_APT 1
-#endif
-#if __has_include("drivers/serial_port.h")
 #include "drivers/serial_port.h"
-#define FLARELAB_HAVE_SERIAL 1
-#endif
-#if __has_include("drivers/v4l2_camera.h")
 #include "drivers/v4l2_camera.h"
-#define FLARELAB_HAVE_V4L2 1
-#endif
-#if __has_include("drivers/zaber_head.h")
 #include "drivers/zaber_head.h"
-#define FLARELAB_HAVE_ZABER 1
-#endif
 #if FLARELAB_HAVE_ARAVIS
 #include "drivers/aravis_camera.h"
 #endif
@@ -93,9 +82,7 @@ Result<RigRegistries> makeRigRegistries(const RigOptions& options) {
         !ok)
         return ok.error();
 #endif
-#if FLARELAB_HAVE_V4L2
     if (Status ok = addV4l2CameraBackend(r.cameras); !ok) return ok.error();
-#endif
 #if FLARELAB_HAVE_LIBCAMERA
     if (Status ok = addLibcameraCameraBackend(r.cameras); !ok) return ok.error();
 #else
@@ -105,12 +92,8 @@ Result<RigRegistries> makeRigRegistries(const RigOptions& options) {
 #endif
     if (Status ok = addSimHeadBackend(r.heads, options.sim_head, options.sim_clock); !ok)
         return ok.error();
-#if FLARELAB_HAVE_ZABER
     if (Status ok = addZaberHeadBackend(r.heads); !ok) return ok.error();
-#endif
-#if FLARELAB_HAVE_APT
     if (Status ok = addAptHeadBackend(r.heads); !ok) return ok.error();
-#endif
     return r;
 }
 
@@ -149,9 +132,13 @@ Result<Rig> openRig(const RigRegistries& registries,
 std::vector<DeviceListing> listDevices(const RigRegistries& registries) {
     std::vector<DeviceListing> found = registries.cameras.enumerate();
     for (DeviceListing& d : registries.heads.enumerate()) found.push_back(std::move(d));
-#if FLARELAB_HAVE_SERIAL
-    for (DeviceListing& d : listSerialPorts()) found.push_back(std::move(d));
-#endif
+    // A port a stage backend recognised is listed once, as that backend's head.
+    for (DeviceListing& d : listSerialPorts()) {
+        const bool listed = std::any_of(found.begin(), found.end(), [&](const DeviceListing& h) {
+            return h.kind == "head" && h.uri == d.uri;
+        });
+        if (!listed) found.push_back(std::move(d));
+    }
     return found;
 }
 
