@@ -116,6 +116,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     drivers::Camera& camera = *rig->camera;
     drivers::Head& head = *rig->head;
     const drivers::CameraCapabilities caps = camera.capabilities();
+    for (const std::string& note : camera.notes()) err << "flarelab: note: " << note << "\n";
     constexpr double kTimeout_s = 600.0;
     if (Status homed = head.home(kTimeout_s); !homed) {
         err << "flarelab: " << homed.error().message << "\n";

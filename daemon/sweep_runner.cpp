@@ -193,6 +193,7 @@ Status SweepJob::makeRig() {
                              std::to_string(options_.limits.max_pixels) + " pixels a job may have");
     width_px_ = caps.width_px;
     height_px_ = caps.height_px;
+    for (const std::string& note : camera_->notes()) control_.warning("camera: " + note);
     if (!sweep_.camera_uri.empty())
         control_.deviceOpened(sweep_.camera_uri, camera_->identity().model,
                               camera_->identity().serial);
@@ -321,7 +322,9 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
             f.time_out_captures = static_cast<int>(faults.camera_timeouts());
             sim_camera_->setFaults(f);
         }
-        const double timeout_s = 2.0 * (exposure_s + options_.limits.readout_s) + 2.0;
+        // Generous: a camera may drop frames exposed before a change (V4L2, libcamera) or wait
+        // for its next frame period; a stuck camera is what the timeout is for.
+        const double timeout_s = 4.0 * (exposure_s + options_.limits.readout_s) + 10.0;
         auto frame = [&]() -> Result<hdr::RawFrame> {
             if (Status set = camera_->setExposure(exposure_s); !set) return set.error();
             return camera_->capture(timeout_s);
@@ -331,7 +334,11 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
         const std::string where = "frame " + std::to_string(index) + " at " + num(angle_deg) +
                                   " deg, exposure " + num(exposure_s) +
                                   " s: " + frame.error().message;
-        if (fault == drivers::DeviceFault::Timeout && timeouts < options_.camera_retries) {
+        // A damaged frame the backend could not retake (packets lost) is as passing as a
+        // timeout, and counts against the same retries.
+        const bool passing =
+            fault == drivers::DeviceFault::Timeout || fault == drivers::DeviceFault::BadFrame;
+        if (passing && timeouts < options_.camera_retries) {
             ++timeouts;
             control_.warning(where + " (retry " + std::to_string(timeouts) + " of " +
                              std::to_string(options_.camera_retries) + ")");
@@ -342,8 +349,8 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
             return std::nullopt;
         }
         std::string reason;
-        if (fault == drivers::DeviceFault::Timeout)
-            reason = "camera timed out " + std::to_string(timeouts + 1) + " times: " + where +
+        if (passing)
+            reason = "camera failed " + std::to_string(timeouts + 1) + " times: " + where +
                      "; check the camera, then resume the job";
         else if (fault)
             reason = "camera fault: " + where + "; resume the job when the camera is back";

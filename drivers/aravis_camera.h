@@ -174,7 +174,7 @@ public:
     bool connected() const;
     // What the backend chose and why, for the lab's log: the 8-bit warning, an assumed gain
     // unit, a socket buffer smaller than a frame, a packet size the camera changed.
-    std::vector<std::string> notes() const { return notes_; }
+    std::vector<std::string> notes() const override { return notes_; }
 
 private:
     struct Key {

@@ -83,6 +83,9 @@ public:
     // Vision: completed and failed buffers, underruns, resent and missing packets). Empty where
     // the backend keeps none.
     virtual std::vector<std::pair<std::string, int64_t>> statistics() const { return {}; }
+    // What the backend chose on its own and a lab should know (an 8-bit format because the
+    // camera has no deeper one, a gain unit it assumed): one sentence each; empty when nothing.
+    virtual std::vector<std::string> notes() const { return {}; }
 };
 
 // Cameras by URI: "sim:?lens=data/lenses/heliar-tronnier.csv" (sim_camera.h),

@@ -140,6 +140,7 @@ public:
     uint32_t gainControl() const { return gain_id_; }  // 0: none used
     // Warnings of open (8-bit only, gain not mapped, ...), also logged.
     const std::vector<std::string>& warnings() const { return warnings_; }
+    std::vector<std::string> notes() const override { return warnings_; }
 
 private:
     struct Key {
