@@ -3,14 +3,17 @@
 //
 //     flarelab-stage-sim zaber|apt [--homed] [--speed-deg-s S] [--accel-deg-s2 A]
 //                        [--device N] [--no-checksums] [--model NAME] [--stall-at-deg D]
-//                        [--link PATH]
+//                        [--link PATH] [--tty PATH]
 //
 // It prints the slave's path (/dev/pts/N) on one line of stdout, then serves until SIGTERM or
 // SIGINT. Open it as "zaber:/dev/pts/N" or "apt:/dev/pts/N", e.g.
 //
 //     sim=$(flarelab-stage-sim zaber --homed | head -1) ... flarelab rig head zaber:$sim move 10
 //
-// --link makes PATH a symbolic link to the slave, for scripts that want a fixed name.
+// --link makes PATH a symbolic link to the slave, for scripts that want a fixed name. --tty serves
+// on an existing terminal instead of a new pty (the gadget side of a USB serial gadget, so that
+// the driver on the host side talks through the kernel's USB stack; scripts/vivid_test.sh); it
+// then prints the terminal's path.
 #include "drivers/stage_sim.h"
 
 #include <signal.h>
@@ -51,6 +54,8 @@ int run(int argc, char** argv) {
     app.add_option("--stall-at-deg", stall_at_deg, "an obstacle where moves stall");
     std::string link;
     app.add_option("--link", link, "make this path a symbolic link to the pty");
+    std::string tty;
+    app.add_option("--tty", tty, "serve on this terminal instead of a new pty");
     CLI11_PARSE(app, argc, argv);
 
     // Block the signals before the simulator's thread starts, so that it inherits the mask and
@@ -73,6 +78,7 @@ int run(int argc, char** argv) {
         o.max_maxspeed = std::max(o.max_maxspeed, 4 * o.maxspeed);
         o.accel_steps_s2 = accel_deg_s2.value_or(300.0) * units;
         if (stall_at_deg) o.faults.stall_at = std::llround(*stall_at_deg * units);
+        o.serve_tty = tty;
         auto started = drivers::ZaberSim::start(o);
         if (!started) {
             std::cerr << "flarelab-stage-sim: " << started.error().message << "\n";
@@ -86,12 +92,17 @@ int run(int argc, char** argv) {
         o.speed_deg_s = speed_deg_s.value_or(10.0);
         o.accel_deg_s2 = accel_deg_s2.value_or(10.0);
         if (stall_at_deg) o.faults.stall_at = std::llround(*stall_at_deg * o.counts_per_deg);
+        o.serve_tty = tty;
         auto started = drivers::AptSim::start(o);
         if (!started) {
             std::cerr << "flarelab-stage-sim: " << started.error().message << "\n";
             return 1;
         }
         sim = std::move(*started);
+    }
+    if (!link.empty() && !tty.empty()) {
+        std::cerr << "flarelab-stage-sim: --link names a new pty; with --tty there is none\n";
+        return 2;
     }
     if (!link.empty()) {
         std::error_code ec;
@@ -102,7 +113,7 @@ int run(int argc, char** argv) {
             return 1;
         }
     }
-    std::cout << sim->slavePath() << std::endl;
+    std::cout << (tty.empty() ? sim->slavePath() : tty) << std::endl;
     int received = 0;
     sigwait(&stop_signals, &received);
     if (!link.empty()) {

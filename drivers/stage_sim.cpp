@@ -64,7 +64,23 @@ StageSim::~StageSim() {
     if (slave_ >= 0) ::close(slave_);
 }
 
-Status StageSim::openPty() {
+Status StageSim::openLine(const std::string& tty) {
+    if (!tty.empty()) {
+        master_ = ::open(tty.c_str(), O_RDWR | O_NOCTTY | O_NONBLOCK | O_CLOEXEC);
+        if (master_ < 0)
+            return makeError(ErrorCode::IoError,
+                             "stage simulator: " + tty + ": " + std::strerror(errno));
+        termios tio{};
+        if (::tcgetattr(master_, &tio) != 0) {
+            const std::string why = std::strerror(errno);
+            closeMaster();
+            return makeError(ErrorCode::IoError,
+                             "stage simulator: " + tty + " is not a terminal: " + why);
+        }
+        ::cfmakeraw(&tio);
+        ::tcsetattr(master_, TCSANOW, &tio);
+        return Ok{};
+    }
     char name[256] = {};
     if (::openpty(&master_, &slave_, name, nullptr, nullptr) != 0)
         return makeError(ErrorCode::IoError,
@@ -285,7 +301,7 @@ Result<std::unique_ptr<ZaberSim>> ZaberSim::start(const ZaberSimOptions& options
         !(options.accel_steps_s2 >= 0.0))
         return makeError(ErrorCode::InvalidArgument, "zaber simulator: options out of range");
     auto sim = std::make_unique<ZaberSim>(Key{}, options);
-    if (Status ok = sim->openPty(); !ok) return ok.error();
+    if (Status ok = sim->openLine(options.serve_tty); !ok) return ok.error();
     sim->startThread();
     return sim;
 }
@@ -494,7 +510,7 @@ Result<std::unique_ptr<AptSim>> AptSim::start(const AptSimOptions& options) {
         !(options.accel_deg_s2 > 0.0) || options.speed_deg_s * options.vel_per_deg_s > 2.0e9)
         return makeError(ErrorCode::InvalidArgument, "apt simulator: options out of range");
     auto sim = std::make_unique<AptSim>(Key{}, options);
-    if (Status ok = sim->openPty(); !ok) return ok.error();
+    if (Status ok = sim->openLine(options.serve_tty); !ok) return ok.error();
     sim->startThread();
     return sim;
 }

@@ -96,7 +96,8 @@ protected:
 
     explicit StageSim(uint64_t seed);
     // Opens the pty (raw mode); the subclass's start() calls it, then startThread().
-    Status openPty();
+    // A new pty pair, or `tty` (raw) when not empty; then slavePath() is empty.
+    Status openLine(const std::string& tty);
     void startThread();
     // Subclasses' destructors call this first: the thread calls their virtual functions.
     void stopThread();
@@ -156,6 +157,9 @@ struct ZaberSimOptions {
     std::string version = "7.38";
     uint64_t seed = 1;
     StageSimFaults faults;
+    // Serve on this terminal instead of a new pty (the device side of a USB serial gadget,
+    // /dev/ttyGS0, so that the driver reaches the simulator through the kernel's USB stack).
+    std::string serve_tty;
 };
 
 class ZaberSim final : public StageSim {
@@ -198,6 +202,7 @@ struct AptSimOptions {
     double accel_deg_s2 = 10.0;  // > 0
     bool homed = false;
     int32_t start_position = 0;
+    std::string serve_tty;  // as ZaberSimOptions::serve_tty
     bool enabled = true;  // the channel at power-up
     uint64_t seed = 1;
     StageSimFaults faults;

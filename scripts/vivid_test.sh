@@ -9,7 +9,10 @@
 # of a Thorlabs APT controller) so that a real /dev/ttyACM0 with USB descriptors appears, and
 # runs BUILD_DIR/tests/v4l2_vivid_check (build it with `cmake --build --preset release --target
 # v4l2_vivid_check`), which captures every raw format vivid offers through flarelab's v4l2
-# backend. The VM sees the host's file system read-only over 9p (virtio) and chroots into it, so
+# backend. It then checks `flarelab rig devices --json` (the gadget's port must be listed as an
+# APT head with its USB identity, vivid's nodes as cameras), and drives the APT driver over the
+# gadget's USB line against flarelab-stage-sim serving the device side (/dev/ttyGS0): home, a
+# move, the position read back. The VM sees the host's file system read-only over 9p (virtio) and chroots into it, so
 # the test binary runs with the host's libraries; results come back through a second, writable
 # 9p share.
 #
@@ -116,7 +119,7 @@ done
 cp "$moddir"/modules.{order,builtin} "$run/root/lib/modules/$version/" 2>/dev/null || true
 "$busybox" depmod -b "$run/root" "$version"
 have_flarelab=0
-[[ -x $build/apps/flarelab ]] && have_flarelab=1
+[[ -x $build/apps/flarelab && -x $build/apps/flarelab-stage-sim ]] && have_flarelab=1
 cat >"$run/root/init" <<EOF
 #!/bin/busybox sh
 /bin/busybox --install -s /bin
@@ -182,6 +185,17 @@ mark dumps
 if [ $have_flarelab = 1 ]; then
     host $build/apps/flarelab rig devices --json > /out/rig-devices.json 2> /out/rig-devices.err
     echo \$? > /out/rig-devices.rc
+    # The APT driver through the kernel's USB stack: the simulator serves the gadget's side of the
+    # line (/dev/ttyGS0), the driver opens the host's (/dev/ttyACM0, cdc_acm).
+    host $build/apps/flarelab-stage-sim apt --tty /dev/ttyGS0 > /out/stage-sim.log 2>&1 &
+    i=0; while ! grep -q ttyGS0 /out/stage-sim.log 2>/dev/null && [ \$i -lt 50 ]; do sleep 0.1; i=\$((i + 1)); done
+    {
+        host $build/apps/flarelab rig head apt:/dev/ttyACM0 home --timeout 60 --json &&
+        host $build/apps/flarelab rig head apt:/dev/ttyACM0 move 12.4 --timeout 60 --json &&
+        host $build/apps/flarelab rig head apt:/dev/ttyACM0 position --json
+    } > /out/apt-usb.json 2> /out/apt-usb.err
+    echo \$? > /out/apt-usb.rc
+    killall flarelab-stage-sim 2>/dev/null
 fi
 mark check-start
 host $check --dev-dir /dev --width 320 --height 180 --fps 30 > /out/check.log 2>&1
@@ -215,7 +229,8 @@ set -e
 vm_s=$(since "$t_vm")
 
 # ---- results -----------------------------------------------------------------------------------
-guest() { { grep -a "VIVID-TIME $1 " "$run/console.log" || true; } | awk '{print $3}' | tail -n 1; }
+# (-o: the firmware's escape sequences may share the first line.)
+guest() { { grep -ao "VIVID-TIME $1 [0-9.]*" "$run/console.log" || true; } | awk '{print $3}' | tail -n 1; }
 boot=$(guest boot)
 vivid=$(guest vivid)
 gadget=$(guest gadget)
@@ -239,7 +254,11 @@ echo "USB gadget (sysfs as the VM saw it):"
 sed 's/^/    /' "$run/out/acm-sysfs.txt" 2>/dev/null || echo "    (none)"
 if [[ -f $run/out/rig-devices.rc ]]; then
     echo "flarelab rig devices --json: exit $(cat "$run/out/rig-devices.rc")"
-    sed 's/^/    /' "$run/out/rig-devices.json" "$run/out/rig-devices.err" 2>/dev/null | head -n 60
+    python3 -c 'import json, sys
+for d in json.load(open(sys.argv[1]))["devices"]:
+    print("    %-22s %-12s %s %s" % (d["uri"], d["kind"], d["model"], d["serial"]))' \
+        "$run/out/rig-devices.json" 2>&1 || true
+    sed 's/^/    /' "$run/out/rig-devices.err" 2>/dev/null || true
 fi
 grep -a "VIVID-ERROR" "$run/console.log" || true
 echo
@@ -261,6 +280,49 @@ if [[ $qemu_rc -ne 0 ]]; then
 fi
 if [[ $rc != 0 ]]; then
     echo "vivid_test: FAILED: v4l2_vivid_check exit status $rc; see $run/out/check.log" >&2
+    exit 1
+fi
+# The device listing, as a lab would run it: the gadget's port as an APT head with its USB
+# identity, and vivid's single-planar nodes as cameras.
+if [[ -f $run/out/rig-devices.json ]]; then
+    if ! python3 - "$run/out/rig-devices.json" <<'PY'
+import json, sys
+devices = json.load(open(sys.argv[1]))["devices"]
+by_uri = {d["uri"]: d for d in devices}
+problems = []
+acm = by_uri.get("apt:/dev/ttyACM0")
+if not acm or acm["kind"] != "head" or acm["serial"] != "55000001" or \
+        not any("0403:faf0" in line for line in acm["details"]):
+    problems.append("apt:/dev/ttyACM0 is not listed as a head with USB id 0403:faf0, serial 55000001")
+for node in ("v4l2:/dev/video0", "v4l2:/dev/video1"):
+    d = by_uri.get(node)
+    if not d or d["kind"] != "camera" or not any(l.startswith("opens as: Y16") for l in d["details"]):
+        problems.append(node + " is not listed as a camera that opens as Y16")
+for p in problems:
+    print("vivid_test: rig devices: " + p, file=sys.stderr)
+sys.exit(1 if problems else 0)
+PY
+    then
+        echo "vivid_test: FAILED: the device listing; see $run/out/rig-devices.json" >&2
+        exit 1
+    fi
+    echo "vivid_test: rig devices lists apt:/dev/ttyACM0 (0403:faf0, serial 55000001) and vivid's nodes"
+    # The last answer is the position read back: 12.4 deg to one count of the K10CR1's
+    # 409600/3 per degree.
+    if [[ $(cat "$run/out/apt-usb.rc" 2>/dev/null) != 0 ]] ||
+        ! python3 -c 'import json, re, sys
+docs = re.findall(r"\{.*?\n\}", open(sys.argv[1]).read(), re.S)
+sys.exit(0 if docs and abs(json.loads(docs[-1])["position_deg"] - 12.4) <= 3 / 409600 else 1)' \
+            "$run/out/apt-usb.json"; then
+        echo "vivid_test: FAILED: the APT driver over USB (apt:/dev/ttyACM0 to the simulator on" \
+            "/dev/ttyGS0):" >&2
+        sed 's/^/    /' "$run/out/apt-usb.json" "$run/out/apt-usb.err" "$run/out/stage-sim.log" >&2
+        exit 1
+    fi
+    echo "vivid_test: the APT driver homed and moved the simulated K10CR1 over USB (cdc_acm):" \
+        "at $(grep -o '"position_deg": [0-9.]*' "$run/out/apt-usb.json" | tail -1 | cut -d' ' -f2) deg"
+else
+    echo "vivid_test: FAILED: flarelab rig devices did not run in the VM" >&2
     exit 1
 fi
 echo "vivid_test: PASSED"
