@@ -1000,6 +1000,15 @@ Result<hdr::RawFrame> AravisCamera::takeOnce(double timeout_s) {
     // each second of a long wait finds it after Aravis's GVCP retries (2.5 s).
     auto next_probe = Clock::now() + std::chrono::seconds(1);
     for (;;) {
+        if (aborted_) {
+            // A software-triggered exposure runs out on the camera; its frame, if it comes, is
+            // an earlier take's to the next one (dated before its trigger) and is dropped.
+            if (trigger_ == AravisTrigger::SingleFrame) {
+                GErr ignored;
+                arv_camera_stop_acquisition(c.camera, ignored.out());
+            }
+            return deviceError(DeviceFault::Stopped, name(), "the capture was aborted");
+        }
         if (c.control_lost.load())
             return lose("Aravis's heartbeat reported control-lost while waiting for a frame");
         if (Clock::now() >= next_probe) {
@@ -1121,6 +1130,7 @@ Result<hdr::RawFrame> AravisCamera::capture(double timeout_s) {
     if (!std::isfinite(timeout_s) || !(timeout_s > 0.0))
         return deviceError(DeviceFault::OutOfRange, name(),
                            "timeout_s " + fmt(timeout_s) + " is not a positive number");
+    if (aborted_) return deviceError(DeviceFault::Stopped, name(), "the capture was aborted");
     if (Status s = ensureConnected(); !s) return s.error();
     for (int take = 0;; ++take) {
         auto frame = takeOnce(timeout_s);

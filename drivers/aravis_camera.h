@@ -162,6 +162,9 @@ public:
     // (retries + 1) x timeout_s plus the control channel's own timeouts (2.5 s for a camera that
     // stopped answering).
     Result<hdr::RawFrame> capture(double timeout_s) override;
+    // The frame wait runs in 50 ms slices and checks for it between them; a single-frame
+    // acquisition under way is stopped. A reopen in progress (Aravis's search, ~1 s) ends first.
+    void abort() override { aborted_ = true; }
     std::vector<std::pair<std::string, int64_t>> statistics() const override;
 
     const AravisOptions& options() const { return options_; }
@@ -245,6 +248,7 @@ private:
     std::map<std::string, int64_t> stream_totals_;  // of connections already released
     int64_t retaken_frames_ = 0, disconnects_ = 0, reopens_ = 0;
     std::vector<std::string> notes_;
+    std::atomic<bool> aborted_{false};
 };
 
 // Adds the "aravis" scheme: opens AravisCamera by URI (above), and lists the cameras Aravis

@@ -13,8 +13,9 @@
 //
 // Errors are device errors (device.h): a setting outside the camera's range is [out-of-range]
 // naming the field (exposure_s, gain, format); a frame that does not arrive within the timeout
-// is [timeout]; a camera that is gone is [disconnected]. A failed call leaves the settings as
-// they were. Cameras are not copied; a Camera object is used from one thread at a time.
+// is [timeout]; a camera that is gone is [disconnected]; a capture ended by abort() is [stopped].
+// A failed call leaves the settings as they were. Cameras are not copied; a Camera object is used
+// from one thread at a time, except abort(), which any thread may call at any time.
 #pragma once
 
 #include <cstdint>
@@ -78,6 +79,13 @@ public:
     // [timeout] when it does not come, [disconnected] when the camera is gone,
     // [out-of-range] naming timeout_s when it is not a positive finite number.
     virtual Result<hdr::RawFrame> capture(double timeout_s) = 0;
+
+    // Stops the camera from another thread, so that a job stops within moments even during a
+    // long exposure: a capture in progress returns [stopped] within about 0.1 s, and so does every
+    // capture after it (an aborted camera takes no more frames; open it again for more). Sticky,
+    // so that an abort that comes just before a capture begins is not lost. Safe to call from any
+    // thread, at any time, more than once; it waits for nothing.
+    virtual void abort() = 0;
 
     // Counters of the camera's transport since it was opened, for the log of a sweep (GigE
     // Vision: completed and failed buffers, underruns, resent and missing packets). Empty where

@@ -54,7 +54,7 @@ enum class DeviceFault {
     Stalled,       // a motor stopped against resistance (IoError)
     NotHomed,      // the head does not know its position: home it first (Unsupported)
     LostPosition,  // the head noticed it lost steps during a move; it is no longer homed (IoError)
-    Stopped,       // a move was interrupted by stop() (IoError)
+    Stopped,       // a move was interrupted by stop(), a capture by abort() (IoError)
     Busy,          // another command is still running (Unsupported)
     Disconnected,  // the device is gone (unplugged, powered off) (NotFound)
     BadFrame,      // a frame arrived damaged: packets lost, wrong size (IoError); retaking may help

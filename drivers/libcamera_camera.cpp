@@ -336,6 +336,7 @@ struct LibcameraCamera::State {
     std::condition_variable wake;
     bool completed = false;
     bool disconnected = false;
+    bool aborted = false;  // abort(): set from any thread
     int64_t completed_host_ns = 0;
 
     int64_t frames_completed = 0;
@@ -609,11 +610,27 @@ Status LibcameraCamera::setFormat(hdr::RawFormat format) {
 
 hdr::RawFormat LibcameraCamera::format() const { return state_->format.format.layout; }
 
+void LibcameraCamera::abort() {
+    State& s = *state_;
+    {
+        std::lock_guard lock(s.mutex);
+        s.aborted = true;
+    }
+    s.wake.notify_all();
+}
+
 Result<hdr::RawFrame> LibcameraCamera::capture(double timeout_s) {
     State& s = *state_;
     if (!std::isfinite(timeout_s) || !(timeout_s > 0.0))
         return deviceError(DeviceFault::OutOfRange, s.name, "timeout_s must be positive");
     if (s.isDisconnected()) return s.gone();
+    const auto stopped = [&] {
+        return deviceError(DeviceFault::Stopped, s.name, "the capture was aborted");
+    };
+    {
+        std::lock_guard lock(s.mutex);
+        if (s.aborted) return stopped();
+    }
     using Clock = std::chrono::steady_clock;
     // A week bounds the wait so that the deadline cannot overflow the clock.
     const auto deadline =
@@ -628,8 +645,9 @@ Result<hdr::RawFrame> LibcameraCamera::capture(double timeout_s) {
         int64_t host_ns = 0;
         {
             std::unique_lock lock(s.mutex);
-            const bool woke =
-                s.wake.wait_until(lock, deadline, [&] { return s.completed || s.disconnected; });
+            const bool woke = s.wake.wait_until(
+                lock, deadline, [&] { return s.completed || s.disconnected || s.aborted; });
+            if (s.aborted) return stopped();
             if (s.disconnected) return s.gone();
             if (!woke) break;
             s.completed = false;

@@ -77,6 +77,9 @@ public:
     Status setFormat(hdr::RawFormat format) override;
     hdr::RawFormat format() const override;
     Result<hdr::RawFrame> capture(double timeout_s) override;
+    // Wakes the capture's wait for its request at once; the request stays queued and is never
+    // read.
+    void abort() override;
     // completed, failed (FrameError), discarded (not yet showing the settings), cancelled.
     std::vector<std::pair<std::string, int64_t>> statistics() const override;
 

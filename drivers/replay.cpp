@@ -127,6 +127,7 @@ Status ReplayCamera::setFormat(hdr::RawFormat format) {
 Result<hdr::RawFrame> ReplayCamera::capture(double timeout_s) {
     if (!(timeout_s > 0.0) || !std::isfinite(timeout_s))
         return deviceError(DeviceFault::OutOfRange, kCameraName, "timeout_s must be positive");
+    if (aborted_) return deviceError(DeviceFault::Stopped, kCameraName, "the capture was aborted");
     const auto angle = head_->position();
     if (!angle) return angle.error();
     // The recorded frame nearest the head.

@@ -20,6 +20,7 @@
 // Sequence numbers count captures; timestamps advance by the exposure time.
 #pragma once
 
+#include <atomic>
 #include <memory>
 #include <string>
 
@@ -71,6 +72,9 @@ public:
     Status setFormat(hdr::RawFormat format) override;
     hdr::RawFormat format() const override { return format_; }
     Result<hdr::RawFrame> capture(double timeout_s) override;
+    // A replayed capture reads a recorded file and waits for nothing: an abort is seen when the
+    // next capture begins.
+    void abort() override { aborted_ = true; }
 
 private:
     std::shared_ptr<const hdr::Sweep> sweep_;
@@ -81,6 +85,7 @@ private:
     hdr::RawFormat format_ = hdr::RawFormat::Mono;
     int64_t sequence_ = 0;
     int64_t clock_ns_ = 0;
+    std::atomic<bool> aborted_{false};
 };
 
 struct ReplayRig {

@@ -469,9 +469,13 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
         return deviceError(DeviceFault::Disconnected, name(), "not connected");
     if (!finite(timeout_s) || !(timeout_s > 0.0))
         return deviceError(DeviceFault::OutOfRange, name(), "timeout_s must be positive");
+    const auto stopped = [&] {
+        return deviceError(DeviceFault::Stopped, name(), "the capture was aborted");
+    };
+    if (aborted_) return stopped();
     if (faults_.time_out_captures > 0) {
         --faults_.time_out_captures;
-        clock_->wait(timeout_s);
+        if (!clock_->wait(timeout_s, &aborted_) || aborted_) return stopped();
         return deviceError(DeviceFault::Timeout, name(),
                            "no frame within timeout_s = " + fmt(timeout_s));
     }
@@ -481,7 +485,7 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
     const int64_t start_ns = clock_->now_ns();
     const double frame_s = exposure_s_ + options_.readout_s;
     if (frame_s > timeout_s) {
-        clock_->wait(timeout_s);
+        if (!clock_->wait(timeout_s, &aborted_) || aborted_) return stopped();
         return deviceError(
             DeviceFault::Timeout, name(),
             "a frame takes " + fmt(frame_s) +
@@ -538,7 +542,8 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
             frame.samples[i] = static_cast<uint16_t>(std::clamp(std::round(dn), 0.0, white));
         }
     });
-    clock_->waitUntil(start_ns + secondsToNs(frame_s));
+    if (!clock_->waitUntil(start_ns + secondsToNs(frame_s), &aborted_) || aborted_)
+        return stopped();
     return frame;
 }
 

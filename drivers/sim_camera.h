@@ -51,6 +51,7 @@
 #pragma once
 
 #include <array>
+#include <atomic>
 #include <cstdint>
 #include <deque>
 #include <functional>
@@ -150,6 +151,9 @@ public:
     hdr::RawFormat format() const override { return format_; }
     // A head that cannot report its angle fails the capture with the head's error as context.
     Result<hdr::RawFrame> capture(double timeout_s) override;
+    // Real time: the exposure's wait ends within its 5 ms slice. Fast mode has nothing to wait
+    // for; a capture rendering when it comes returns [stopped] once the render is done.
+    void abort() override { aborted_ = true; }
 
     void setFaults(const SimCameraFaults& faults) { faults_ = faults; }
     const SimCameraFaults& faults() const { return faults_; }
@@ -207,6 +211,7 @@ private:
     std::vector<float> hot_e_s_;  // extra dark current per pixel; empty without hot pixels
     std::deque<std::pair<double, std::vector<float>>> cache_;
     int64_t sequence_ = 0;
+    std::atomic<bool> aborted_{false};
     int64_t renders_ = 0;
     double last_render_ms_ = 0.0;
 };

@@ -916,6 +916,8 @@ Result<hdr::RawFrame> V4l2Camera::capture(double timeout_s) {
     if (!std::isfinite(timeout_s) || !(timeout_s > 0.0) || timeout_s > 1e6)
         return deviceErr(DeviceFault::OutOfRange,
                          "timeout_s = " + num(timeout_s) + " is not a positive number of seconds");
+    const auto stopped = [&] { return deviceErr(DeviceFault::Stopped, "the capture was aborted"); };
+    if (aborted_) return stopped();
     const int64_t called_ns = device_->monotonicNs();
     const int64_t deadline_ns = called_ns + static_cast<int64_t>(std::llround(timeout_s * 1e9));
     // Frames of a stream started now are all exposed after the call.
@@ -951,13 +953,15 @@ Result<hdr::RawFrame> V4l2Camera::capture(double timeout_s) {
     }
 
     for (;;) {
+        if (aborted_) return stopped();
         const int64_t now = device_->monotonicNs();
         if (now >= deadline_ns)
             return deviceErr(DeviceFault::Timeout,
                              "no fresh frame within " + num(timeout_s) + " s (" +
                                  std::to_string(stale_here) + " stale frames dropped, " +
                                  std::to_string(errors_here) + " buffers flagged as errors)");
-        const int64_t wait_ms = (deadline_ns - now + 999'999) / 1'000'000;
+        // In slices, so that abort() ends a long exposure's wait within one.
+        const int64_t wait_ms = std::min<int64_t>((deadline_ns - now + 999'999) / 1'000'000, 100);
         const int ready = device_->waitForFrame(
             static_cast<int>(std::min<int64_t>(wait_ms, std::numeric_limits<int>::max())));
         if (ready == 0) continue;

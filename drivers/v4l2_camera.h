@@ -61,6 +61,7 @@
 // height, fps, bits or timeout_s; other ioctl failures are IoError naming the ioctl and errno.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <map>
 #include <memory>
@@ -128,6 +129,8 @@ public:
     Status setFormat(hdr::RawFormat format) override;
     hdr::RawFormat format() const override { return format_->raw_format; }
     Result<hdr::RawFrame> capture(double timeout_s) override;
+    // The capture polls in slices of at most 0.1 s and checks for it between them.
+    void abort() override { aborted_ = true; }
     // frames, dropped-stale, dropped-settle, buffer-errors, sequence-gaps, clipped-samples.
     std::vector<std::pair<std::string, int64_t>> statistics() const override;
 
@@ -219,6 +222,7 @@ private:
     std::vector<std::string> warnings_;
     int64_t frames_ = 0, dropped_stale_ = 0, dropped_settle_ = 0, buffer_errors_ = 0;
     int64_t sequence_gaps_ = 0, clipped_samples_ = 0;
+    std::atomic<bool> aborted_{false};
 };
 
 // One listing (device.h) of a device: card, driver, bus, capabilities and each format flarelab

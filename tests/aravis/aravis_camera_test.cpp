@@ -466,6 +466,31 @@ TEST_F(AravisCameraTest, CameraGoneWhileWaitingForAFrameIsDisconnectedBeforeTheT
     EXPECT_EQ(faultOf(frame.error()), DeviceFault::Disconnected) << frame.error().message;
 }
 
+TEST_F(AravisCameraTest, AbortFromAnotherThreadEndsAWaitingCaptureAsStoppedAndStays) {
+    auto camera = openCamera(std::string("aravis:Aravis-Fake-GV01?") + kRoi);
+    ASSERT_TRUE(camera);
+    fake_->setLostPacketRatio(1.0);  // the frame never comes: capture waits its whole timeout
+    std::promise<void> started;
+    std::thread stopper([&, ready = started.get_future()]() mutable {
+        ready.wait();
+        std::this_thread::sleep_for(std::chrono::milliseconds(300));
+        camera->abort();
+    });
+    started.set_value();
+    const auto t0 = Clock::now();
+    auto frame = camera->capture(30.0);
+    const double took = seconds(t0);
+    stopper.join();
+    std::printf("[stopped] %.2f s into a capture with a 30 s timeout\n", took);
+    ASSERT_FALSE(frame);
+    // Not [timeout] after 30 s, nor [disconnected]: the wait ended because it was told to.
+    EXPECT_EQ(faultOf(frame.error()), DeviceFault::Stopped) << frame.error().message;
+    fake_->setLostPacketRatio(0.0);
+    auto after = camera->capture(2.0);
+    ASSERT_FALSE(after);
+    EXPECT_EQ(faultOf(after.error()), DeviceFault::Stopped) << after.error().message;
+}
+
 TEST_F(AravisCameraTest, RestartedCameraIsReopenedWithItsSettingsAppliedAgain) {
     auto camera = openCamera(std::string("aravis:Aravis-Fake-GV01?") + kRoi +
                              "&gain_db_per_raw=6.0206&packet_size=1000");

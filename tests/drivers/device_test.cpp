@@ -78,6 +78,7 @@ public:
     Status setFormat(hdr::RawFormat) override { return Ok{}; }
     hdr::RawFormat format() const override { return hdr::RawFormat::Mono; }
     Result<hdr::RawFrame> capture(double) override { return hdr::RawFrame{}; }
+    void abort() override {}
 
 private:
     std::string uri_;
