@@ -1,12 +1,17 @@
 #include "daemon/job_manager.h"
 
+#include <fcntl.h>
 #include <google/protobuf/util/message_differencer.h>
+#include <sys/stat.h>
+#include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <filesystem>
-#include <fstream>
+#include <set>
 #include <sstream>
 
+#include "common/file_descriptor.h"
 #include "daemon/log.h"
 #include "hdr/sweep.h"
 
@@ -35,6 +40,39 @@ v1::Job summary(const v1::Job& job) {
     v1::Job out = job;
     out.clear_config();
     return out;
+}
+
+// The text of `path` when it is a regular file (the last component not a link) of at most
+// max_bytes. Opened without blocking, so that a FIFO or a device put in a product's place is
+// refused, not waited on; IoError naming the file otherwise.
+Result<std::string> readRegularText(const std::string& path, int64_t max_bytes) {
+    FileDescriptor fd(::open(path.c_str(), O_RDONLY | O_NOFOLLOW | O_NONBLOCK | O_CLOEXEC));
+    if (!fd.valid())
+        return makeError(
+            errno == ENOENT ? ErrorCode::NotFound : ErrorCode::IoError,
+            path + ": cannot open: " +
+                (errno == ELOOP ? std::string("it is a symbolic link") : osMessage(errno)));
+    struct stat info {};
+    if (::fstat(fd.get(), &info) != 0)
+        return makeError(ErrorCode::IoError, path + ": cannot stat: " + osMessage(errno));
+    if (!S_ISREG(info.st_mode))
+        return makeError(ErrorCode::IoError, path + ": not a regular file; not read");
+    if (info.st_size > max_bytes)
+        return makeError(ErrorCode::IoError, path + ": " + std::to_string(info.st_size) +
+                                                 " bytes, more than the " +
+                                                 std::to_string(max_bytes) + " read; not read");
+    std::string text(static_cast<size_t>(info.st_size), '\0');
+    size_t done = 0;
+    while (done < text.size()) {
+        const ssize_t got = ::read(fd.get(), text.data() + done, text.size() - done);
+        if (got < 0 && errno == EINTR) continue;
+        if (got < 0)
+            return makeError(ErrorCode::IoError, path + ": cannot read: " + osMessage(errno));
+        if (got == 0) break;  // shrank meanwhile
+        done += static_cast<size_t>(got);
+    }
+    text.resize(done);
+    return text;
 }
 
 }  // namespace
@@ -72,16 +110,22 @@ public:
     }
 
     const std::atomic<bool>& stopFlag() const override { return stop_; }
+    bool dropUnwritten() const override { return drop_unwritten_; }
 
     void setStopHook(std::function<void()> hook) override {
         std::lock_guard lock(manager_.mutex_);
         hook_ = std::move(hook);
+        if (hook_ && stop_) hook_();
     }
 
-    // With the manager's mutex held.
+    // With the manager's mutex held (so a hook being cleared is never running).
     void requestStop() {
         stop_ = true;
         if (hook_) hook_();
+    }
+    void requestStopNow() {
+        drop_unwritten_ = true;
+        requestStop();
     }
 
     void setPhase(v1::JobPhase phase) override {
@@ -99,7 +143,7 @@ public:
         e.job.set_updated_unix_s(unixNow());
         // The journal is the job's record, not the sweep's: the sweep's manifest says which
         // frames are on disk. Saved every 16 frames so that `job list` after a crash is close.
-        if (frames % 16 == 0) (void)manager_.journal_.save(e.job);
+        if (frames % 16 == 0) manager_.save(e);
     }
 
     void warning(const std::string& message) override {
@@ -129,6 +173,7 @@ private:
     JobManager& manager_;
     const uint64_t number_;
     std::atomic<bool> stop_{false};
+    std::atomic<bool> drop_unwritten_{false};
     std::function<void()> hook_;
 };
 
@@ -160,17 +205,27 @@ Result<std::unique_ptr<JobManager>> JobManager::open(ManagerOptions options,
                 "its sweep on disk ends");
         }
         e.job = std::move(job);
-        e.job.set_updated_unix_s(unixNow());
+        e.version = e.attempted = e.recorded = 1;
+        e.told = e.job;
         if (!e.job.request_id().empty()) manager->by_request_[e.job.request_id()] = number;
         manager->next_number_ = std::max(manager->next_number_, number + 1);
         if (!ended(e.job)) {
+            // (An ended job keeps its time: the time it ended, by which it is pruned.)
+            e.job.set_updated_unix_s(unixNow());
+            // No thread runs yet: the record is written here, before the daemon says anything.
             if (auto saved = manager->journal_.save(e.job); !saved) return saved.error();
+            e.told = e.job;
             logEvent(LogLevel::Info, "job.loaded",
                      {{"job", e.job.id()},
                       {"state", v1::JobState_Name(e.job.state())},
                       {"frames_done", std::to_string(e.job.frames_done())}});
         }
     }
+    {
+        std::lock_guard lock(manager->mutex_);
+        manager->prune(unixNow());
+    }
+    manager->recorder_ = std::thread([m = manager.get()] { m->record(); });
     manager->worker_ = std::thread([m = manager.get()] { m->work(); });
     manager->fitter_ = std::thread([m = manager.get()] { m->fitWork(); });
     return manager;
@@ -188,6 +243,21 @@ void JobManager::shutdown() {
     }
     if (worker_.joinable()) worker_.join();
     if (fitter_.joinable()) fitter_.join();
+    // Last: what the workers changed on their way out is written before the daemon goes.
+    {
+        std::lock_guard lock(mutex_);
+        recorder_stop_ = true;
+        outbox_cv_.notify_all();
+    }
+    if (recorder_.joinable()) recorder_.join();
+}
+
+void JobManager::stopNow() {
+    std::lock_guard lock(mutex_);
+    stop_now_ = true;
+    for (auto& [number, e] : jobs_)
+        if (e.control) e.control->requestStopNow();
+    changed_cv_.notify_all();
 }
 
 bool JobManager::ended(const v1::Job& job) {
@@ -195,19 +265,134 @@ bool JobManager::ended(const v1::Job& job) {
            job.state() == v1::CANCELLED;
 }
 
-void JobManager::emit(Entry& entry, v1::JobEvent event) {
+void JobManager::publish(Entry& entry, v1::JobEvent event) {
     event.set_sequence(entry.next_sequence++);
-    *event.mutable_job() = summary(entry.job);
     entry.events.push_back(std::move(event));
-    while (entry.events.size() > options_.events_kept) entry.events.pop_front();
+    const size_t kept = ended(entry.job) ? options_.ended_events_kept : options_.events_kept;
+    while (entry.events.size() > std::max<size_t>(1, kept)) entry.events.pop_front();
     changed_cv_.notify_all();
+}
+
+void JobManager::emit(Entry& entry, v1::JobEvent event) {
+    *event.mutable_job() = summary(entry.job);
+    if (outbox_.empty() && !recording_) return publish(entry, std::move(event));
+    Outgoing out;
+    out.number = jobNumber(entry.job.id());
+    out.event = std::move(event);
+    outbox_.push_back(std::move(out));
+    outbox_cv_.notify_all();
+}
+
+void JobManager::save(Entry& entry) {
+    Outgoing out;
+    out.number = jobNumber(entry.job.id());
+    out.record = entry.job;
+    out.version = ++entry.version;
+    outbox_.push_back(std::move(out));
+    outbox_cv_.notify_all();
+}
+
+void JobManager::record() {
+    std::unique_lock lock(mutex_);
+    for (;;) {
+        outbox_cv_.wait(lock, [&] { return !outbox_.empty() || recorder_stop_; });
+        if (outbox_.empty()) return;  // stopping, and everything is written
+        std::deque<Outgoing> batch;
+        batch.swap(outbox_);
+        recording_ = true;
+        lock.unlock();
+        // Only the newest record of a job in the batch is written: it holds every change before.
+        std::map<uint64_t, size_t> newest;
+        for (size_t i = 0; i < batch.size(); ++i)
+            if (batch[i].record || batch[i].forget) newest[batch[i].number] = i;
+        std::vector<std::string> errors(batch.size());
+        for (const auto& [number, i] : newest) {
+            const Outgoing& out = batch[i];
+            if (out.forget) {
+                if (auto gone = journal_.remove(jobId(number)); !gone)
+                    logEvent(LogLevel::Warn, "journal.remove_failed",
+                             {{"job", jobId(number)}, {"message", gone.error().message}});
+                continue;
+            }
+            if (options_.before_journal_write) options_.before_journal_write(out.record->id());
+            if (auto saved = journal_.save(*out.record); !saved) {
+                errors[i] = saved.error().message;
+                logEvent(LogLevel::Error, "journal.write_failed",
+                         {{"job", out.record->id()}, {"message", errors[i]}});
+            }
+        }
+        lock.lock();
+        for (size_t i = 0; i < batch.size(); ++i) {
+            Outgoing& out = batch[i];
+            auto it = jobs_.find(out.number);
+            if (it == jobs_.end()) continue;  // forgotten meanwhile
+            Entry& e = it->second;
+            if (out.record && newest[out.number] == i) {
+                e.attempted = std::max(e.attempted, out.version);
+                e.record_error = errors[i];
+                if (errors[i].empty() && out.version > e.recorded) {
+                    e.recorded = out.version;
+                    e.told = std::move(*out.record);
+                }
+            }
+            if (out.event) publish(e, std::move(*out.event));
+        }
+        recording_ = false;
+        changed_cv_.notify_all();
+    }
+}
+
+Status JobManager::waitRecorded(std::unique_lock<std::mutex>& lock,
+                                uint64_t number,
+                                uint64_t version) {
+    Status status = Status::OK;
+    changed_cv_.wait(lock, [&] {
+        const auto it = jobs_.find(number);
+        if (it == jobs_.end()) return true;
+        if (it->second.attempted < version) return false;
+        if (it->second.recorded < version)
+            status = Status(StatusCode::UNAVAILABLE, "the journal could not record " +
+                                                         it->second.job.id() + ": " +
+                                                         it->second.record_error);
+        return true;
+    });
+    return status;
+}
+
+v1::Job JobManager::shown(const Entry& entry) {
+    v1::Job job = entry.told;
+    job.set_frames_done(std::max(job.frames_done(), entry.job.frames_done()));
+    return job;
+}
+
+void JobManager::prune(double now_unix_s) {
+    std::vector<uint64_t> ended_jobs;  // oldest first (job numbers grow)
+    for (const auto& [number, e] : jobs_)
+        if (ended(e.job) && !e.control && e.recorded > 0) ended_jobs.push_back(number);
+    const size_t beyond =
+        ended_jobs.size() > options_.keep_ended ? ended_jobs.size() - options_.keep_ended : 0;
+    for (size_t i = 0; i < ended_jobs.size(); ++i) {
+        const uint64_t number = ended_jobs[i];
+        Entry& e = jobs_.at(number);
+        if (i >= beyond && e.job.updated_unix_s() >= now_unix_s - options_.keep_ended_s) continue;
+        logEvent(LogLevel::Info, "job.forgotten",
+                 {{"job", e.job.id()},
+                  {"state", v1::JobState_Name(e.job.state())},
+                  {"output_dir", e.job.output_dir()}});
+        if (auto it = by_request_.find(e.job.request_id());
+            it != by_request_.end() && it->second == number)
+            by_request_.erase(it);
+        jobs_.erase(number);
+        Outgoing out;
+        out.number = number;
+        out.forget = true;
+        outbox_.push_back(std::move(out));
+    }
+    if (!outbox_.empty()) outbox_cv_.notify_all();
 }
 
 void JobManager::changed(Entry& entry, const std::string& log_note) {
     entry.job.set_updated_unix_s(unixNow());
-    if (auto saved = journal_.save(entry.job); !saved)
-        logEvent(LogLevel::Error, "journal.write_failed",
-                 {{"job", entry.job.id()}, {"message", saved.error().message}});
     logEvent(LogLevel::Info, "job.state",
              {{"job", entry.job.id()},
               {"state", v1::JobState_Name(entry.job.state())},
@@ -218,7 +403,14 @@ void JobManager::changed(Entry& entry, const std::string& log_note) {
     v1::JobEvent event;
     event.set_kind(v1::STATE);
     event.set_message(entry.job.reason());
-    emit(entry, std::move(event));
+    *event.mutable_job() = summary(entry.job);
+    Outgoing out;
+    out.number = jobNumber(entry.job.id());
+    out.record = entry.job;
+    out.version = ++entry.version;
+    out.event = std::move(event);
+    outbox_.push_back(std::move(out));
+    outbox_cv_.notify_all();
 }
 
 // With mutex_ held: the job after a stage, as `result` says.
@@ -258,6 +450,7 @@ void JobManager::finish(Entry& e, const RunResult& result) {
              << result.queue_high_water;
     if (result.fit_wall_s > 0.0) note << "fit " << result.fit_wall_s << " s";
     changed(e, note.str());
+    if (ended(e.job)) prune(unixNow());
 }
 
 void JobManager::work() {
@@ -267,7 +460,7 @@ void JobManager::work() {
         changed_cv_.wait(lock, [&] {
             if (shutting_down_) return true;
             for (auto& [number, e] : jobs_)
-                if (e.job.state() == v1::QUEUED) {
+                if (e.job.state() == v1::QUEUED && e.recorded > 0) {
                     next = &e;
                     return true;
                 }
@@ -324,7 +517,8 @@ void JobManager::fitWork() {
 Status JobManager::find(const std::string& id, Entry** entry) {
     const uint64_t number = jobNumber(id);
     auto it = jobs_.find(number);
-    if (number == 0 || it == jobs_.end())
+    // A job whose first record is not on disk yet is not known to clients.
+    if (number == 0 || it == jobs_.end() || it->second.recorded == 0)
         return Status(StatusCode::NOT_FOUND, "job_id: no job '" + id.substr(0, 64) + "'");
     *entry = &it->second;
     return Status::OK;
@@ -346,18 +540,24 @@ Status JobManager::check(const v1::SweepConfig& config, v1::SweepPlan* plan) {
     return Status::OK;
 }
 
-Status JobManager::start(const v1::StartSweepRequest& request,
-                         const std::string& client,
-                         v1::Job* job) {
+Status JobManager::start(const v1::StartSweepRequest& request, const Caller& client, v1::Job* job) {
     if (!request.request_id().empty() && !validRequestId(request.request_id()))
         return Status(StatusCode::INVALID_ARGUMENT,
                       "request_id: must be 1..64 characters of A-Z a-z 0-9 . _ -");
-    {
-        std::lock_guard lock(mutex_);
+    // Preparing a sweep reads the file system (the output directory's parts): never under the
+    // lock. A retried start is compared with the job it started; a start that finds its request
+    // id taken while it prepared is such a retry.
+    for (;;) {
+        std::unique_lock lock(mutex_);
         if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
         if (auto it = by_request_.find(request.request_id());
             !request.request_id().empty() && it != by_request_.end()) {
-            const Entry& e = jobs_.at(it->second);
+            const uint64_t number = it->second;
+            if (Status ok = waitRecorded(lock, number, 1); !ok.ok()) return ok;
+            auto found = jobs_.find(number);
+            if (found == jobs_.end() || found->second.recorded == 0) continue;  // forgotten
+            const v1::Job stored = found->second.told;
+            lock.unlock();
             // The stored config has its defaults filled in; compare what prepareSweep makes of
             // the retried one (whose directory may hold the first one's sweep by now).
             v1::SweepConfig given = request.config();
@@ -370,84 +570,106 @@ Status JobManager::start(const v1::StartSweepRequest& request,
                 given.set_resume_existing(request.config().resume_existing());
                 given.set_output_dir(prepared->output_dir);
             }
-            const v1::SweepConfig& stored = e.job.config();
-            if (!google::protobuf::util::MessageDifferencer::Equals(given, stored))
+            if (!google::protobuf::util::MessageDifferencer::Equals(given, stored.config()))
                 return Status(StatusCode::ALREADY_EXISTS, "request_id: '" + request.request_id() +
-                                                              "' started " + e.job.id() +
+                                                              "' started " + stored.id() +
                                                               " with a different config");
-            *job = e.job;
+            *job = stored;
             return Status::OK;
         }
+        lock.unlock();
+        auto prepared =
+            prepareSweep(request.config(), options_.runner.output_root, options_.runner.limits);
+        if (!prepared) return Status(StatusCode::INVALID_ARGUMENT, prepared.error().message);
+        lock.lock();
+        if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
+        if (!request.request_id().empty() && by_request_.count(request.request_id())) continue;
+        prune(unixNow());
+        size_t waiting = 0;
+        for (const auto& [number, e] : jobs_) {
+            if (ended(e.job)) continue;
+            if (e.job.state() != v1::RUNNING) ++waiting;
+            if (e.job.output_dir() == prepared->output_dir)
+                return Status(StatusCode::INVALID_ARGUMENT,
+                              "config.output_dir: " + e.job.id() + " (" +
+                                  v1::JobState_Name(e.job.state()) + ") writes to " +
+                                  prepared->output_dir);
+        }
+        if (waiting >= options_.max_queued)
+            return Status(
+                StatusCode::RESOURCE_EXHAUSTED,
+                std::to_string(waiting) + " jobs are waiting, the most this daemon keeps");
+        const uint64_t number = next_number_++;
+        Entry& e = jobs_[number];
+        e.job.set_id(jobId(number));
+        e.job.set_request_id(request.request_id());
+        e.job.set_client(client.name);
+        e.job.set_controller(client.name);
+        e.job.set_controller_peer(client.peer);
+        e.job.set_state(v1::QUEUED);
+        e.job.set_phase(v1::JOB_PHASE_UNSPECIFIED);
+        e.job.set_frames_total(static_cast<uint32_t>(prepared->angles_deg.size()));
+        e.job.set_output_dir(prepared->output_dir);
+        e.job.set_created_unix_s(unixNow());
+        for (const std::string& w : prepared->warnings) e.job.add_warnings(w);
+        *e.job.mutable_config() = std::move(prepared->config);
+        e.job.mutable_config()->set_output_dir(prepared->output_dir);
+        if (!request.request_id().empty()) by_request_[request.request_id()] = number;
+        logEvent(LogLevel::Info, "job.start",
+                 {{"job", e.job.id()},
+                  {"client", client.name},
+                  {"peer", client.peer},
+                  {"request_id", request.request_id()},
+                  {"frames", std::to_string(e.job.frames_total())},
+                  {"output_dir", e.job.output_dir()}});
+        changed(e, "queued");
+        // Not known to anyone, nor run, until its record is on disk.
+        if (Status recorded = waitRecorded(lock, number, 1); !recorded.ok()) {
+            if (auto it = by_request_.find(request.request_id());
+                it != by_request_.end() && it->second == number)
+                by_request_.erase(it);
+            jobs_.erase(number);
+            return Status(StatusCode::UNAVAILABLE,
+                          "cannot record the job: " + recorded.error_message());
+        }
+        changed_cv_.notify_all();  // the worker may take it now
+        auto it = jobs_.find(number);
+        if (it == jobs_.end())
+            return Status(StatusCode::NOT_FOUND, "the job ended and was forgotten");
+        *job = shown(it->second);
+        return Status::OK;
     }
-    auto prepared =
-        prepareSweep(request.config(), options_.runner.output_root, options_.runner.limits);
-    if (!prepared) return Status(StatusCode::INVALID_ARGUMENT, prepared.error().message);
-    std::lock_guard lock(mutex_);
-    size_t waiting = 0;
-    for (const auto& [number, e] : jobs_) {
-        if (ended(e.job)) continue;
-        if (e.job.state() != v1::RUNNING) ++waiting;
-        if (e.job.output_dir() == prepared->output_dir)
-            return Status(StatusCode::INVALID_ARGUMENT, "config.output_dir: " + e.job.id() + " (" +
-                                                            v1::JobState_Name(e.job.state()) +
-                                                            ") writes to " + prepared->output_dir);
-    }
-    if (waiting >= options_.max_queued)
-        return Status(StatusCode::RESOURCE_EXHAUSTED,
-                      std::to_string(waiting) + " jobs are waiting, the most this daemon keeps");
-    const uint64_t number = next_number_++;
-    Entry& e = jobs_[number];
-    e.job.set_id(jobId(number));
-    e.job.set_request_id(request.request_id());
-    e.job.set_client(client);
-    e.job.set_controller(client);
-    e.job.set_state(v1::QUEUED);
-    e.job.set_phase(v1::JOB_PHASE_UNSPECIFIED);
-    e.job.set_frames_total(static_cast<uint32_t>(prepared->angles_deg.size()));
-    e.job.set_output_dir(prepared->output_dir);
-    e.job.set_created_unix_s(unixNow());
-    for (const std::string& w : prepared->warnings) e.job.add_warnings(w);
-    *e.job.mutable_config() = prepared->config;
-    e.job.mutable_config()->set_output_dir(prepared->output_dir);
-    if (auto saved = journal_.save(e.job); !saved) {
-        const std::string message = saved.error().message;
-        jobs_.erase(number);
-        --next_number_;
-        return Status(StatusCode::UNAVAILABLE, "cannot record the job: " + message);
-    }
-    if (!request.request_id().empty()) by_request_[request.request_id()] = number;
-    logEvent(LogLevel::Info, "job.start",
-             {{"job", e.job.id()},
-              {"client", client},
-              {"request_id", request.request_id()},
-              {"frames", std::to_string(e.job.frames_total())},
-              {"output_dir", e.job.output_dir()}});
-    changed(e, "queued");
-    *job = e.job;
-    return Status::OK;
 }
 
 Status JobManager::mayControl(const v1::JobControlRequest& request,
-                              const std::string& client,
+                              const Caller& client,
                               const char* what,
                               Entry** entry) {
     if (Status ok = find(request.job_id(), entry); !ok.ok()) return ok;
     Entry& e = **entry;
-    if (e.job.controller() == client) return Status::OK;
-    if (!request.take_control())
-        return Status(StatusCode::PERMISSION_DENIED,
-                      std::string(what) + " " + e.job.id() + ": the job is controlled by '" +
-                          e.job.controller() + "'; set take_control to take it over");
+    if (e.job.controller() == client.name && e.job.controller_peer() == client.peer)
+        return Status::OK;
+    if (!request.take_control()) {
+        const std::string who = e.job.controller() + (e.job.controller_peer().empty()
+                                                          ? std::string()
+                                                          : " (" + e.job.controller_peer() + ")");
+        return Status(StatusCode::PERMISSION_DENIED, std::string(what) + " " + e.job.id() +
+                                                         ": the job is controlled by '" + who +
+                                                         "'; set take_control to take it over");
+    }
     logEvent(LogLevel::Warn, "job.control_taken",
-             {{"job", e.job.id()}, {"from", e.job.controller()}, {"to", client}});
-    e.job.set_controller(client);
+             {{"job", e.job.id()},
+              {"from", e.job.controller()},
+              {"from_peer", e.job.controller_peer()},
+              {"to", client.name},
+              {"to_peer", client.peer}});
+    e.job.set_controller(client.name);
+    e.job.set_controller_peer(client.peer);
     return Status::OK;
 }
 
-Status JobManager::pause(const v1::JobControlRequest& request,
-                         const std::string& client,
-                         v1::Job* job) {
-    std::lock_guard lock(mutex_);
+Status JobManager::pause(const v1::JobControlRequest& request, const Caller& client, v1::Job* job) {
+    std::unique_lock lock(mutex_);
     Entry* e = nullptr;
     if (Status ok = mayControl(request, client, "pause", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
@@ -460,57 +682,65 @@ Status JobManager::pause(const v1::JobControlRequest& request,
                           ": the job is fitting, which holds no device; cancel it or let it end");
     if (state != v1::PAUSED) {
         e->job.set_state(v1::PAUSED);
-        e->job.set_reason("paused by " + client);
+        e->job.set_reason("paused by " + client.name);
         changed(*e, "paused by a client");
     }
-    *job = e->job;
-    return Status::OK;
+    return answer(lock, jobNumber(e->job.id()), e->version, job);
 }
 
 Status JobManager::resume(const v1::JobControlRequest& request,
-                          const std::string& client,
+                          const Caller& client,
                           v1::Job* job) {
-    std::lock_guard lock(mutex_);
+    std::unique_lock lock(mutex_);
     Entry* e = nullptr;
     if (Status ok = mayControl(request, client, "resume", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
-    if (state == v1::RUNNING || state == v1::QUEUED) {
-        *job = e->job;
-        return Status::OK;
+    if (state != v1::RUNNING && state != v1::QUEUED) {
+        if (state != v1::PAUSED && state != v1::INTERRUPTED)
+            return Status(StatusCode::FAILED_PRECONDITION,
+                          "resume " + e->job.id() + ": the job is " + v1::JobState_Name(state));
+        e->job.set_state(e->control ? v1::RUNNING : v1::QUEUED);
+        e->job.set_reason("");
+        changed(*e, "resumed by " + client.name);
     }
-    if (state != v1::PAUSED && state != v1::INTERRUPTED)
-        return Status(StatusCode::FAILED_PRECONDITION,
-                      "resume " + e->job.id() + ": the job is " + v1::JobState_Name(state));
-    e->job.set_state(e->control ? v1::RUNNING : v1::QUEUED);
-    e->job.set_reason("");
-    changed(*e, "resumed by " + client);
-    *job = e->job;
-    return Status::OK;
+    return answer(lock, jobNumber(e->job.id()), e->version, job);
 }
 
 Status JobManager::cancel(const v1::JobControlRequest& request,
-                          const std::string& client,
+                          const Caller& client,
                           v1::Job* job) {
-    std::lock_guard lock(mutex_);
+    std::unique_lock lock(mutex_);
     Entry* e = nullptr;
     if (Status ok = mayControl(request, client, "cancel", &e); !ok.ok()) return ok;
     if (ended(e->job))
         return Status(StatusCode::FAILED_PRECONDITION, "cancel " + e->job.id() + ": the job is " +
                                                            v1::JobState_Name(e->job.state()));
     e->cancel_requested = true;
-    e->job.set_reason("cancelled by " + client);
+    e->job.set_reason("cancelled by " + client.name);
     if (e->control) {
-        // Its stage ends it: the capture once the frames captured so far are written, the fit
-        // before its next frame.
+        // Its stage ends it: the capture stops the rig at once and writes the frames captured so
+        // far, the fit stops before its next frame.
         e->control->requestStop();
         changed_cv_.notify_all();
         logEvent(LogLevel::Info, "job.cancel_requested",
-                 {{"job", e->job.id()}, {"client", client}});
+                 {{"job", e->job.id()}, {"client", client.name}, {"peer", client.peer}});
+        changed(*e, "cancel requested");  // the reason on disk; the state follows at its end
     } else {
         e->job.set_state(v1::CANCELLED);
         changed(*e, "cancelled");
     }
-    *job = e->job;
+    return answer(lock, jobNumber(e->job.id()), e->version, job);
+}
+
+Status JobManager::answer(std::unique_lock<std::mutex>& lock,
+                          uint64_t number,
+                          uint64_t version,
+                          v1::Job* job) {
+    // A change is answered once it is on disk, as it is announced.
+    if (Status recorded = waitRecorded(lock, number, version); !recorded.ok()) return recorded;
+    const auto it = jobs_.find(number);
+    if (it == jobs_.end()) return Status(StatusCode::NOT_FOUND, "job_id: the job was forgotten");
+    *job = shown(it->second);
     return Status::OK;
 }
 
@@ -518,7 +748,8 @@ std::vector<v1::Job> JobManager::list() const {
     std::lock_guard lock(mutex_);
     std::vector<v1::Job> out;
     for (const auto& [number, e] : jobs_) {
-        v1::Job job = e.job;
+        if (e.recorded == 0) continue;
+        v1::Job job = shown(e);
         job.mutable_config()->mutable_sim()->mutable_lens()->clear_prescription_csv();
         out.push_back(std::move(job));
     }
@@ -526,26 +757,39 @@ std::vector<v1::Job> JobManager::list() const {
 }
 
 Status JobManager::result(const std::string& id, v1::JobResult* result) const {
-    std::lock_guard lock(mutex_);
-    const Entry* e = nullptr;
-    if (Status ok = findConst(id, &e); !ok.ok()) return ok;
-    *result->mutable_job() = summary(e->job);
-    const std::string dir = e->job.output_dir();
+    v1::Job job;
+    {
+        std::lock_guard lock(mutex_);
+        const Entry* e = nullptr;
+        if (Status ok = findConst(id, &e); !ok.ok()) return ok;
+        job = summary(shown(*e));
+    }
+    // The files are looked at without the lock: a slow or hostile file holds up this call only.
+    const std::string dir = job.output_dir();
+    *result->mutable_job() = std::move(job);
     result->set_sweep_dir(dir);
     std::error_code ec;
     const fs::path manifest = fs::path(dir) / hdr::kSweepManifestFile;
-    if (fs::exists(manifest, ec)) result->set_manifest(manifest.string());
-    if (!e->job.model_file().empty() && fs::exists(e->job.model_file(), ec)) {
-        result->set_model_file(e->job.model_file());
-        std::ifstream text(fs::path(dir) / hdr::kSweepModelText);
-        std::stringstream s;
-        s << text.rdbuf();
-        result->set_model_summary(s.str().substr(0, 1 << 20));
+    if (fs::is_regular_file(fs::symlink_status(manifest, ec)))
+        result->set_manifest(manifest.string());
+    const std::string& model = result->job().model_file();
+    if (!model.empty() && fs::is_regular_file(fs::symlink_status(model, ec))) {
+        result->set_model_file(model);
+        auto text = readRegularText((fs::path(dir) / hdr::kSweepModelText).string(), 1 << 20);
+        if (text)
+            result->set_model_summary(std::move(*text));
+        else if (text.error().code != ErrorCode::NotFound)
+            result->add_warnings(text.error().message);
     }
     const fs::path previews = fs::path(dir) / hdr::kSweepPreviewsDir;
     std::vector<std::string> files;
-    for (fs::directory_iterator it(previews, ec), end; !ec && it != end; it.increment(ec))
-        if (it->path().extension() == ".png") files.push_back(it->path().string());
+    if (fs::is_directory(fs::symlink_status(previews, ec)))
+        for (fs::directory_iterator it(previews, ec), end;
+             !ec && it != end &&
+             files.size() < static_cast<size_t>(options_.runner.limits.max_frames);
+             it.increment(ec))
+            if (it->path().extension() == ".png" && it->is_regular_file(ec) && !it->is_symlink(ec))
+                files.push_back(it->path().string());
     std::sort(files.begin(), files.end());
     for (std::string& f : files) result->add_previews(std::move(f));
     return Status::OK;
@@ -560,8 +804,9 @@ Status JobManager::watchStart(const std::string& id,
     *sequence = e->next_sequence - 1;
     first->set_sequence(*sequence);
     first->set_kind(v1::STATE);
-    *first->mutable_job() = summary(e->job);
-    first->set_message(e->job.reason());
+    // The job as on disk: a change not yet written is not told.
+    *first->mutable_job() = summary(shown(*e));
+    first->set_message(first->job().reason());
     return Status::OK;
 }
 
@@ -572,14 +817,29 @@ Status JobManager::watchNext(const std::string& id,
     std::unique_lock lock(mutex_);
     const Entry* e = nullptr;
     if (Status ok = findConst(id, &e); !ok.ok()) return ok;
+    const uint64_t number = jobNumber(id);
+    // The entry is found again after each wait: an ended job may be forgotten meanwhile.
+    const auto announcedEnd = [](const Entry& entry) {
+        if (entry.events.empty())  // a job read from the journal
+            return ended(entry.job) && entry.recorded >= entry.version;
+        return ended(entry.events.back().job());
+    };
     changed_cv_.wait_for(lock, wait, [&] {
-        return shutting_down_ || e->next_sequence - 1 > *sequence || ended(e->job);
+        const auto it = jobs_.find(number);
+        if (it == jobs_.end()) return true;
+        return shutting_down_ || it->second.next_sequence - 1 > *sequence ||
+               announcedEnd(it->second);
     });
+    const auto it = jobs_.find(number);
+    if (it == jobs_.end())
+        return Status(StatusCode::NOT_FOUND, "job_id: " + id + " ended and was forgotten");
+    e = &it->second;
     batch->events.clear();
     for (const v1::JobEvent& event : e->events)
         if (event.sequence() > *sequence) batch->events.push_back(event);
     if (!batch->events.empty()) *sequence = batch->events.back().sequence();
-    batch->ended = ended(e->job);
+    // Ended once the end is announced (on disk), and this watcher has seen the events before it.
+    batch->ended = announcedEnd(*e) && *sequence >= e->next_sequence - 1;
     if (shutting_down_ && batch->events.empty() && !batch->ended)
         return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
     return Status::OK;

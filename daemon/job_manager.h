@@ -9,6 +9,16 @@
 // Every change of a job is written to the journal (daemon/journal.h) before it is announced, and
 // announced as an event that any number of watchers can follow.
 //
+// No thread waits on a disk while it holds the manager's lock, so that a slow disk (or a stalled
+// log reader) never freezes the rig, the watchers or the other calls: the journal is written by
+// a thread of its own. A change is made in memory under the lock and queued, in order, with the
+// events that follow it; the journal's thread writes the record and only then publishes its STATE
+// event and everything queued behind it. A call that changes a job (start, pause, resume, cancel)
+// answers once its record is on disk. Events that follow no pending record are published at once.
+//
+// Ended jobs are forgotten, in memory and in the journal (their sweeps stay on disk), beyond the
+// newest keep_ended of them and keep_ended_s after they ended.
+//
 // States and what moves them:
 //
 //     QUEUED ──worker──► RUNNING ──► SUCCEEDED | FAILED
@@ -22,8 +32,10 @@
 //     client's resume queues it.
 //
 // Control: the client that starts a job controls it; another client's pause, resume or cancel
-// is refused (PERMISSION_DENIED) unless it takes control. Errors are grpc::Status values whose
-// messages name the field at fault.
+// is refused (PERMISSION_DENIED) unless it takes control. A client is its name together with its
+// peer, the identity the service vouches for (Unix socket credentials, or the TCP address): the
+// same name from another user is another client. Errors are grpc::Status values whose messages
+// name the field at fault.
 #pragma once
 
 #include <grpcpp/support/status.h>
@@ -32,9 +44,11 @@
 #include <chrono>
 #include <condition_variable>
 #include <deque>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -50,11 +64,26 @@ namespace flarelab::daemon {
 // effect after the frame under way).
 inline constexpr char kHoldingMessage[] = "holding: the rig is stopped until the job is resumed";
 
+// Who calls: the name the client gives (metadata flarelab-client) and the peer the service
+// vouches for ("uid 1000" on the Unix socket, "ipv4:10.0.0.7" on TCP; empty in-process).
+struct Caller {
+    std::string name;
+    std::string peer;
+};
+
 struct ManagerOptions {
     RunnerOptions runner;
     bool resume = true;         // queue interrupted jobs again at start
     size_t max_queued = 64;     // jobs QUEUED or PAUSED at once
     size_t events_kept = 1024;  // per job, for watchers that fall behind
+    // Ended jobs kept: `job list` shows the last ones, and a retried start finds its job. Each
+    // costs its record in memory (a lens text is up to 1 MiB; most are a few KiB) and is read at
+    // every start, so the count is bounded; a month covers the questions a lab asks of its jobs.
+    size_t keep_ended = 100;
+    double keep_ended_s = 30 * 86400.0;
+    size_t ended_events_kept = 64;  // per ended job, for the watchers still reading it
+    // Test seam: called on the journal's thread before it writes each record (the job's id).
+    std::function<void(const std::string&)> before_journal_write;
 };
 
 // Events for a watcher, after the sequence number it has seen.
@@ -74,24 +103,31 @@ public:
     JobManager(const JobManager&) = delete;
     JobManager& operator=(const JobManager&) = delete;
 
-    // Stops the worker: a running job stops at its next frame (its captured frames written) and
-    // becomes INTERRUPTED; watchers are told. Idempotent.
+    // Stops the worker: a running job stops now (its head stopped, its exposure aborted, the
+    // bracket under way dropped: it is not a frame yet), the frames it captured are written, and
+    // it becomes INTERRUPTED; watchers are told. Idempotent.
     void shutdown();
+    // Makes a shutdown under way quicker (a second SIGTERM): the running job drops the frames it
+    // captured and has not written (its next run takes them again; nothing on disk is lost) and a
+    // fit stops. Any thread, at any time.
+    void stopNow();
 
     grpc::Status check(const flarelab::v1::SweepConfig& config, flarelab::v1::SweepPlan* plan);
     grpc::Status start(const flarelab::v1::StartSweepRequest& request,
-                       const std::string& client,
+                       const Caller& client,
                        flarelab::v1::Job* job);
     grpc::Status pause(const flarelab::v1::JobControlRequest& request,
-                       const std::string& client,
+                       const Caller& client,
                        flarelab::v1::Job* job);
     grpc::Status resume(const flarelab::v1::JobControlRequest& request,
-                        const std::string& client,
+                        const Caller& client,
                         flarelab::v1::Job* job);
     grpc::Status cancel(const flarelab::v1::JobControlRequest& request,
-                        const std::string& client,
+                        const Caller& client,
                         flarelab::v1::Job* job);
     std::vector<flarelab::v1::Job> list() const;  // without their configs' lens text
+    // The job's products. model.txt is read only when it is a regular file (not followed through
+    // a link, never a FIFO or a device) of at most 1 MiB; what is refused is said in warnings.
     grpc::Status result(const std::string& job_id, flarelab::v1::JobResult* result) const;
 
     // The job's current state as a STATE event, and the sequence number to watch from.
@@ -120,20 +156,57 @@ private:
         uint64_t next_sequence = 1;
         bool cancel_requested = false;
         std::unique_ptr<Control> control;  // while the job runs a stage
+        // Versions of the job's record: of the last change, the last one the journal's thread
+        // tried to write, and the last one on disk (0: none yet; such a job is not yet known to
+        // clients). record_error: why the last write failed.
+        uint64_t version = 0, attempted = 0, recorded = 0;
+        std::string record_error;
+        // The job as its record on disk says: what clients are told (with frames_done, which
+        // the sweep's manifest vouches for, from `job`).
+        flarelab::v1::Job told;
+    };
+    // What the journal's thread does next, in order: write a record (or forget one), then
+    // publish an event.
+    struct Outgoing {
+        uint64_t number = 0;
+        std::optional<flarelab::v1::Job> record;
+        uint64_t version = 0;
+        bool forget = false;
+        std::optional<flarelab::v1::JobEvent> event;
     };
 
     explicit JobManager(ManagerOptions options, Journal journal);
     void work();     // the capture worker: one job at a time owns the rig
     void fitWork();  // the fit worker: fits finished captures while the rig goes on
+    void record();   // the journal's thread: writes records, then publishes what follows them
     void finish(Entry& entry, const RunResult& result);
-    // With mutex_ held: persist and announce a change of `entry`.
+    // With mutex_ held: queue a change of `entry` to be written and then announced.
     void changed(Entry& entry, const std::string& log_note = "");
+    // With mutex_ held: queue the entry's record to be written, announcing nothing.
+    void save(Entry& entry);
+    // With mutex_ held: announce `event`, after whatever the journal's thread has still to do.
     void emit(Entry& entry, flarelab::v1::JobEvent event);
+    void publish(Entry& entry, flarelab::v1::JobEvent event);
+    // With `lock` held on mutex_: waits (releasing it) until version `version` of job `number`
+    // was written; its write's error, or OK (also when the job is gone meanwhile).
+    grpc::Status waitRecorded(std::unique_lock<std::mutex>& lock,
+                              uint64_t number,
+                              uint64_t version);
+    // With `lock` held: waits until version `version` of job `number` is on disk, then copies
+    // the job to `job`; the journal's error when it could not be written.
+    grpc::Status answer(std::unique_lock<std::mutex>& lock,
+                        uint64_t number,
+                        uint64_t version,
+                        flarelab::v1::Job* job);
+    // With mutex_ held: the job as clients see it (told, with the frames on disk now).
+    static flarelab::v1::Job shown(const Entry& entry);
+    // With mutex_ held: forgets ended jobs beyond the options' count and age.
+    void prune(double now_unix_s);
     grpc::Status find(const std::string& id, Entry** entry);
     grpc::Status findConst(const std::string& id, const Entry** entry) const;
     // The job named in `request`, when `client` may control it (taking control if asked).
     grpc::Status mayControl(const flarelab::v1::JobControlRequest& request,
-                            const std::string& client,
+                            const Caller& client,
                             const char* what,
                             Entry** entry);
     static bool ended(const flarelab::v1::Job& job);
@@ -148,8 +221,13 @@ private:
     uint64_t next_number_ = 1;
     std::string running_;             // the job capturing, if any
     std::deque<uint64_t> fit_queue_;  // jobs captured and waiting for their fit
+    std::deque<Outgoing> outbox_;     // for the journal's thread, in order
+    bool recording_ = false;          // the journal's thread holds a batch taken from outbox_
+    std::condition_variable outbox_cv_;
     bool shutting_down_ = false;
-    std::thread worker_, fitter_;
+    bool stop_now_ = false;
+    bool recorder_stop_ = false;
+    std::thread worker_, fitter_, recorder_;
 };
 
 }  // namespace flarelab::daemon

@@ -61,6 +61,17 @@ Status Journal::save(const v1::Job& job) const {
     return replaceFile(directory_, dir_fd.get(), job.id() + ".json", json, {});
 }
 
+Status Journal::remove(const std::string& id) const {
+    if (jobNumber(id) == 0)
+        return makeError(ErrorCode::InvalidArgument, "journal: '" + id + "' is not a job id");
+    const std::string path = (fs::path(directory_) / (id + ".json")).string();
+    if (::unlink(path.c_str()) != 0 && errno != ENOENT)
+        return makeError(ErrorCode::IoError, path + ": cannot delete: " + osMessage(errno));
+    FileDescriptor dir_fd(::open(directory_.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+    if (dir_fd.valid()) ::fsync(dir_fd.get());
+    return Ok{};
+}
+
 Result<v1::Job> Journal::parse(const std::string& json, const std::string& name) {
     v1::Job job;
     JsonParseOptions options;

@@ -36,6 +36,9 @@ public:
     Status save(const flarelab::v1::Job& job) const;
     // Every record in the journal.
     Result<JournalLoad> load() const;
+    // Deletes the record of job `id` (a job forgotten); OK when there is none. IoError naming
+    // the file.
+    Status remove(const std::string& id) const;
     // Parses one record; ParseError naming `name` and what is wrong (also for the fuzzer).
     static Result<flarelab::v1::Job> parse(const std::string& json, const std::string& name);
 
