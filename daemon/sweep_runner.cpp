@@ -6,12 +6,15 @@
 
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <ctime>
 #include <filesystem>
 #include <iomanip>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <sstream>
+#include <stop_token>
 #include <thread>
 
 #include "common/file_descriptor.h"
@@ -100,6 +103,57 @@ Result<std::vector<std::string>> setAsideUnlisted(const hdr::Sweep& sweep, const
     }
     return moved;
 }
+
+// Stops the rig from a thread of its own once the job must stop: the stop hook runs under the job
+// manager's lock, where nothing may wait on a device. The camera's exposure is aborted (the
+// bracket under way is dropped: it is not a frame), and the head stopped; as Head::stop() stops
+// only a move under way, it is repeated until the capture is over, so that a move begun just
+// after the first stop (between the checkpoint and the move) is stopped too. The hook is cleared
+// when this ends: it is never called on a finished job's devices.
+class RigStopper {
+public:
+    RigStopper(JobControl& control,
+               std::shared_ptr<drivers::Head> head,
+               std::shared_ptr<drivers::Camera> camera)
+        : control_(control), head_(std::move(head)), camera_(std::move(camera)) {
+        thread_ = std::jthread([this](std::stop_token done) { run(done); });
+        control_.setStopHook([this] {
+            {
+                std::lock_guard lock(mutex_);
+                stop_ = true;
+            }
+            wake_.notify_all();
+        });
+    }
+    ~RigStopper() {
+        control_.setStopHook({});
+        thread_.request_stop();
+        thread_.join();
+    }
+
+private:
+    void run(const std::stop_token& done) {
+        std::unique_lock lock(mutex_);
+        if (!wake_.wait(lock, done, [&] { return stop_; })) return;
+        lock.unlock();
+        camera_->abort();
+        logEvent(LogLevel::Info, "sweep.rig_stopping", {{"camera", camera_->identity().uri}});
+        while (!done.stop_requested()) {
+            (void)head_->stop();
+            lock.lock();
+            wake_.wait_for(lock, done, std::chrono::milliseconds(100), [] { return false; });
+            lock.unlock();
+        }
+    }
+
+    JobControl& control_;
+    const std::shared_ptr<drivers::Head> head_;
+    const std::shared_ptr<drivers::Camera> camera_;
+    std::mutex mutex_;
+    std::condition_variable_any wake_;
+    bool stop_ = false;
+    std::jthread thread_;
+};
 
 // The job's own sweep may be on disk already (a resumed job): a sweep that is not its own was
 // refused when the job was started, and SweepWriter refuses one whose settings differ.
@@ -331,6 +385,7 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
         }();
         if (frame) return std::move(*frame);
         const auto fault = drivers::deviceFaultOf(frame.error());
+        if (fault == drivers::DeviceFault::Stopped) return std::nullopt;  // the job must stop
         const std::string where = "frame " + std::to_string(index) + " at " + num(angle_deg) +
                                   " deg, exposure " + num(exposure_s) +
                                   " s: " + frame.error().message;
@@ -465,8 +520,13 @@ Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
 
 void SweepJob::processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writer) {
     const size_t total = sweep_.angles_deg.size();
+    size_t dropped = 0;
     while (auto captured = queue.pop()) {
         if (failed_) continue;  // drain; the failure is already recorded
+        if (control_.dropUnwritten()) {
+            ++dropped;  // the daemon stops at once; the frame being written before was finished
+            continue;
+        }
         if (Status ok = writeFrame(*captured, writer); !ok) {
             fail(ok.error().message + "; the " + std::to_string(writer.sweep().frames.size()) +
                  " frame(s) written before are intact");
@@ -489,6 +549,10 @@ void SweepJob::processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writ
         if (this_run > 0) e.set_eta_s(elapsed / this_run * static_cast<double>(total - done));
         control_.event(std::move(e));
     }
+    if (dropped > 0)
+        control_.warning(std::to_string(dropped) +
+                         " captured frame(s) not written: the daemon was told to stop at once; "
+                         "they are taken again when the job resumes");
 }
 
 void SweepJob::fitModel() {
@@ -574,7 +638,7 @@ RunResult SweepJob::run() {
             return result_;
         }
     }
-    control_.setStopHook([head = head_] { (void)head->stop(); });
+    std::optional<RigStopper> stopper(std::in_place, control_, head_, camera_);
     control_.setPhase(v1::HOMING);
     for (int tries = 0;; ++tries) {
         if (!control_.checkpoint()) {
@@ -628,6 +692,7 @@ RunResult SweepJob::run() {
     BoundedQueue<Captured> queue(std::max<size_t>(1, options_.queue_frames));
     std::thread processing([&] { processLoop(queue, *writer); });
     captureLoop(first_, queue);
+    stopper.reset();  // the rig is left alone from here
     processing.join();
     result_.queue_high_water = queue.highWater();
     result_.capture_wall_s = secondsSince(capture_start_);

@@ -57,8 +57,13 @@ public:
     virtual bool pauseForFault(const std::string& reason) = 0;
     // True once the job must stop; the flag a fit watches.
     virtual const std::atomic<bool>& stopFlag() const = 0;
-    // Called (from the controlling thread) when the job must stop, to interrupt a head move.
+    // `hook` is called when the job must stop (at once when it must already), with the owner's
+    // lock held: it must only signal, never wait or touch a device. An empty hook clears it; once
+    // cleared, the old hook is never called again.
     virtual void setStopHook(std::function<void()> hook) = 0;
+    // True once the daemon must stop at once (a second SIGTERM): frames captured and not yet
+    // written are dropped (the next run takes them again).
+    virtual bool dropUnwritten() const { return false; }
     virtual void setPhase(flarelab::v1::JobPhase phase) = 0;
     virtual void setFramesDone(uint32_t frames) = 0;
     virtual void warning(const std::string& message) = 0;
