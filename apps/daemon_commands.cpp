@@ -28,6 +28,7 @@ struct Connection {
     std::string socket;
     std::string address;
     std::string token_file;
+    std::string tls_ca;
 };
 
 void addConnectionFlags(CLI::App* cmd, Connection& c) {
@@ -36,6 +37,9 @@ void addConnectionFlags(CLI::App* cmd, Connection& c) {
                     "the daemon's TCP address HOST:PORT (default: $FLARELAB_ADDRESS)");
     cmd->add_option("--token-file", c.token_file,
                     "file whose first line is the daemon's token (default: $FLARELAB_TOKEN_FILE)");
+    cmd->add_option("--tls-ca", c.tls_ca,
+                    "talk TLS to --address, trusting the certificates in this PEM file (the "
+                    "daemon's own, when self-signed; default: $FLARELAB_TLS_CA)");
 }
 
 std::string env(const char* name) {
@@ -79,8 +83,21 @@ public:
         client->target_ = target;
         grpc::ChannelArguments args;
         args.SetMaxReceiveMessageSize(64 << 20);
-        client->api_ = v1::FlareLab::NewStub(
-            grpc::CreateCustomChannel(target, grpc::InsecureChannelCredentials(), args));
+        std::shared_ptr<grpc::ChannelCredentials> credentials = grpc::InsecureChannelCredentials();
+        const std::string tls_ca = !c.tls_ca.empty() ? c.tls_ca : env("FLARELAB_TLS_CA");
+        if (!tls_ca.empty() && target.rfind("unix:", 0) != 0) {
+            std::ifstream in(tls_ca, std::ios::binary);
+            std::stringstream pem;
+            pem << in.rdbuf();
+            if (!in || pem.str().find("-----BEGIN CERTIFICATE-----") == std::string::npos) {
+                err << "flarelab: --tls-ca " << tls_ca << ": cannot read a PEM certificate\n";
+                return nullptr;
+            }
+            grpc::SslCredentialsOptions ssl;
+            ssl.pem_root_certs = pem.str();
+            credentials = grpc::SslCredentials(ssl);
+        }
+        client->api_ = v1::FlareLab::NewStub(grpc::CreateCustomChannel(target, credentials, args));
         return client;
     }
 

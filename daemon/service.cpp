@@ -1,16 +1,26 @@
 #include "daemon/service.h"
 
+#include <fcntl.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/resource_quota.h>
+#include <grpcpp/server_posix.h>
+#include <poll.h>
+#include <sys/eventfd.h>
+#include <sys/socket.h>
 #include <sys/stat.h>
 #include <sys/un.h>
 #include <unistd.h>
 
 #include <atomic>
 #include <chrono>
+#include <cstring>
+#include <filesystem>
 #include <map>
 #include <mutex>
+#include <thread>
 
+#include "common/file_descriptor.h"
+#include "daemon/access.h"
 #include "daemon/log.h"
 #include "drivers/device.h"
 #include "proto/daemon.grpc.pb.h"
@@ -18,20 +28,128 @@
 namespace flarelab::daemon {
 namespace {
 
+namespace fs = std::filesystem;
 using grpc::ServerContext;
 using grpc::Status;
 using grpc::StatusCode;
 
-// Calls a second per client, as a token bucket.
+// The Unix socket, accepted by a thread of ours so that each connection's credentials are read
+// before gRPC takes it (AddInsecureChannelFromFd; gRPC then names its peer "fd:N").
+class UnixListener {
+public:
+    // Binds `path` as described in service.h; IoError naming the path when it cannot.
+    static Result<std::unique_ptr<UnixListener>> open(const std::string& path) {
+        if (path.size() >= sizeof(sockaddr_un::sun_path))
+            return makeError(ErrorCode::IoError,
+                             path + ": longer than the " +
+                                 std::to_string(sizeof(sockaddr_un::sun_path) - 1) +
+                                 " bytes a Unix socket path may have; use a shorter --state-dir");
+        const fs::path parent = fs::path(path).parent_path();
+        std::string private_dir = (parent / ".s-XXXXXX").string();
+        if (!::mkdtemp(private_dir.data()))  // mode 0700
+            return makeError(ErrorCode::IoError, "cannot make a private directory in " +
+                                                     parent.string() + ": " + osMessage(errno));
+        const std::string bound = private_dir + "/s";
+        const auto cleanup = [&] {
+            ::unlink(bound.c_str());
+            ::rmdir(private_dir.c_str());
+        };
+        FileDescriptor fd(::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC | SOCK_NONBLOCK, 0));
+        sockaddr_un address{};
+        address.sun_family = AF_UNIX;
+        std::strncpy(address.sun_path, bound.c_str(), sizeof address.sun_path - 1);
+        if (!fd.valid() ||
+            ::bind(fd.get(), reinterpret_cast<sockaddr*>(&address), sizeof address) ||
+            ::chmod(bound.c_str(), 0660) || ::listen(fd.get(), 64) ||
+            ::rename(bound.c_str(), path.c_str())) {
+            const int error = errno;
+            cleanup();
+            return makeError(ErrorCode::IoError,
+                             "cannot listen on unix:" + path + ": " + osMessage(error));
+        }
+        ::rmdir(private_dir.c_str());
+        std::unique_ptr<UnixListener> out(new UnixListener(std::move(fd)));
+        if (!out->wake_.valid())
+            return makeError(ErrorCode::IoError, "eventfd: " + osMessage(errno));
+        return out;
+    }
+
+    ~UnixListener() { stop(); }
+
+    // Accepts connections for `server` until stop().
+    void serve(grpc::Server* server) {
+        thread_ = std::thread([this, server] { acceptLoop(server); });
+    }
+
+    void stop() {
+        if (!thread_.joinable()) return;
+        const uint64_t one = 1;
+        (void)::write(wake_.get(), &one, sizeof one);
+        thread_.join();
+    }
+
+    // "uid N" of the connection gRPC names "fd:N"; empty when it is not one of ours.
+    std::string peerOf(const std::string& grpc_peer) const {
+        if (grpc_peer.rfind("fd:", 0) != 0) return "";
+        const int fd = std::atoi(grpc_peer.c_str() + 3);
+        std::lock_guard lock(mutex_);
+        const auto it = peers_.find(fd);
+        return it == peers_.end() ? "" : it->second;
+    }
+
+private:
+    explicit UnixListener(FileDescriptor fd)
+        : fd_(std::move(fd)), wake_(::eventfd(0, EFD_CLOEXEC)) {}
+
+    void acceptLoop(grpc::Server* server) {
+        for (;;) {
+            pollfd p[2] = {{fd_.get(), POLLIN, 0}, {wake_.get(), POLLIN, 0}};
+            if (::poll(p, 2, -1) < 0 && errno != EINTR) return;
+            if (p[1].revents) return;
+            if (!(p[0].revents & POLLIN)) continue;
+            const int client = ::accept4(fd_.get(), nullptr, nullptr, SOCK_CLOEXEC | SOCK_NONBLOCK);
+            if (client < 0) {
+                // Out of descriptors: wait a little rather than spin.
+                if (errno == EMFILE || errno == ENFILE || errno == ENOBUFS || errno == ENOMEM)
+                    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+                continue;
+            }
+            ucred credentials{};
+            socklen_t size = sizeof credentials;
+            if (::getsockopt(client, SOL_SOCKET, SO_PEERCRED, &credentials, &size) != 0) {
+                ::close(client);
+                continue;
+            }
+            {
+                // gRPC closes the descriptor when the connection ends; the next connection that
+                // gets its number is recorded here before gRPC sees it.
+                std::lock_guard lock(mutex_);
+                peers_[client] = "uid " + std::to_string(credentials.uid);
+            }
+            logEvent(LogLevel::Debug, "server.connection",
+                     {{"uid", std::to_string(credentials.uid)},
+                      {"pid", std::to_string(credentials.pid)}});
+            grpc::AddInsecureChannelFromFd(server, client);
+        }
+    }
+
+    FileDescriptor fd_;
+    FileDescriptor wake_;
+    mutable std::mutex mutex_;
+    std::map<int, std::string> peers_;
+    std::thread thread_;
+};
+
+// Calls a second per peer, as a token bucket.
 class RateLimiter {
 public:
     RateLimiter(double per_s, double burst) : per_s_(per_s), burst_(burst) {}
 
-    bool admit(const std::string& client) {
+    bool admit(const std::string& key) {
         const auto now = std::chrono::steady_clock::now();
         std::lock_guard lock(mutex_);
         if (buckets_.size() > 4096) buckets_.clear();  // many names: start afresh, still bounded
-        auto [it, fresh] = buckets_.try_emplace(client, Bucket{burst_, now});
+        auto [it, fresh] = buckets_.try_emplace(key, Bucket{burst_, now});
         Bucket& b = it->second;
         if (!fresh) {
             const double dt = std::chrono::duration<double>(now - b.last).count();
@@ -55,15 +173,16 @@ private:
 
 class Service final : public v1::FlareLab::Service {
 public:
-    Service(JobManager& manager, ServiceOptions options)
+    Service(JobManager& manager, ServiceOptions options, const UnixListener* unix_listener)
         : manager_(manager),
           options_(std::move(options)),
-          limiter_(options_.calls_per_s, options_.burst) {}
+          limiter_(options_.calls_per_s, options_.burst),
+          unix_listener_(unix_listener) {}
 
     Status DescribeRig(ServerContext* ctx,
                        const v1::DescribeRigRequest*,
                        v1::RigDescription* out) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         const SweepLimits& l = manager_.options().runner.limits;
         out->set_daemon_version(options_.daemon_version);
@@ -107,7 +226,7 @@ public:
     Status CheckSweep(ServerContext* ctx,
                       const v1::CheckSweepRequest* request,
                       v1::SweepPlan* plan) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         return manager_.check(request->config(), plan);
     }
@@ -115,13 +234,14 @@ public:
     Status StartSweep(ServerContext* ctx,
                       const v1::StartSweepRequest* request,
                       v1::Job* job) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         Status status = manager_.start(*request, client, job);
         if (!status.ok())
             logEvent(LogLevel::Info, "request.refused",
                      {{"rpc", "StartSweep"},
-                      {"client", client},
+                      {"client", client.name},
+                      {"peer", client.peer},
                       {"code", std::to_string(status.error_code())},
                       {"message", status.error_message()}});
         return status;
@@ -130,7 +250,7 @@ public:
     Status WatchJob(ServerContext* ctx,
                     const v1::WatchJobRequest* request,
                     grpc::ServerWriter<v1::JobEvent>* writer) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         if (watchers_.fetch_add(1) >= options_.max_watchers) {
             watchers_.fetch_sub(1);
@@ -162,7 +282,7 @@ public:
     Status PauseJob(ServerContext* ctx,
                     const v1::JobControlRequest* request,
                     v1::Job* job) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         return manager_.pause(*request, client, job);
     }
@@ -170,7 +290,7 @@ public:
     Status ResumeJob(ServerContext* ctx,
                      const v1::JobControlRequest* request,
                      v1::Job* job) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         return manager_.resume(*request, client, job);
     }
@@ -178,7 +298,7 @@ public:
     Status CancelJob(ServerContext* ctx,
                      const v1::JobControlRequest* request,
                      v1::Job* job) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         return manager_.cancel(*request, client, job);
     }
@@ -186,7 +306,7 @@ public:
     Status ListJobs(ServerContext* ctx,
                     const v1::ListJobsRequest*,
                     v1::ListJobsResponse* out) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         for (v1::Job& job : manager_.list()) *out->add_jobs() = std::move(job);
         return Status::OK;
@@ -195,13 +315,19 @@ public:
     Status GetJobResult(ServerContext* ctx,
                         const v1::GetJobResultRequest* request,
                         v1::JobResult* out) override {
-        std::string client;
+        Caller client;
         if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
         return manager_.result(request->job_id(), out);
     }
 
 private:
-    Status admit(ServerContext* ctx, std::string* client) {
+    Status admit(ServerContext* ctx, Caller* client) {
+        const std::string grpc_peer = ctx->peer();
+        client->peer = unix_listener_ ? unix_listener_->peerOf(grpc_peer) : "";
+        if (client->peer.empty()) client->peer = tcpPeerKey(grpc_peer);
+        // The connection that was looked up must still be the call's: gRPC cancels the calls of
+        // a connection that ends before its descriptor (and so its number) can be reused.
+        if (ctx->IsCancelled()) return Status(StatusCode::CANCELLED, "the client went away");
         const auto& metadata = ctx->client_metadata();
         if (!options_.token.empty()) {
             auto it = metadata.find("authorization");
@@ -209,12 +335,12 @@ private:
                                           ? std::string()
                                           : std::string(it->second.data(), it->second.size());
             if (!sameSecret(given, "Bearer " + options_.token)) {
-                logEvent(LogLevel::Warn, "request.unauthenticated", {{"peer", ctx->peer()}});
+                logEvent(LogLevel::Warn, "request.unauthenticated", {{"peer", client->peer}});
                 return Status(StatusCode::UNAUTHENTICATED,
                               "metadata authorization: missing or wrong token");
             }
         }
-        *client = "anonymous";
+        client->name = "anonymous";
         if (auto it = metadata.find("flarelab-client"); it != metadata.end()) {
             const std::string name(it->second.data(), it->second.size());
             bool ok = !name.empty() && name.size() <= 64;
@@ -223,19 +349,21 @@ private:
                 return Status(StatusCode::INVALID_ARGUMENT,
                               "metadata flarelab-client: must be 1..64 printable ASCII "
                               "characters without spaces");
-            *client = name;
+            client->name = name;
         }
-        if (!limiter_.admit(*client))
-            return Status(StatusCode::RESOURCE_EXHAUSTED,
-                          "client '" + *client + "' calls more than " +
-                              std::to_string(static_cast<int>(options_.calls_per_s)) +
-                              " times a second");
+        // Per peer: a client that renames itself is still the same peer.
+        if (!limiter_.admit(client->peer))
+            return Status(
+                StatusCode::RESOURCE_EXHAUSTED,
+                "peer " + client->peer + " (client '" + client->name + "') calls more than " +
+                    std::to_string(static_cast<int>(options_.calls_per_s)) + " times a second");
         return Status::OK;
     }
 
     JobManager& manager_;
     const ServiceOptions options_;
     RateLimiter limiter_;
+    const UnixListener* unix_listener_;
     std::atomic<size_t> watchers_{0};
 };
 
@@ -251,6 +379,7 @@ bool sameSecret(const std::string& a, const std::string& b) {
 
 struct DaemonServer::Impl {
     JobManager* manager = nullptr;
+    std::unique_ptr<UnixListener> unix_listener;
     std::unique_ptr<Service> service;
     std::unique_ptr<grpc::Server> server;
     std::string socket_path;
@@ -259,48 +388,76 @@ struct DaemonServer::Impl {
 
 Result<std::unique_ptr<DaemonServer>> DaemonServer::start(JobManager& manager,
                                                           const ServerOptions& options) {
-    std::unique_ptr<DaemonServer> out(new DaemonServer());
-    out->impl_ = std::make_unique<Impl>();
-    Impl& impl = *out->impl_;
+    // The server is whole only at the end: a failed start leaves the manager alone.
+    auto made = std::make_unique<Impl>();
+    Impl& impl = *made;
     impl.manager = &manager;
-    impl.service = std::make_unique<Service>(manager, options.service);
-    grpc::ServerBuilder builder;
+    std::shared_ptr<grpc::ServerCredentials> tcp_credentials = grpc::InsecureServerCredentials();
+    if (!options.tcp_address.empty()) {
+        if (options.service.token.empty())
+            return makeError(ErrorCode::InvalidArgument,
+                             "listen " + options.tcp_address +
+                                 ": TCP needs a token (--token-file): every local user can "
+                                 "reach a TCP port");
+        if (options.allow_remote && (options.tls_cert_file.empty() || options.tls_key_file.empty()))
+            return makeError(ErrorCode::InvalidArgument,
+                             "listen " + options.tcp_address +
+                                 ": beyond loopback (--allow-remote) the daemon needs TLS "
+                                 "(--tls-cert and --tls-key): the token would cross the network "
+                                 "in clear");
+        if (!options.allow_remote)
+            if (auto ok = checkLoopbackAddress(options.tcp_address); !ok)
+                return makeError(ErrorCode::InvalidArgument,
+                                 "listen " + ok.error().message +
+                                     "; add --allow-remote (with TLS) to expose the rig");
+        if (options.tls_cert_file.empty() != options.tls_key_file.empty())
+            return makeError(ErrorCode::InvalidArgument,
+                             "TLS needs both a certificate (--tls-cert) and its key (--tls-key)");
+        if (!options.tls_cert_file.empty()) {
+            auto cert = readPemFile(options.tls_cert_file, "--tls-cert");
+            if (!cert) return cert.error();
+            auto key = readSecretFile(options.tls_key_file, "--tls-key");
+            if (!key) return key.error();
+            grpc::SslServerCredentialsOptions ssl;
+            ssl.pem_key_cert_pairs.push_back({*key, *cert});
+            tcp_credentials = grpc::SslServerCredentials(ssl);
+        }
+    }
     if (!options.socket_path.empty()) {
-        if (options.socket_path.size() >= sizeof(sockaddr_un::sun_path))
-            return makeError(ErrorCode::IoError,
-                             options.socket_path + ": longer than the " +
-                                 std::to_string(sizeof(sockaddr_un::sun_path) - 1) +
-                                 " bytes a Unix socket path may have; use a shorter --state-dir");
-        ::unlink(options.socket_path.c_str());  // a stale one (the state lock is ours)
-        builder.AddListeningPort("unix:" + options.socket_path, grpc::InsecureServerCredentials());
+        auto listener = UnixListener::open(options.socket_path);
+        if (!listener) return listener.error();
+        impl.unix_listener = std::move(*listener);
         impl.socket_path = options.socket_path;
     }
+    impl.service = std::make_unique<Service>(manager, options.service, impl.unix_listener.get());
+    grpc::ServerBuilder builder;
     int port = 0;
     if (!options.tcp_address.empty())
-        builder.AddListeningPort(options.tcp_address, grpc::InsecureServerCredentials(), &port);
+        builder.AddListeningPort(options.tcp_address, tcp_credentials, &port);
     builder.RegisterService(impl.service.get());
     builder.SetMaxReceiveMessageSize(static_cast<int>(options.service.max_request_bytes));
     grpc::ResourceQuota quota("flarelabd");
     quota.SetMaxThreads(static_cast<int>(options.service.max_watchers) + 64);
     builder.SetResourceQuota(quota);
-    // The socket gets mode 0660: created under this umask.
-    const mode_t old_mask = ::umask(0117);
     impl.server = builder.BuildAndStart();
-    ::umask(old_mask);
-    if (!impl.server)
-        return makeError(ErrorCode::IoError,
-                         "cannot listen on " +
-                             (options.socket_path.empty() ? std::string()
-                                                          : "unix:" + options.socket_path + " ") +
-                             options.tcp_address);
-    if (!options.socket_path.empty()) ::chmod(options.socket_path.c_str(), 0660);
-    if (!options.tcp_address.empty() && port == 0)
+    if (!impl.server) {
+        if (!impl.socket_path.empty()) ::unlink(impl.socket_path.c_str());
         return makeError(ErrorCode::IoError, "cannot listen on " + options.tcp_address);
+    }
+    if (!options.tcp_address.empty() && port == 0) {
+        impl.server->Shutdown();
+        if (!impl.socket_path.empty()) ::unlink(impl.socket_path.c_str());
+        return makeError(ErrorCode::IoError, "cannot listen on " + options.tcp_address);
+    }
+    if (impl.unix_listener) impl.unix_listener->serve(impl.server.get());
+    std::unique_ptr<DaemonServer> out(new DaemonServer());
+    out->impl_ = std::move(made);
     out->tcp_port_ = port;
     logEvent(LogLevel::Info, "server.listening",
              {{"socket", options.socket_path},
               {"tcp", options.tcp_address.empty() ? "" : options.tcp_address},
               {"tcp_port", std::to_string(port)},
+              {"tls", options.tls_cert_file.empty() ? "off" : "on"},
               {"token", options.service.token.empty() ? "none" : "required"}});
     return out;
 }
@@ -308,6 +465,7 @@ Result<std::unique_ptr<DaemonServer>> DaemonServer::start(JobManager& manager,
 void DaemonServer::shutdown(double deadline_s) {
     if (!impl_) return;
     std::call_once(impl_->stopped, [&] {
+        if (impl_->unix_listener) impl_->unix_listener->stop();
         impl_->manager->shutdown();
         impl_->server->Shutdown(std::chrono::system_clock::now() +
                                 std::chrono::milliseconds(static_cast<int64_t>(deadline_s * 1e3)));

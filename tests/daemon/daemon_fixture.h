@@ -135,10 +135,17 @@ private:
     std::unique_ptr<DaemonServer> server_;
 };
 
+// The token every context() shows, when a test's daemon asks for one.
+inline std::string& testToken() {
+    static std::string token;
+    return token;
+}
+
 inline std::unique_ptr<grpc::ClientContext> context(const std::string& client = "test",
                                                     double deadline_s = 60.0) {
     auto ctx = std::make_unique<grpc::ClientContext>();
     ctx->AddMetadata("flarelab-client", client);
+    if (!testToken().empty()) ctx->AddMetadata("authorization", "Bearer " + testToken());
     ctx->set_deadline(std::chrono::system_clock::now() +
                       std::chrono::milliseconds(static_cast<int64_t>(deadline_s * 1e3)));
     return ctx;
