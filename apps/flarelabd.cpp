@@ -1,7 +1,9 @@
 // flarelabd: the daemon that owns the rig and runs sweeps as jobs (daemon/, proto/daemon.proto).
 //
-//     flarelabd --state-dir DIR [--output-root DIR] [--listen HOST:PORT [--allow-remote]]
-//               [--token-file FILE] [--no-resume] [--camera-retries N] [--min-free-mb N]
+//     flarelabd --state-dir DIR [--output-root DIR]
+//               [--listen HOST:PORT --token-file FILE [--allow-remote --tls-cert F --tls-key F]]
+//               [--no-resume] [--camera-retries N] [--min-free-mb N]
+//               [--keep-ended-jobs N] [--keep-ended-days D]
 //               [--camera URI ...] [--head URI ...] | [--replay RECORDED_SWEEP]
 //
 // Without --camera and --head every job runs on the simulated rig its config describes; with
@@ -10,23 +12,38 @@
 // that comes and goes between jobs needs no restart.
 //
 // It keeps its journal in DIR/jobs, listens on DIR/flarelabd.sock (mode 0660), holds
-// DIR/flarelabd.lock so that one daemon owns a rig, and stops cleanly on SIGTERM or SIGINT: a
-// running job stops at its next frame, every captured frame is written, and the job is resumed at
-// the next start.
+// DIR/flarelabd.lock so that one daemon owns a rig, and refuses a DIR that is not its own (owned
+// by another user, or writable by group or others: created 0750 when missing). It stops cleanly
+// on SIGTERM or SIGINT: the rig stops at once (head stopped, exposure aborted; the bracket under
+// way is not a frame and is taken again), every frame already captured is written, and the job is
+// resumed at the next start. A second SIGTERM drops the captured frames not yet written too (they
+// are taken again; nothing on disk is lost) and stops a fit.
+//
+// Under systemd (flarelabd.service) it says READY=1 once it listens, WATCHDOG=1 at half the
+// unit's WatchdogSec, STOPPING=1 when it stops (daemon/notify.h), and logs to the journal.
+//
+// Exit status: 0 after a clean stop, 1 when it cannot start (state directory, lock, socket,
+// journal), 2 for flags that do not go together.
 #include <fcntl.h>
 #include <signal.h>
 #include <sys/file.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
+#include <atomic>
+#include <chrono>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
 #include <sstream>
+#include <thread>
 
 #include "common/file_descriptor.h"
+#include "daemon/access.h"
 #include "daemon/job_manager.h"
 #include "daemon/log.h"
+#include "daemon/notify.h"
 #include "daemon/service.h"
 #include "daemon/sweep_runner.h"
 #include "drivers/device.h"
@@ -38,17 +55,19 @@ namespace fs = std::filesystem;
 using namespace flarelab;
 using namespace flarelab::daemon;
 
-bool isLoopback(const std::string& address) {
-    const auto colon = address.rfind(':');
-    const std::string host = colon == std::string::npos ? address : address.substr(0, colon);
-    return host == "localhost" || host == "127.0.0.1" || host == "[::1]" ||
-           host.rfind("127.", 0) == 0;
+timespec toTimespec(std::chrono::nanoseconds d) {
+    return timespec{static_cast<time_t>(d.count() / 1'000'000'000),
+                    static_cast<long>(d.count() % 1'000'000'000)};
 }
 
 int run(int argc, char** argv) {
     settleAllocator();
+    setLogTarget(detectLogTarget());
     CLI::App app{"flarelabd: the flarelab rig daemon (sweeps as jobs, over gRPC)"};
     std::string state_dir, output_root, listen, token_file, replay, log_level = "info";
+    std::string tls_cert, tls_key;
+    size_t keep_ended_jobs = 100;
+    double keep_ended_days = 30.0;
     std::vector<std::string> cameras, heads;
     bool no_resume = false, allow_remote = false;
     int camera_retries = 3, head_retries = 2;
@@ -59,11 +78,23 @@ int run(int argc, char** argv) {
     app.add_option("--output-root", output_root,
                    "every sweep directory lies below it (default: STATE_DIR/output)");
     app.add_option("--listen", listen,
-                   "also listen on TCP at HOST:PORT (loopback unless "
-                   "--allow-remote)");
-    app.add_flag("--allow-remote", allow_remote, "let --listen bind an address beyond loopback");
+                   "also listen on TCP at HOST:PORT (loopback unless --allow-remote; needs "
+                   "--token-file)");
+    app.add_flag("--allow-remote", allow_remote,
+                 "let --listen bind an address beyond loopback (needs --tls-cert and --tls-key)");
+    app.add_option("--tls-cert", tls_cert, "TLS certificate chain for --listen (PEM)");
+    app.add_option("--tls-key", tls_key, "its private key (PEM, mode 600)");
     app.add_option("--token-file", token_file,
-                   "ask every call for this shared token (metadata authorization: Bearer TOKEN)");
+                   "ask every call for this shared token (metadata authorization: Bearer TOKEN); "
+                   "first line of a file of mode 600");
+    app.add_option("--keep-ended-jobs", keep_ended_jobs,
+                   "ended jobs remembered (job list, the journal); their sweeps stay on disk")
+        ->check(CLI::Range(size_t{0}, size_t{100000}))
+        ->capture_default_str();
+    app.add_option("--keep-ended-days", keep_ended_days,
+                   "days an ended job is remembered after it ended")
+        ->check(CLI::Range(0.0, 36500.0))
+        ->capture_default_str();
     app.add_option("--replay", replay,
                    "drive a recorded sweep played back instead of the simulated rig");
     app.add_option("--camera", cameras,
@@ -96,19 +127,47 @@ int run(int argc, char** argv) {
         std::cerr << "flarelabd: --log-level must be debug, info, warn or error\n";
         return 2;
     }
-    if (!listen.empty() && !allow_remote && !isLoopback(listen)) {
-        std::cerr << "flarelabd: --listen " << listen
-                  << " is not a loopback address; add --allow-remote to expose the rig\n";
+    if (!listen.empty()) {
+        if (allow_remote && (tls_cert.empty() || tls_key.empty())) {
+            std::cerr << "flarelabd: --allow-remote needs TLS (--tls-cert and --tls-key): the "
+                         "token would cross the network in clear\n";
+            return 2;
+        }
+        if (!allow_remote)
+            if (Status ok = checkLoopbackAddress(listen); !ok) {
+                std::cerr << "flarelabd: --listen " << ok.error().message
+                          << "; add --allow-remote (with --tls-cert and --tls-key) to expose "
+                             "the rig\n";
+                return 2;
+            }
+        if (token_file.empty()) {
+            std::cerr << "flarelabd: --listen needs --token-file: every local user can reach a "
+                         "TCP port\n";
+            return 2;
+        }
+    } else if (allow_remote || !tls_cert.empty() || !tls_key.empty()) {
+        std::cerr << "flarelabd: --allow-remote, --tls-cert and --tls-key go with --listen\n";
         return 2;
     }
     std::error_code ec;
-    fs::create_directories(state_dir, ec);
+    // Made private: the journal, the lock and the socket live here. The parents as the umask
+    // says; the directory itself 0750 (the group reaches the socket through g+x).
+    if (!fs::exists(state_dir, ec)) {
+        fs::create_directories(fs::path(state_dir).lexically_normal().parent_path(), ec);
+        if (::mkdir(state_dir.c_str(), 0750) != 0 && errno != EEXIST) {
+            std::cerr << "flarelabd: --state-dir " << state_dir << ": " << osMessage(errno) << "\n";
+            return 1;
+        }
+    }
     const fs::path state = fs::canonical(state_dir, ec);
     if (ec) {
         std::cerr << "flarelabd: --state-dir " << state_dir << ": " << ec.message() << "\n";
         return 1;
     }
-    ::chmod(state.c_str(), 0770);
+    if (Status ok = checkPrivateDirectory(state.string(), "--state-dir"); !ok) {
+        std::cerr << "flarelabd: " << ok.error().message << "\n";
+        return 1;
+    }
     if (output_root.empty()) output_root = (state / "output").string();
     fs::create_directories(output_root, ec);
     const fs::path root = fs::canonical(output_root, ec);
@@ -118,18 +177,35 @@ int run(int argc, char** argv) {
     }
     std::string token;
     if (!token_file.empty()) {
-        std::ifstream in(token_file);
-        if (!in || !std::getline(in, token) || token.size() < 16) {
+        auto text = readSecretFile(token_file, "--token-file");
+        if (!text) {
+            std::cerr << "flarelabd: " << text.error().message << "\n";
+            return 1;
+        }
+        token = text->substr(0, text->find('\n'));
+        if (!token.empty() && token.back() == '\r') token.pop_back();
+        if (token.size() < 16) {
             std::cerr << "flarelabd: --token-file " << token_file
                       << ": cannot read a token of at least 16 characters from its first line\n";
             return 1;
         }
     }
 
-    // One daemon per state directory: the lock is held for the daemon's life.
+    // One daemon per state directory: the lock is held for the daemon's life. Never through a
+    // link: it could point at a file of someone else's that the daemon would truncate.
     const std::string lock_path = (state / "flarelabd.lock").string();
-    FileDescriptor lock(::open(lock_path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0660));
-    if (!lock.valid() || ::flock(lock.get(), LOCK_EX | LOCK_NB) != 0) {
+    FileDescriptor lock(
+        ::open(lock_path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC | O_NOFOLLOW | O_NONBLOCK, 0640));
+    struct stat lock_info {};
+    if (!lock.valid() || ::fstat(lock.get(), &lock_info) != 0 || !S_ISREG(lock_info.st_mode)) {
+        std::cerr << "flarelabd: " << lock_path << ": "
+                  << (!lock.valid() && errno == ELOOP ? std::string("a symbolic link; remove it")
+                      : !lock.valid()                 ? osMessage(errno)
+                                                      : std::string("not a regular file"))
+                  << "\n";
+        return 1;
+    }
+    if (::flock(lock.get(), LOCK_EX | LOCK_NB) != 0) {
         std::ifstream in(lock_path);
         std::string pid;
         std::getline(in, pid);
@@ -158,6 +234,8 @@ int run(int argc, char** argv) {
     options.runner.head_retries = head_retries;
     options.runner.min_free_bytes = min_free_mb << 20;
     options.runner.software_version = "flarelabd 0.1.0";
+    options.keep_ended = keep_ended_jobs;
+    options.keep_ended_s = keep_ended_days * 86400.0;
     ServerOptions server_options;
     if (!replay.empty() && (!cameras.empty() || !heads.empty())) {
         std::cerr
@@ -214,6 +292,9 @@ int run(int argc, char** argv) {
     }
     server_options.socket_path = (state / "flarelabd.sock").string();
     server_options.tcp_address = listen;
+    server_options.allow_remote = allow_remote;
+    server_options.tls_cert_file = tls_cert;
+    server_options.tls_key_file = tls_key;
     server_options.service.token = token;
     server_options.service.daemon_version = "flarelabd 0.1.0";
     auto server = DaemonServer::start(**manager, server_options);
@@ -221,18 +302,64 @@ int run(int argc, char** argv) {
         std::cerr << "flarelabd: " << server.error().message << "\n";
         return 1;
     }
+    const auto watchdog = watchdogInterval();
     logEvent(LogLevel::Info, "daemon.ready",
              {{"pid", std::to_string(::getpid())},
               {"state_dir", state.string()},
               {"output_root", root.string()},
-              {"resume", no_resume ? "off" : "on"}});
-    int signal_number = 0;
-    sigwait(&signals, &signal_number);
+              {"resume", no_resume ? "off" : "on"},
+              {"watchdog_s", std::to_string(watchdog.count() * 1e-6)}});
+    notifyReady("listening on " + server_options.socket_path);
+
+    // Signals, and the watchdog's pings at half its interval. A ping follows a look at the job
+    // manager under its lock: a daemon stuck there (which must never be: no I/O happens under
+    // it) stops pinging, and systemd restarts it.
+    const auto slice = watchdog.count() > 0 ? std::chrono::nanoseconds(watchdog) / 2
+                                            : std::chrono::nanoseconds(std::chrono::seconds(1));
+    const auto waitSignal = [&](std::chrono::nanoseconds wait) {
+        const timespec t = toTimespec(wait);
+        return sigtimedwait(&signals, nullptr, &t);
+    };
+    int signal_number = -1;
+    while (signal_number <= 0) {
+        signal_number = waitSignal(slice);
+        if (signal_number <= 0 && watchdog.count() > 0) {
+            (void)(*manager)->runningJob();
+            notifyWatchdog();
+        }
+    }
     logEvent(LogLevel::Info, "daemon.stopping", {{"signal", strsignal(signal_number)}});
-    (*server)->shutdown();
+    notifyStopping("stopping: the rig stops, captured frames are written");
+    // The stop runs beside this thread, which stays on the signals: a second one hurries it.
+    std::atomic<bool> stopped{false};
+    std::thread stopper([&] {
+        (*server)->shutdown();
+        stopped = true;
+    });
+    bool hurried = false;
+    auto next_ping = std::chrono::steady_clock::now();
+    while (!stopped) {
+        const int again = waitSignal(std::chrono::milliseconds(100));
+        if (again > 0 && !hurried) {
+            hurried = true;
+            logEvent(LogLevel::Warn, "daemon.stopping_now",
+                     {{"signal", strsignal(again)},
+                      {"what",
+                       "captured frames not yet written are dropped; the job takes them "
+                       "again when it resumes"}});
+            notifyStatus("stopping now: captured frames not yet written are dropped");
+            (*manager)->stopNow();
+        }
+        if (watchdog.count() > 0 && std::chrono::steady_clock::now() >= next_ping) {
+            notifyWatchdog();
+            next_ping = std::chrono::steady_clock::now() + slice;
+        }
+    }
+    stopper.join();
     server->reset();
     manager->reset();
     logEvent(LogLevel::Info, "daemon.stopped");
+    flushLog(2.0);
     return 0;
 }
 

@@ -15,6 +15,9 @@ packages=(
     python3 python3-grpcio python3-protobuf python3-grpc-tools
     # devices
     libaravis-dev libcamera-dev libusb-1.0-0-dev libv4l-dev
+    # flarelabd as a service: sd_notify (Type=notify, the watchdog); systemd-analyze, sysusers
+    # and tmpfiles check the unit and its files in the tests
+    libsystemd-dev systemd
     # Aravis's fake GigE Vision camera (tests/aravis) and arv-tool-0.8 (docs: the lab procedure)
     aravis-tools aravis-tools-cli
     # the V4L2 test in a VM (scripts/vivid_test.sh): qemu, a static busybox for its initramfs,
