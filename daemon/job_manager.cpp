@@ -296,7 +296,11 @@ void JobManager::record() {
     std::unique_lock lock(mutex_);
     for (;;) {
         outbox_cv_.wait(lock, [&] { return !outbox_.empty() || recorder_stop_; });
-        if (outbox_.empty()) return;  // stopping, and everything is written
+        if (outbox_.empty()) {  // stopping, and everything is written
+            recorder_done_ = true;
+            changed_cv_.notify_all();
+            return;
+        }
         std::deque<Outgoing> batch;
         batch.swap(outbox_);
         recording_ = true;
@@ -349,7 +353,13 @@ Status JobManager::waitRecorded(std::unique_lock<std::mutex>& lock,
     changed_cv_.wait(lock, [&] {
         const auto it = jobs_.find(number);
         if (it == jobs_.end()) return true;
-        if (it->second.attempted < version) return false;
+        if (it->second.attempted < version) {
+            if (!recorder_done_) return false;
+            status =
+                Status(StatusCode::UNAVAILABLE, "the daemon stopped before " + it->second.job.id() +
+                                                    "'s change was written");
+            return true;
+        }
         if (it->second.recorded < version)
             status = Status(StatusCode::UNAVAILABLE, "the journal could not record " +
                                                          it->second.job.id() + ": " +
@@ -671,6 +681,7 @@ Status JobManager::mayControl(const v1::JobControlRequest& request,
 Status JobManager::pause(const v1::JobControlRequest& request, const Caller& client, v1::Job* job) {
     std::unique_lock lock(mutex_);
     Entry* e = nullptr;
+    if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
     if (Status ok = mayControl(request, client, "pause", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state != v1::QUEUED && state != v1::RUNNING && state != v1::PAUSED)
@@ -693,6 +704,7 @@ Status JobManager::resume(const v1::JobControlRequest& request,
                           v1::Job* job) {
     std::unique_lock lock(mutex_);
     Entry* e = nullptr;
+    if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
     if (Status ok = mayControl(request, client, "resume", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state != v1::RUNNING && state != v1::QUEUED) {
@@ -711,6 +723,7 @@ Status JobManager::cancel(const v1::JobControlRequest& request,
                           v1::Job* job) {
     std::unique_lock lock(mutex_);
     Entry* e = nullptr;
+    if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
     if (Status ok = mayControl(request, client, "cancel", &e); !ok.ok()) return ok;
     if (ended(e->job))
         return Status(StatusCode::FAILED_PRECONDITION, "cancel " + e->job.id() + ": the job is " +

@@ -26,7 +26,7 @@
 //     pause resume       pause resume (a client), or a fault the job could not ride out
 //       ▼  │               ▼  │
 //      PAUSED ◄────────── PAUSED
-//     cancel: any unfinished state ──► CANCELLED (a running job at its next frame)
+//     cancel: any unfinished state ──► CANCELLED (a running job once its rig has stopped, at once)
 //     the daemon stops under a running job ──► INTERRUPTED; at the next start it is QUEUED again
 //     (resumed where its sweep on disk ends) unless the daemon runs with resume off, when a
 //     client's resume queues it.
@@ -227,6 +227,7 @@ private:
     bool shutting_down_ = false;
     bool stop_now_ = false;
     bool recorder_stop_ = false;
+    bool recorder_done_ = false;  // the journal's thread has ended: nothing more is written
     std::thread worker_, fitter_, recorder_;
 };
 

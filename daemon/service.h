@@ -72,7 +72,7 @@ public:
     static Result<std::unique_ptr<DaemonServer>> start(JobManager& manager,
                                                        const ServerOptions& options);
     ~DaemonServer();
-    // Stops the job manager (a running job is interrupted at its next frame, watchers are told),
+    // Stops the job manager (a running job is interrupted at once, watchers are told),
     // then the server, waiting at most `deadline_s` for calls in flight. Idempotent.
     void shutdown(double deadline_s = 5.0);
     // The TCP port when listening on TCP (the one chosen when the address asked for port 0).

@@ -115,7 +115,10 @@ public:
     RigStopper(JobControl& control,
                std::shared_ptr<drivers::Head> head,
                std::shared_ptr<drivers::Camera> camera)
-        : control_(control), head_(std::move(head)), camera_(std::move(camera)) {
+        : control_(control),
+          head_(std::move(head)),
+          camera_(std::move(camera)),
+          camera_uri_(camera_->identity().uri) {
         thread_ = std::jthread([this](std::stop_token done) { run(done); });
         control_.setStopHook([this] {
             {
@@ -137,7 +140,8 @@ private:
         if (!wake_.wait(lock, done, [&] { return stop_; })) return;
         lock.unlock();
         camera_->abort();
-        logEvent(LogLevel::Info, "sweep.rig_stopping", {{"camera", camera_->identity().uri}});
+        // (Nothing else of the camera here: it is the capture thread's but for abort().)
+        logEvent(LogLevel::Info, "sweep.rig_stopping", {{"camera", camera_uri_}});
         while (!done.stop_requested()) {
             (void)head_->stop();
             lock.lock();
@@ -149,6 +153,7 @@ private:
     JobControl& control_;
     const std::shared_ptr<drivers::Head> head_;
     const std::shared_ptr<drivers::Camera> camera_;
+    const std::string camera_uri_;
     std::mutex mutex_;
     std::condition_variable_any wake_;
     bool stop_ = false;

@@ -30,7 +30,13 @@
 // device again; a setting the device refuses (out of range) fails the job. Too little free disk
 // space (below min_free_bytes plus a frame), or a write that fails, ends the job as failed, with
 // every frame written before it intact. Whatever was captured when a job stops (cancel, shutdown,
-// failure of a later stage) is still merged and written.
+// failure of a later stage) is still merged and written, unless the daemon must stop at once
+// (JobControl::dropUnwritten).
+//
+// Stopping. A stop takes effect at once, not at the next frame: the head is stopped (again every
+// 0.1 s until the capture ends, so that a move that begins just after is stopped too) and the
+// exposure under way is aborted (Camera::abort); the bracket it belonged to is not a frame, and a
+// resumed job takes that frame again from its first exposure.
 #pragma once
 
 #include <atomic>

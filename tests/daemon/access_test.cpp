@@ -211,21 +211,39 @@ TEST(Access, ControlNeedsTheSameNameFromTheSamePeer) {
     testToken().clear();
 }
 
-TEST(Access, TheSocketIsBoundPrivatelyAndTheUmaskIsLeftAlone) {
+TEST(Access, TheSocketIsBoundPrivatelyAndTheUmaskIsLeftAloneForTheOtherThreads) {
     TempDir dir;
+    // Another thread makes directories all along the server's start: the umask is the
+    // process's, so a daemon that changes it to set its socket's mode changes theirs too.
     const mode_t before = ::umask(0022);
-    Daemon daemon(dir.path);
-    const mode_t during = ::umask(0022);
-    ::umask(before);
-    EXPECT_EQ(during, 0022u);
+    std::atomic<bool> starting{true};
+    std::atomic<int> made{0}, wrong{0};
+    std::thread other([&] {
+        const std::string probe = dir.path + "/probe";
+        while (starting) {
+            if (::mkdir(probe.c_str(), 0777) != 0) continue;
+            struct stat s {};
+            if (::stat(probe.c_str(), &s) == 0 && (s.st_mode & 0777) != 0755) ++wrong;
+            ++made;
+            ::rmdir(probe.c_str());
+        }
+    });
+    // Several starts: the window of a umask changed around the socket's creation is short.
+    for (int i = 0; i < 9; ++i) Daemon(dir.path + "/state-" + std::to_string(i)).stop();
+    auto daemon = std::make_unique<Daemon>(dir.path + "/state");
+    starting = false;
+    other.join();
+    EXPECT_EQ(::umask(before), 0022u);
+    EXPECT_GT(made.load(), 0);
+    EXPECT_EQ(wrong.load(), 0) << "directories made during the start had another mode";
     struct stat s {};
-    ASSERT_EQ(::stat(daemon.socket.c_str(), &s), 0);
+    ASSERT_EQ(::stat(daemon->socket.c_str(), &s), 0);
     EXPECT_TRUE(S_ISSOCK(s.st_mode));
     EXPECT_EQ(s.st_mode & 0777, 0660u);
-    for (const auto& entry : fs::directory_iterator(dir.path))
+    for (const auto& entry : fs::directory_iterator(dir.path + "/state"))
         EXPECT_NE(entry.path().filename().string().rfind(".s-", 0), 0u)
             << "the private directory was left: " << entry.path();
-    auto stub = daemon.stub();
+    auto stub = daemon->stub();
     v1::RigDescription rig;
     auto ctx = context();
     EXPECT_TRUE(stub->DescribeRig(ctx.get(), {}, &rig).ok());

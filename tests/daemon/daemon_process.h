@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdlib>
 #include <optional>
 #include <string>
 #include <thread>
@@ -20,7 +21,12 @@ extern char** environ;
 
 namespace flarelab::daemon::testing {
 
-inline std::string flarelabdPath() { return std::string(FLARELAB_BINARY_DIR) + "/apps/flarelabd"; }
+// This build's flarelabd; FLARELABD_UNDER_TEST names another (to run these tests against an
+// older daemon, and see them fail).
+inline std::string flarelabdPath() {
+    if (const char* other = std::getenv("FLARELABD_UNDER_TEST"); other && *other) return other;
+    return std::string(FLARELAB_BINARY_DIR) + "/apps/flarelabd";
+}
 
 struct FlarelabdProcess {
     pid_t pid = -1;

@@ -49,7 +49,8 @@ TEST(Systemd, TheUnitPassesSystemdAnalyzeVerify) {
     EXPECT_EQ(output, "");
     const std::string text = readText(unit);
     EXPECT_NE(text.find("Type=notify"), std::string::npos);
-    EXPECT_NE(text.find("ExecStart=" + flarelabdPath() + " --state-dir /var/lib/flarelab"),
+    EXPECT_NE(text.find("ExecStart=" + std::string(FLARELAB_BINARY_DIR) +
+                        "/apps/flarelabd --state-dir /var/lib/flarelab"),
               std::string::npos);
 }
 
