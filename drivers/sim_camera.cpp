@@ -596,9 +596,8 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
 Result<SimCameraSetup> simCameraSetup(const DeviceUri& uri,
                                       const SimCameraOptions& defaults,
                                       const std::optional<optics::Lens>& lens) {
-    if (Status ok =
-            uri.onlyParams({"lens", "width", "height", "bits", "seed", "format", "angle_deg",
-                            "response", "cap"});
+    if (Status ok = uri.onlyParams(
+            {"lens", "width", "height", "bits", "seed", "format", "angle_deg", "response", "cap"});
         !ok)
         return ok.error();
     SimCameraOptions options = defaults;

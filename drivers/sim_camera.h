@@ -130,10 +130,10 @@ struct SimCameraOptions {
     double readout_s = 0.03;       // >= 0, rig time per frame after the exposure
     double fixed_angle_deg = 0.0;  // the light's angle when no head is attached
     SimResponse response = SimResponse::Linear;
-    double response_gamma = 2.2;        // > 0, for SimResponse::Gamma
+    double response_gamma = 2.2;         // > 0, for SimResponse::Gamma
     double response_log_range = 1000.0;  // a > 0, for SimResponse::Log
-    bool lens_capped = false;           // no light and no background (see the top of this file)
-    int cache_angles = 4;          // rendered angles kept, >= 1
+    bool lens_capped = false;            // no light and no background (see the top of this file)
+    int cache_angles = 4;                // rendered angles kept, >= 1
     uint64_t seed = 1;
     render::SceneOptions render = simRenderDefaults();  // width and height are taken from above
     SimCameraFaults faults;
