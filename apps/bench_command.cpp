@@ -7,6 +7,7 @@
 #include "bench/fit_bench.h"
 #include "bench/merge_bench.h"
 #include "bench/render_bench.h"
+#include "bench/response_bench.h"
 
 namespace flarelab::apps {
 
@@ -137,6 +138,53 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             file << bench::fitBenchJson(*report) << "\n";
             if (!file) {
                 err << "flarelab: cannot write " << *fit_json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+
+    auto response_options = std::make_shared<bench::ResponseBenchOptions>();
+    auto response_json_path = std::make_shared<std::string>();
+    CLI::App* response = bench->add_subcommand(
+        "response",
+        "camera response recovery (flarelab calibrate) against OpenCV's CalibrateDebevec and "
+        "CalibrateRobertson, on the simulated camera with a known curve");
+    response
+        ->add_option("--curve", response_options->curves,
+                     "curves to recover: linear, gamma:G, log:A (repeat)")
+        ->capture_default_str();
+    response->add_option("--seed", response_options->seeds, "noise seeds (repeat)")
+        ->capture_default_str();
+    response->add_option("--lens", response_options->lens_file,
+                         "the simulated camera's lens (default: "
+                         "data/lenses/heliar-tronnier.csv)");
+    response->add_option("--angle-deg", response_options->angle_deg, "the light's angle")
+        ->capture_default_str();
+    response->add_option("--width", response_options->width, "frame width")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    response->add_option("--height", response_options->height, "frame height")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    response->add_option("--stops", response_options->stops, "stops below the clip level scored")
+        ->capture_default_str();
+    response->add_flag("!--no-opencv", response_options->opencv, "skip OpenCV's calibrations");
+    response->add_option("--json", *response_json_path, "also write the results as JSON here");
+    response->callback([response_options, response_json_path, &out, &err, &exit_code] {
+        auto rows = bench::runResponseBench(*response_options, err);
+        if (!rows) {
+            err << "flarelab: " << rows.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printResponseBench(*rows, out);
+        if (!response_json_path->empty()) {
+            std::ofstream file(*response_json_path);
+            file << bench::responseBenchJson(*rows).dump(2) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *response_json_path << "\n";
                 exit_code = 1;
                 return;
             }

@@ -228,8 +228,11 @@ TEST(ApplyCalibration, RepairsHotPixelsFromNeighboursOfTheirColour) {
                                100 + 26, 100 + 27, 100 + 28};
     std::sort(around.begin(), around.end());
     EXPECT_EQ(out->samples[2 * 8 + 3], around[3]);
-    for (size_t i = 0; i < f.samples.size(); ++i)
-        if (i != 2 * 8 + 3 && i != 2 * 8 + 4) EXPECT_EQ(out->samples[i], f.samples[i]);
+    for (size_t i = 0; i < f.samples.size(); ++i) {
+        if (i != 2 * 8 + 3 && i != 2 * 8 + 4) {
+            EXPECT_EQ(out->samples[i], f.samples[i]);
+        }
+    }
 
     // Bayer RGGB: a red pixel takes red neighbours only (distance 2), a green one greens.
     CameraCalibration bayer = sample(true);
