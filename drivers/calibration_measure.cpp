@@ -799,32 +799,47 @@ Result<ResponseCurve> recoverResponse(const std::vector<std::vector<double>>& ob
         }
     }
 
-    // How well it explains the data: each pixel's best log exposure, then the residuals.
+    // How well it explains the data: each pixel's best log exposure, then the residuals in log
+    // exposure over the curve's range, each weighted by its precision there (the inverse of
+    // var(z) g'(z)^2) when the noise is known, so that the noisy foot does not hide a misfit
+    // and does not pass for one.
     const auto curveAt = [&](double z) {
         const auto [k, f] = bracketOf(knots, z);
         return (1.0 - f) * g[k] + f * g[k + 1];
     };
-    double r2 = 0.0;
-    int64_t r_count = 0;
+    const double span_h = 0.02 * (knots.back() - knots.front());
+    const auto precision = [&](double z) {
+        if (!variance_of) return 1.0;
+        const double lo = std::max(knots.front(), z - span_h);
+        const double hi = std::min(knots.back(), z + span_h);
+        const double slope = hi > lo ? (curveAt(hi) - curveAt(lo)) / (hi - lo) : 0.0;
+        return 1.0 / (slope * slope * std::max(1e-3, variance_of(z)) + 1e-8);
+    };
+    const auto inRange = [&](double z) {
+        return usable(z) && z >= knots.front() && z <= knots.back();
+    };
+    double r2 = 0.0, w_sum = 0.0;
     for (const size_t i : pixels) {
-        double e = 0.0;
-        int used = 0;
+        double e = 0.0, w_pixel = 0.0;
         for (size_t j = 0; j < levels; ++j)
-            if (usable(obs[i][j])) {
-                e += curveAt(obs[i][j]) - log_t[j];
-                ++used;
+            if (inRange(obs[i][j])) {
+                const double w = precision(obs[i][j]);
+                e += w * (curveAt(obs[i][j]) - log_t[j]);
+                w_pixel += w;
             }
-        e /= used;
+        if (!(w_pixel > 0.0)) continue;
+        e /= w_pixel;
         for (size_t j = 0; j < levels; ++j)
-            if (usable(obs[i][j])) {
+            if (inRange(obs[i][j])) {
                 const double r = curveAt(obs[i][j]) - e - log_t[j];
-                r2 += r * r;
-                ++r_count;
+                const double w = precision(obs[i][j]);
+                r2 += w * r * r;
+                w_sum += w;
             }
     }
 
     ResponseCurve curve;
-    curve.rms_error_stops = std::sqrt(r2 / static_cast<double>(r_count)) / std::log(2.0);
+    curve.rms_error_stops = w_sum > 0.0 ? std::sqrt(r2 / w_sum) / std::log(2.0) : 0.0;
     // Below the first knot the data is noise: the curve goes on as the power law
     // X ~ (z - black)^p whose exponent it has near its foot (1 for a linear foot, 2.2 all along
     // a gamma curve, falling towards 1 down a logarithmic one), down to 1 DN above black; the

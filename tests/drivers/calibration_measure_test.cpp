@@ -224,6 +224,13 @@ TEST(CalibrationMeasure, AMovingLogarithmicPatternIsNotSteadyAndNotLinear) {
     ASSERT_TRUE(c) << c.error().message;
     EXPECT_FALSE(c->linear);
     EXPECT_EQ(c->electrons_per_dn, 0.0);  // no pairs of a moving pattern
+    // Its brightness is not a function of exposure alone (the ramp's value multiplies the
+    // logarithm of the exposure), and the calibration says so.
+    EXPECT_GT(c->response_curve->rms_error_stops, 0.1);
+    bool said = false;
+    for (const std::string& note : c->notes)
+        said = said || note.find("not a function of exposure alone") != std::string::npos;
+    EXPECT_TRUE(said);
 }
 
 TEST(CalibrationMeasure, RefusesDarkFramesThatSeeLight) {
