@@ -145,6 +145,20 @@ TEST(CalibrationFile, RefusesBadFilesNamingTheField) {
     }
 }
 
+// The fuzz corpus's seeds: those named bad-* are refused, the others read.
+TEST(CalibrationFile, FuzzSeedsReadAsTheirNamesSay) {
+    int seeds = 0;
+    for (const auto& entry :
+         fs::directory_iterator(std::string(FLARELAB_SOURCE_DIR) + "/fuzz/corpus/calibration")) {
+        const std::string name = entry.path().filename().string();
+        auto read = readCalibration(entry.path().string());
+        EXPECT_EQ(read.has_value(), name.rfind("bad-", 0) != 0)
+            << name << ": " << (read ? "read" : read.error().message);
+        ++seeds;
+    }
+    EXPECT_GE(seeds, 10);
+}
+
 TEST(CalibrationFile, AFailedWriteLeavesTheOldFile) {
     const std::string dir = temporaryDirectory();
     const std::string path = dir + "/camera.cal.json";
