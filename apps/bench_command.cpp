@@ -4,6 +4,7 @@
 #include <memory>
 #include <ostream>
 
+#include "bench/bracket_bench.h"
 #include "bench/fit_bench.h"
 #include "bench/merge_bench.h"
 #include "bench/render_bench.h"
@@ -185,6 +186,86 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             file << bench::responseBenchJson(*rows).dump(2) << "\n";
             if (!file) {
                 err << "flarelab: cannot write " << *response_json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+
+    auto bracket_options = std::make_shared<bench::BracketBenchOptions>();
+    auto bracket_json_path = std::make_shared<std::string>();
+    auto bracket_fixed = std::make_shared<std::vector<double>>(bracket_options->fixed_s);
+    CLI::App* bracket = bench->add_subcommand(
+        "bracket",
+        "auto-bracketing against fixed brackets on the simulated rig, every lens, scored along "
+        "the sweep against the simulator's truth");
+    bracket->add_option("--lens", bracket_options->lens_files,
+                        "lens files (repeat; default: every *.csv in --lens-dir)");
+    bracket->add_option("--lens-dir", bracket_options->lens_dir, "where the lenses are")
+        ->capture_default_str();
+    bracket->add_option("--f-number", bracket_options->f_number,
+                        "working f-number of every lens (default: each file's)");
+    bracket
+        ->add_option("--from", bracket_options->first_angles_deg,
+                     "first angles of the sweeps, deg (repeat)")
+        ->capture_default_str();
+    bracket
+        ->add_option("--offset", bracket_options->sweep_offsets_deg,
+                     "angles after the first where the plan is scored, deg (repeat)")
+        ->capture_default_str();
+    bracket->add_option("--seed", bracket_options->seeds, "noise seeds (repeat)")
+        ->capture_default_str();
+    bracket->add_option("--width", bracket_options->width, "frame width")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    bracket->add_option("--height", bracket_options->height, "frame height")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    bracket->add_option("--min-exposure", bracket_options->min_exposure_s,
+                        "the simulated camera's shortest exposure, s (default: its own, 1e-5)");
+    bracket
+        ->add_option("--floor-headroom", bracket_options->plan.floor_headroom,
+                     "aim at a floor this many times dimmer than the first angle's")
+        ->capture_default_str();
+    bracket->add_option("--fixed", *bracket_fixed, "the fixed bracket compared with, s")
+        ->delimiter(',')
+        ->capture_default_str();
+    bracket
+        ->add_option("--core-level", bracket_options->plan.core_level,
+                     "the core's peak in the shortest exposure, of the range")
+        ->capture_default_str();
+    bracket
+        ->add_option("--floor-snr", bracket_options->plan.floor_snr,
+                     "the floor's signal-to-noise ratio in the longest exposure")
+        ->capture_default_str();
+    bracket
+        ->add_option("--floor-percentile", bracket_options->plan.floor_percentile,
+                     "the scene's dark level, as a fraction of the pixels")
+        ->capture_default_str();
+    bracket
+        ->add_option("--max-ratio", bracket_options->plan.max_ratio,
+                     "most ratio between neighbouring exposures")
+        ->capture_default_str();
+    bracket
+        ->add_option("--budget", bracket_options->plan.budget_s,
+                     "most exposure time of one bracket, s")
+        ->capture_default_str();
+    bracket->add_option("--json", *bracket_json_path, "also write the results as JSON here");
+    bracket->callback([bracket_options, bracket_fixed, bracket_json_path, &out, &err, &exit_code] {
+        bracket_options->fixed_s = *bracket_fixed;
+        auto rows = bench::runBracketBench(*bracket_options, err);
+        if (!rows) {
+            err << "flarelab: " << rows.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printBracketBench(*rows, *bracket_options, out);
+        if (!bracket_json_path->empty()) {
+            std::ofstream file(*bracket_json_path);
+            file << bench::bracketBenchJson(*rows).dump(2) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *bracket_json_path << "\n";
                 exit_code = 1;
                 return;
             }
