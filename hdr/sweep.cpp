@@ -844,7 +844,9 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
     return SweepWriter(std::move(sweep), std::move(options), std::move(lock));
 }
 
-Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image, SweepFrame frame) {
+Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image,
+                                         SweepFrame frame,
+                                         const ExrStandardAttributes& standard) {
     const std::string& directory = sweep_.directory;
     const std::string manifest = manifestPath(directory);
     const size_t index = sweep_.frames.size();
@@ -904,6 +906,10 @@ Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image, SweepFra
     meta.lens = sweep_.header.lens.description;
     meta.merge_method = frame.merge_method;
     meta.software_version = sweep_.header.software_version;
+    meta.standard = standard;
+    if (!meta.standard.aperture && sweep_.header.lens.f_number)
+        meta.standard.aperture = *sweep_.header.lens.f_number;
+    if (!meta.standard.exp_time_s) meta.standard.exp_time_s = 1.0;
     if (auto written = writeExr(path, image, meta, options_.exr); !written)
         return written.error().withContext(context);
     if (options_.after_frame_written) options_.after_frame_written();

@@ -240,7 +240,14 @@ public:
     // manifest cannot be replaced, the new EXR is removed again and the sweep stays as it was.
     // (The existence check and the write are not one atomic step: the directory lock keeps other
     // SweepWriters out, not other programs.) Returns the frame as listed.
-    Result<SweepFrame> addFrame(const render::ImageRGB& image, SweepFrame frame);
+    //
+    // The EXR carries OpenEXR's standard attributes `standard` (hdr/exr.h: capDate and utcOffset
+    // where the caller knows when the bracket was taken, exrCaptureTime), and where it leaves
+    // them unset, aperture (lens.f_number, when known) and expTime 1 s (a merged frame holds DN
+    // per second at unity gain: what a 1 s exposure would read).
+    Result<SweepFrame> addFrame(const render::ImageRGB& image,
+                                SweepFrame frame,
+                                const ExrStandardAttributes& standard = {});
 
     // The sweep as written so far (the manifest on disk says the same).
     const Sweep& sweep() const { return sweep_; }

@@ -176,6 +176,32 @@ TEST(SweepWriter, RoundTripsASmallSweepWithRawBrackets) {
     }
 }
 
+TEST(SweepWriter, FramesCarryOpenExrStandardAttributes) {
+    SweepDir dir;
+    const SweepHeader header = smallHeader();  // f/2
+    auto writer = SweepWriter::create(dir.path(), header);
+    ASSERT_TRUE(writer) << writer.error().message;
+    ASSERT_TRUE(writer->addFrame(testImage(0), frameAt(header, 0)));
+    ExrStandardAttributes standard;
+    standard.cap_date = "2026:11:29 08:04:02";
+    standard.utc_offset_s = -3600.0;
+    standard.aperture = 2.8;  // the caller's word wins over the header's
+    ASSERT_TRUE(writer->addFrame(testImage(1), frameAt(header, 1), standard));
+    auto sweep = readSweep(dir.path());
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    auto first = loadFrame(*sweep, 0);
+    auto second = loadFrame(*sweep, 1);
+    ASSERT_TRUE(first && second);
+    // Known without the caller: the lens's f-number, and 1 s (a merged frame is DN per second).
+    EXPECT_EQ(first->meta.standard.aperture, 2.0);
+    EXPECT_EQ(first->meta.standard.exp_time_s, 1.0);
+    EXPECT_TRUE(first->meta.standard.cap_date.empty());
+    EXPECT_EQ(second->meta.standard.cap_date, "2026:11:29 08:04:02");
+    EXPECT_EQ(second->meta.standard.utc_offset_s, -3600.0);
+    EXPECT_EQ(second->meta.standard.aperture, static_cast<double>(2.8f));
+    EXPECT_EQ(second->meta.standard.exp_time_s, 1.0);
+}
+
 TEST(SweepWriter, WritesAnEmptyButValidSweepOnCreate) {
     SweepDir dir;
     auto writer = SweepWriter::create(dir.file("new/sweep"), smallHeader());
