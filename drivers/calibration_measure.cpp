@@ -879,10 +879,14 @@ Result<ResponseCurve> recoverResponse(const std::vector<std::vector<double>>& ob
     }
     curve.relative_exposure.back() = 1.0;
     std::ostringstream method;
-    method << "flarelab log-exposure least squares: " << K << " knots at quantiles, smoothness "
-           << options.smoothness << ", " << pixels.size() << " pixels, " << levels
-           << " exposures, samples in (" << num(low) << ", " << num(cut_dn) << ") DN"
-           << (bent > 0 ? ", made rising at " + std::to_string(bent) + " knots" : "");
+    method << "flarelab: log-exposure least squares (" << K << " knots, smoothness "
+           << options.smoothness << ", " << pixels.size() << " pixels)"
+           << (options.refine_iterations > 0
+                   ? " refined by maximum likelihood in DN (Levenberg-Marquardt, " +
+                         std::to_string(options.refine_iterations) + " iterations at most)"
+                   : std::string())
+           << ", " << levels << " exposures, samples in (" << num(low) << ", " << num(cut_dn)
+           << ") DN" << (bent > 0 ? ", made rising at " + std::to_string(bent) + " knots" : "");
     curve.method = method.str();
     return curve;
 }
