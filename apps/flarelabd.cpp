@@ -2,7 +2,8 @@
 //
 //     flarelabd --state-dir DIR [--output-root DIR] [--listen HOST:PORT [--allow-remote]]
 //               [--token-file FILE] [--no-resume] [--camera-retries N] [--min-free-mb N]
-//               [--camera URI ...] [--head URI ...] | [--replay RECORDED_SWEEP]
+//               [--camera URI ...] [--head URI ...] [--calibration FILE ...]
+//               | [--replay RECORDED_SWEEP]
 //
 // Without --camera and --head every job runs on the simulated rig its config describes; with
 // them, jobs run on those devices (drivers/rig.h URIs: aravis:ID, v4l2:/dev/video0, zaber:...,
@@ -29,6 +30,7 @@
 #include "daemon/log.h"
 #include "daemon/service.h"
 #include "daemon/sweep_runner.h"
+#include "drivers/calibration.h"
 #include "drivers/device.h"
 #include "hdr/sweep.h"
 
@@ -49,7 +51,7 @@ int run(int argc, char** argv) {
     settleAllocator();
     CLI::App app{"flarelabd: the flarelab rig daemon (sweeps as jobs, over gRPC)"};
     std::string state_dir, output_root, listen, token_file, replay, log_level = "info";
-    std::vector<std::string> cameras, heads;
+    std::vector<std::string> cameras, heads, calibration_files;
     bool no_resume = false, allow_remote = false;
     int camera_retries = 3, head_retries = 2;
     int64_t min_free_mb = 64;
@@ -72,6 +74,9 @@ int run(int argc, char** argv) {
     app.add_option("--head", heads,
                    "a head jobs may use, by URI (repeat for several; the first is the default; "
                    "none: jobs simulate theirs)");
+    app.add_option("--calibration", calibration_files,
+                   "a camera's calibration (flarelab calibrate; repeat for several cameras): a "
+                   "job's frames are merged through the one measured on its camera");
     app.add_flag("--no-resume", no_resume,
                  "do not resume interrupted jobs at start (they wait for a client's resume)");
     app.add_option("--camera-retries", camera_retries, "camera timeouts retried per exposure")
@@ -173,6 +178,14 @@ int run(int argc, char** argv) {
                           << "': " << (parsed ? "empty" : parsed.error().message) << "\n";
                 return 2;
             }
+    for (const std::string& file : calibration_files) {
+        auto calibration = drivers::readCalibration(file);
+        if (!calibration) {
+            std::cerr << "flarelabd: --calibration: " << calibration.error().message << "\n";
+            return 1;
+        }
+        options.runner.calibrations.push_back(std::move(*calibration));
+    }
     options.runner.limits.cameras = cameras;
     options.runner.limits.heads = heads;
     if (!cameras.empty() || !heads.empty()) {

@@ -257,8 +257,7 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
     }
 
     // The bracket and the sensor.
-    if (c.exposure_times_s().empty())
-        for (const double t : {0.25, 1.0, 4.0}) c.add_exposure_times_s(t);
+    // None: the job plans its bracket from probes at the first angle (drivers/auto_bracket.h).
     if (c.exposure_times_s_size() > limits.max_exposures)
         return bad("config.exposure_times_s", "has " + std::to_string(c.exposure_times_s_size()) +
                                                   " times, more than " +
@@ -321,6 +320,11 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
     p.rig_time_s = move(p.angles_deg.front()) + bracket_s * p.angles_deg.size();
     for (size_t i = 1; i < p.angles_deg.size(); ++i)
         p.rig_time_s += move(p.angles_deg[i] - p.angles_deg[i - 1]);
+    if (p.exposure_times_s.empty())
+        p.warnings.push_back(
+            "the bracket is planned from probes of the light when the job reaches the first "
+            "angle: the rig time counts head moves only, and each frame adds the planned "
+            "bracket's exposures (at most 30 s)");
     return p;
 }
 

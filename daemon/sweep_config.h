@@ -34,7 +34,7 @@ struct SweepLimits {
     double head_speed_deg_s = 20.0;
     double head_acceleration_deg_s2 = 100.0;
     double head_settle_s = 0.1;
-    double min_exposure_s = 1e-5;
+    double min_exposure_s = 1e-9;  // the simulated camera's (sim_camera.h)
     double max_exposure_s = 60.0;
     double min_gain = 1.0;
     double max_gain = 16.0;

@@ -17,6 +17,7 @@
 #include "common/file_descriptor.h"
 #include "daemon/bounded_queue.h"
 #include "daemon/log.h"
+#include "drivers/auto_bracket.h"
 #include "drivers/replay.h"
 #include "drivers/sim_camera.h"
 #include "drivers/sim_head.h"
@@ -118,6 +119,10 @@ public:
 
 private:
     Status makeRig();
+    // The bracket of a job that gave none: the one its sweep on disk was taken with, else planned
+    // from probes at the first angle (its reasons become warnings). An error stops the job (a
+    // Stopped outcome when the job was cancelled meanwhile).
+    Status planBracket();
     Result<hdr::SweepWriter> openSweep();
     // Head to angle with the retries of the fault policy; nullopt when the job must stop
     // (the reason, if a failure, in result_).
@@ -150,8 +155,9 @@ private:
     PreparedSweep sweep_;
     std::shared_ptr<drivers::Head> head_;
     std::shared_ptr<drivers::Camera> camera_;
-    drivers::SimCamera* sim_camera_ = nullptr;  // camera_, when it is simulated
-    int64_t width_px_ = 0;                      // of the camera's frames
+    drivers::SimCamera* sim_camera_ = nullptr;                 // camera_, when it is simulated
+    const drivers::CameraCalibration* calibration_ = nullptr;  // of camera_, when the daemon has it
+    int64_t width_px_ = 0;                                     // of the camera's frames
     int64_t height_px_ = 0;
     std::mutex mutex_;
     RunResult result_;
@@ -194,6 +200,11 @@ Status SweepJob::makeRig() {
     width_px_ = caps.width_px;
     height_px_ = caps.height_px;
     for (const std::string& note : camera_->notes()) control_.warning("camera: " + note);
+    calibration_ = nullptr;
+    for (const drivers::CameraCalibration& c : options_.calibrations)
+        if (drivers::calibrationCameraName(c) == camera_->identity().describe()) calibration_ = &c;
+    if (Status ok = drivers::checkMergeable(caps, calibration_); !ok)
+        return ok.error().withContext("camera " + camera_->identity().describe());
     if (!sweep_.camera_uri.empty())
         control_.deviceOpened(sweep_.camera_uri, camera_->identity().model,
                               camera_->identity().serial);
@@ -201,6 +212,33 @@ Status SweepJob::makeRig() {
         control_.deviceOpened(sweep_.head_uri, head_->identity().model, head_->identity().serial);
     if (!options_.limits.replay && !sim_camera_)
         if (Status ok = camera_->setGain(c.gain()); !ok) return ok.error();
+    return Ok{};
+}
+
+Status SweepJob::planBracket() {
+    std::error_code ec;
+    if (fs::exists(fs::path(sweep_.output_dir) / hdr::kSweepManifestFile, ec)) {
+        auto listed = hdr::readSweepManifest(sweep_.output_dir);
+        if (!listed) return listed.error();
+        sweep_.exposure_times_s = listed->header.capture.exposure_times_s;
+        if (!sweep_.exposure_times_s.empty()) return Ok{};
+    }
+    const auto at = move(sweep_.angles_deg.front(), 0);
+    if (!at) {
+        if (!failed_) result_.outcome = RunOutcome::Stopped;
+        return makeError(ErrorCode::IoError, result_.reason.empty() ? "stopped" : result_.reason);
+    }
+    drivers::BracketPlanOptions options;
+    options.calibration = calibration_;
+    options.max_exposures = std::min(options.max_exposures, options_.limits.max_exposures);
+    auto plan = drivers::planBrackets(*camera_, options);
+    if (!plan) return plan.error().withContext("planning the bracket");
+    for (const std::string& reason : plan->reasons) control_.warning("bracket: " + reason);
+    if (!plan->core_unclipped)
+        control_.warning("bracket: the shortest exposure clips the light's core");
+    if (!plan->floor_reached)
+        control_.warning("bracket: the longest exposure does not reach the ghosts' noise floor");
+    sweep_.exposure_times_s = plan->exposure_times_s;
     return Ok{};
 }
 
@@ -427,11 +465,8 @@ Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
     frame.angle_deg = captured.angle_deg;
     frame.exposure_times_s = sweep_.exposure_times_s;
     for (size_t k = 0; k < captured.bracket.size(); ++k) {
-        const hdr::RawFrame& raw = captured.bracket[k];
-        const auto counts = hdr::countExposure(raw);
-        if (!counts) return counts.error().withContext("frame " + std::to_string(captured.index));
-        frame.brackets.push_back({raw.exposure_s, static_cast<uint64_t>(counts->usable),
-                                  static_cast<uint64_t>(counts->saturated)});
+        hdr::RawFrame& raw = captured.bracket[k];
+        // The raw file keeps the frame as the camera gave it; the merge takes it calibrated.
         if (c.keep_raw()) {
             std::ostringstream name;
             name << "raw/frame_" << std::setw(5) << std::setfill('0') << captured.index << "_" << k
@@ -441,6 +476,16 @@ Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
             if (Status ok = hdr::writeRaw(dir + "/" + name.str(), raw); !ok) return ok.error();
             frame.raw_files.push_back(name.str());
         }
+        if (calibration_) {
+            auto calibrated = drivers::applyCalibration(raw, *calibration_);
+            if (!calibrated)
+                return calibrated.error().withContext("frame " + std::to_string(captured.index));
+            raw = std::move(*calibrated);
+        }
+        const auto counts = hdr::countExposure(raw);
+        if (!counts) return counts.error().withContext("frame " + std::to_string(captured.index));
+        frame.brackets.push_back({raw.exposure_s, static_cast<uint64_t>(counts->usable),
+                                  static_cast<uint64_t>(counts->saturated)});
     }
     auto merged = hdr::mergeBrackets(captured.bracket);
     if (!merged) return merged.error().withContext("frame " + std::to_string(captured.index));
@@ -590,6 +635,12 @@ RunResult SweepJob::run() {
             return result_;
         }
         tries = -1;
+    }
+    if (sweep_.exposure_times_s.empty()) {
+        if (Status ok = planBracket(); !ok) {
+            if (result_.outcome != RunOutcome::Stopped) result_.reason = ok.error().message;
+            return result_;
+        }
     }
     auto opened = openSweep();
     if (!opened) {

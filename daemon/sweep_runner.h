@@ -40,6 +40,7 @@
 #include <string>
 
 #include "daemon/sweep_config.h"
+#include "drivers/calibration.h"
 #include "drivers/rig.h"
 #include "proto/daemon.pb.h"
 
@@ -84,6 +85,9 @@ struct RunnerOptions {
     // Free bytes of the file system holding a path; statvfs when empty (a test seam).
     std::function<int64_t(const std::string&)> free_bytes;
     std::string software_version = "flarelabd";
+    // Calibrations of the rig's cameras (flarelabd --calibration): a job's frames are merged
+    // through the one measured on its camera; a camera whose response is not linear needs one.
+    std::vector<drivers::CameraCalibration> calibrations;
 };
 
 // Captured: every frame is on disk and the job asks for a fit, which fitSweepJob does.

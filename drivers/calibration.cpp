@@ -694,4 +694,13 @@ Status checkMergeable(const CameraCapabilities& capabilities,
                          how);
 }
 
+Status checkCalibrationFor(const Camera& camera, const CameraCalibration* calibration) {
+    if (calibration != nullptr &&
+        calibrationCameraName(*calibration) != camera.identity().describe())
+        return makeError(ErrorCode::InvalidArgument,
+                         "the calibration was measured on " + calibrationCameraName(*calibration) +
+                             ", not on this camera, " + camera.identity().describe());
+    return checkMergeable(camera.capabilities(), calibration);
+}
+
 }  // namespace flarelab::drivers

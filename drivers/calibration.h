@@ -1,6 +1,7 @@
 // ============================================================================
 //  flarelab drivers: CameraCalibration, ResponseCurve, readCalibration, parseCalibration,
-//                    formatCalibration, writeCalibration, applyCalibration, checkMergeable
+//                    formatCalibration, writeCalibration, applyCalibration, checkMergeable,
+//                    checkCalibrationFor
 // ============================================================================
 //
 // What `flarelab calibrate` measured on one camera (calibration_measure.h measures it), kept in
@@ -160,5 +161,10 @@ Result<hdr::RawFrame> applyCalibration(const hdr::RawFrame& frame,
 // it is not); also when a given calibration was measured not linear but has no curve. Linear and
 // Unknown cameras pass (Unknown: the backend cannot tell; calibrate measures it).
 Status checkMergeable(const CameraCapabilities& capabilities, const CameraCalibration* calibration);
+
+// checkMergeable for an open camera, and, when a calibration is given, that it was measured on
+// this camera (its model and serial, as the camera names itself): InvalidArgument naming both
+// otherwise, before a sweep has taken a frame.
+Status checkCalibrationFor(const Camera& camera, const CameraCalibration* calibration);
 
 }  // namespace flarelab::drivers

@@ -121,7 +121,11 @@ struct SimCameraOptions {
     double quantum_scale = 5e7;          // e/s per unit of image-plane irradiance, >= 0
     std::array<float, 3> light_rgb = {1.0f, 1.0f, 1.0f};  // irradiance at the lens, >= 0
     double background_e_s = 20.0;                         // >= 0
-    double min_exposure_s = 1e-5;
+    // Down to 1 ns, wider than a real camera's range: the simulated light's core is 5e10 to 3e12
+    // e-/s on its brightest pixel, and auto-bracketing (auto_bracket.h) can then keep it
+    // unclipped on every shipped lens. A real camera's plan says when its shortest exposure
+    // still clips the core.
+    double min_exposure_s = 1e-9;
     double max_exposure_s = 60.0;
     double min_gain = 1.0;
     double max_gain = 16.0;

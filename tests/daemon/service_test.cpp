@@ -245,8 +245,7 @@ TEST(Service, PersistentCameraTimeoutsPauseTheJobUntilResumed) {
     ASSERT_TRUE(startSweep(*stub, config, &job).ok());
     const v1::Job paused =
         waitFor(*stub, job.id(), [](const v1::Job& j) { return j.state() == v1::PAUSED; });
-    EXPECT_NE(paused.reason().find("camera failed 4 times"), std::string::npos)
-        << paused.reason();
+    EXPECT_NE(paused.reason().find("camera failed 4 times"), std::string::npos) << paused.reason();
     waitFor(*stub, job.id(),
             [](const v1::Job& j) { return j.state() == v1::PAUSED && j.frames_done() == 1; });
     v1::JobControlRequest resume;
