@@ -33,6 +33,9 @@ SimCameraOptions scene(SimResponse response = SimResponse::Linear, uint64_t seed
     o.render.starburst_options.fft_size = 256;
     o.fixed_angle_deg = 3.0;
     o.hot_pixel_fraction = 1e-3;
+    // A real camera's shortest exposure (the simulated default, 1 ns, is there for the light's
+    // core in auto-bracketing); the exposure series plans its foot down to it.
+    o.min_exposure_s = 1e-5;
     o.response = response;
     o.seed = seed;
     return o;
