@@ -223,7 +223,7 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
         ->check(CLI::Range(int64_t{32}, int64_t{8192}))
         ->capture_default_str();
     bracket->add_option("--min-exposure", bracket_options->min_exposure_s,
-                        "the simulated camera's shortest exposure, s (default: its own, 1e-5)");
+                        "the simulated camera's shortest exposure, s (default: its own, 1e-9)");
     bracket
         ->add_option("--floor-headroom", bracket_options->plan.floor_headroom,
                      "aim at a floor this many times dimmer than the first angle's")
