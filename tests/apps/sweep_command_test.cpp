@@ -101,7 +101,7 @@ TEST(SweepInfo, JsonHasFramesAnglesLensCameraAndBrackets) {
     EXPECT_EQ(json["brackets"]["exposure_times_s"], (std::vector<double>{0.001, 0.1}));
     EXPECT_EQ(json["brackets"]["gain"], 1.5);
     EXPECT_EQ(json["capture"]["width_px"], 8);
-    EXPECT_EQ(json["format_version"], 1);
+    EXPECT_EQ(json["format_version"], hdr::kSweepFormatVersion);
     EXPECT_EQ(json["checked"], true);
     EXPECT_TRUE(json["warnings"].empty());
 }
