@@ -5,9 +5,14 @@
 // aside without blocking.
 #include <fcntl.h>
 #include <gtest/gtest.h>
+#include <signal.h>
+#include <spawn.h>
 #include <sys/file.h>
+#include <sys/mount.h>
 #include <sys/stat.h>
+#include <sys/statvfs.h>
 #include <sys/sysmacros.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -21,6 +26,8 @@
 #include "daemon/sweep_config.h"
 #include "hdr/sweep.h"
 #include "tests/daemon/daemon_fixture.h"
+
+extern char** environ;
 
 namespace flarelab::daemon {
 namespace {
@@ -251,6 +258,131 @@ TEST(Journal, AFailedFlushOfTheSweepFailsTheJobForGood) {
     EXPECT_GE(sweep->frames.size(), 2u);  // and frame 2, if its record reached the disk
     const grpc::Status resume = control(daemon.manager(), &JobManager::resume, job.id());
     EXPECT_EQ(resume.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+}
+
+// ---- 7. a real full disk ----
+
+// Fills the file system holding `dir` until a write fails; the file written.
+std::string fillUp(const std::string& dir, const std::string& name) {
+    const std::string path = dir + "/" + name;
+    FileDescriptor fd(::open(path.c_str(), O_WRONLY | O_CREAT | O_APPEND, 0644));
+    const std::string block(4096, 'x');
+    while (::write(fd.get(), block.data(), block.size()) > 0) {
+    }
+    return path;
+}
+
+TEST(DiskFull, ASweepOnAFullFileSystemFailsCleanlyAndResumesOnceThereIsRoom) {
+    // A tmpfs mounted in a mount namespace of its own: root and unshare(1) are needed; the test
+    // binary runs DiskFullInside there.
+    if (::geteuid() != 0) GTEST_SKIP() << "needs root, to mount a small tmpfs";
+    if (::access("/usr/bin/unshare", X_OK) != 0) GTEST_SKIP() << "needs /usr/bin/unshare";
+    TempDir dir;
+    const std::string log = dir.path + "/inside.log";
+    const std::string env = "FLARELAB_DISK_FULL_DIR=" + dir.path;
+    std::vector<std::string> args = {"/usr/bin/unshare",
+                                     "--mount",
+                                     "--propagation",
+                                     "private",
+                                     "--",
+                                     "/proc/self/exe",
+                                     "--gtest_filter=DiskFullInside.*"};
+    std::vector<char*> argv, envp;
+    for (auto& a : args) argv.push_back(a.data());
+    argv.push_back(nullptr);
+    for (char** e = environ; *e; ++e) envp.push_back(*e);
+    envp.push_back(const_cast<char*>(env.c_str()));
+    envp.push_back(nullptr);
+    // /proc/self/exe is resolved by unshare: it must name this binary, so pass its real path.
+    const std::string self = fs::read_symlink("/proc/self/exe").string();
+    argv[5] = const_cast<char*>(self.c_str());
+    posix_spawn_file_actions_t actions;
+    posix_spawn_file_actions_init(&actions);
+    posix_spawn_file_actions_addopen(&actions, 1, log.c_str(), O_WRONLY | O_CREAT, 0644);
+    posix_spawn_file_actions_adddup2(&actions, 1, 2);
+    pid_t pid = -1;
+    ASSERT_EQ(posix_spawn(&pid, argv[0], &actions, nullptr, argv.data(), envp.data()), 0);
+    posix_spawn_file_actions_destroy(&actions);
+    int status = 0;
+    const auto end = std::chrono::steady_clock::now() + std::chrono::seconds(240);
+    while (::waitpid(pid, &status, WNOHANG) == 0) {
+        if (std::chrono::steady_clock::now() > end) {
+            ::kill(pid, SIGKILL);
+            ::waitpid(pid, &status, 0);
+            FAIL() << "the test in the namespace did not end\n" << readText(log);
+        }
+        std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    const std::string output = readText(log);
+    if (WIFEXITED(status) && WEXITSTATUS(status) == 1 && contains(output, "unshare: "))
+        GTEST_SKIP() << "no mount namespace here: " << output;
+    EXPECT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0) << output;
+    EXPECT_TRUE(contains(output, "[  PASSED  ] 1 test")) << output;
+}
+
+TEST(DiskFullInside, TheSweepOnATmpfsThatFillsUp) {
+    const char* outside = std::getenv("FLARELAB_DISK_FULL_DIR");
+    if (!outside) GTEST_SKIP() << "DiskFull.* runs this in a mount namespace of its own";
+    const std::string mnt = std::string(outside) + "/fs";
+    fs::create_directories(mnt);
+    ASSERT_EQ(::mount("flarelab-test", mnt.c_str(), "tmpfs", 0, "size=8m"), 0) << strerror(errno);
+    // The state directory (the journal) is on the small file system too.
+    const std::string state = mnt + "/state";
+    fs::create_directories(state + "/output");
+    ManagerOptions options;
+    options.runner.min_free_bytes = 0;
+    options.runner.free_bytes = [](const std::string&) { return int64_t{-1}; };  // no pre-check
+    Daemon daemon(state, options);
+    v1::SweepConfig config = simConfig("full", 0.0, 2.0, 0.2);
+    config.set_width_px(160);
+    config.set_height_px(107);
+    // The sweep uninterrupted, first: what it takes on disk sizes the room left below.
+    v1::SweepConfig whole = config;
+    whole.set_output_dir("whole");
+    v1::Job reference;
+    ASSERT_TRUE(start(daemon.manager(), whole, &reference).ok());
+    ASSERT_EQ(waitJob(daemon.manager(), reference.id(), ended).state(), v1::SUCCEEDED);
+    int64_t sweep_bytes = 0;
+    for (const auto& f : fs::recursive_directory_iterator(reference.output_dir()))
+        if (f.is_regular_file()) sweep_bytes += static_cast<int64_t>(f.file_size());
+    // Room for about half of it.
+    const std::string ballast = state + "/ballast";
+    {
+        struct statvfs s {};
+        ASSERT_EQ(::statvfs(mnt.c_str(), &s), 0);
+        const int64_t free_bytes = static_cast<int64_t>(s.f_bavail) * s.f_frsize;
+        FileDescriptor fd(::open(ballast.c_str(), O_WRONLY | O_CREAT, 0644));
+        ASSERT_EQ(::posix_fallocate(fd.get(), 0, free_bytes - sweep_bytes / 2), 0);
+    }
+    v1::Job job;
+    ASSERT_TRUE(start(daemon.manager(), config, &job).ok());
+    const v1::Job failed = waitJob(daemon.manager(), job.id(), ended);
+    ASSERT_EQ(failed.state(), v1::FAILED);
+    EXPECT_TRUE(contains(failed.reason(), "No space left on device")) << failed.reason();
+    EXPECT_TRUE(failed.resumable());
+    EXPECT_GT(failed.frames_done(), 0u);
+    EXPECT_LT(failed.frames_done(), 11u);
+    // Every frame written before is intact, and nothing half-written is left behind.
+    auto sweep = hdr::readSweep(job.output_dir(), strictRead());
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    EXPECT_EQ(sweep->frames.size(), failed.frames_done());
+    for (const std::string& w : sweep->warnings) ADD_FAILURE() << w;
+    // Full to the last block: the journal cannot record a new job, which is refused.
+    const std::string filler = fillUp(state, "filler");
+    v1::Job refused;
+    const grpc::Status start_refused =
+        start(daemon.manager(), simConfig("more", 0.0, 0.2, 0.2), &refused);
+    EXPECT_EQ(start_refused.error_code(), grpc::StatusCode::UNAVAILABLE)
+        << start_refused.error_message();
+    // Room again: resumed, it ends as the uninterrupted sweep did.
+    fs::remove(filler);
+    fs::remove(ballast);
+    ASSERT_TRUE(control(daemon.manager(), &JobManager::resume, job.id()).ok());
+    const v1::Job done = waitJob(daemon.manager(), job.id(), ended);
+    EXPECT_EQ(done.state(), v1::SUCCEEDED) << done.reason();
+    expectSameFrames(job.output_dir(), reference.output_dir());
+    daemon.stop();
+    EXPECT_EQ(::umount(mnt.c_str()), 0);
 }
 
 // ---- 3. resume touches only its own sweep ----
