@@ -597,6 +597,14 @@ Status JobManager::resume(const v1::JobControlRequest& request,
                 (state == v1::FAILED ? " for a reason a resume does not change: " + e->job.reason()
                                      : ""));
     if (failed_resumable) {
+        // Another job may have taken its directory since it ended.
+        for (const auto& [number, other] : jobs_)
+            if (&other != e && !ended(other.job) &&
+                sameDirectory(other.job.output_dir(), e->job.output_dir()))
+                return Status(StatusCode::FAILED_PRECONDITION,
+                              "resume " + e->job.id() + ": " + other.job.id() + " (" +
+                                  v1::JobState_Name(other.job.state()) + ") writes to " +
+                                  e->job.output_dir() + " now");
         // Its fit, if that is what failed, runs again on the sweep on disk.
         e->job.set_resumable(false);
         e->job.set_phase(v1::JOB_PHASE_UNSPECIFIED);
