@@ -2,6 +2,7 @@
 //
 //     flarelabd --state-dir DIR [--output-root DIR] [--listen HOST:PORT [--allow-remote]]
 //               [--token-file FILE] [--no-resume] [--camera-retries N] [--min-free-mb N]
+//               [--memory-budget-mb N] [--quarantine-after N]
 //               [--camera URI ...] [--head URI ...] [--calibration FILE ...]
 //               | [--replay RECORDED_SWEEP]
 //
@@ -20,6 +21,7 @@
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
@@ -47,6 +49,16 @@ bool isLoopback(const std::string& address) {
            host.rfind("127.", 0) == 0;
 }
 
+// The default memory budget: half the machine's memory, at most 4 GiB. Half, because the fit of
+// the last sweep runs beside the next capture and the page cache carries every EXR to the disk;
+// 4 GiB holds the pipeline of a 24-Mpx camera with a three-exposure bracket (about 1.3 GiB, see
+// daemon/sweep_config.h) with a queue of some twenty brackets, a minute of capture at most rates.
+int64_t defaultMemoryBudgetMb() {
+    const long pages = ::sysconf(_SC_PHYS_PAGES), page = ::sysconf(_SC_PAGESIZE);
+    const int64_t half_mb = pages > 0 && page > 0 ? (int64_t{pages} * page >> 20) / 2 : 4096;
+    return std::clamp<int64_t>(half_mb, 256, 4096);
+}
+
 int run(int argc, char** argv) {
     settleAllocator();
     CLI::App app{"flarelabd: the flarelab rig daemon (sweeps as jobs, over gRPC)"};
@@ -54,7 +66,8 @@ int run(int argc, char** argv) {
     std::vector<std::string> cameras, heads, calibration_files;
     bool no_resume = false, allow_remote = false;
     int camera_retries = 3, head_retries = 2;
-    int64_t min_free_mb = 64;
+    int64_t min_free_mb = 64, memory_budget_mb = defaultMemoryBudgetMb();
+    int quarantine_after = 3;
     app.add_option("--state-dir", state_dir,
                    "journal, lock and socket (DIR/flarelabd.sock) live here")
         ->required();
@@ -87,6 +100,17 @@ int run(int argc, char** argv) {
         ->capture_default_str();
     app.add_option("--min-free-mb", min_free_mb, "free disk space a job leaves (MiB)")
         ->check(CLI::Range(int64_t{0}, int64_t{1} << 30))
+        ->capture_default_str();
+    app.add_option("--memory-budget-mb", memory_budget_mb,
+                   "memory a job may hold (MiB): larger frames are refused, the queue between "
+                   "capture and processing holds the rest (default: half the machine's, at most "
+                   "4096)")
+        ->check(CLI::Range(int64_t{128}, int64_t{1} << 30))
+        ->capture_default_str();
+    app.add_option("--quarantine-after", quarantine_after,
+                   "a job under which the daemon died this many times in a row without getting "
+                   "further is not resumed again but failed (0: never)")
+        ->check(CLI::Range(0, 1000000))
         ->capture_default_str();
     app.add_option("--log-level", log_level, "debug, info, warn or error")->capture_default_str();
     CLI11_PARSE(app, argc, argv);
@@ -162,6 +186,8 @@ int run(int argc, char** argv) {
     options.runner.camera_retries = camera_retries;
     options.runner.head_retries = head_retries;
     options.runner.min_free_bytes = min_free_mb << 20;
+    options.runner.limits.memory_budget_bytes = memory_budget_mb << 20;
+    options.quarantine_after = quarantine_after;
     options.runner.software_version = "flarelabd 0.1.0";
     ServerOptions server_options;
     if (!replay.empty() && (!cameras.empty() || !heads.empty())) {

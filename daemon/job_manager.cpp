@@ -1,6 +1,7 @@
 #include "daemon/job_manager.h"
 
 #include <google/protobuf/util/message_differencer.h>
+#include <sys/stat.h>
 
 #include <chrono>
 #include <filesystem>
@@ -28,6 +29,42 @@ bool validRequestId(const std::string& id) {
         if (!std::isalnum(static_cast<unsigned char>(c)) && c != '.' && c != '_' && c != '-')
             return false;
     return true;
+}
+
+// `text` cut to at most `bytes` bytes, at a UTF-8 character boundary.
+std::string clipped(const std::string& text, size_t bytes) {
+    if (text.size() <= bytes) return text;
+    size_t end = bytes;
+    while (end > 0 && (static_cast<unsigned char>(text[end]) & 0xC0) == 0x80) --end;
+    return text.substr(0, end) + "...";
+}
+
+// What a job's record may grow by after it was accepted: its warnings (at most 100, each clipped
+// to kMaxWarningBytes), its reason (kMaxReasonBytes), a controller's name (gRPC metadata, at most
+// 8 KiB) and the other fields, all of which JSON may grow sixfold.
+constexpr size_t kMaxWarningBytes = 1024;
+constexpr size_t kMaxReasonBytes = 4096;
+constexpr int64_t kRecordGrowthBytes =
+    6 * (100 * (kMaxWarningBytes + 8) + kMaxReasonBytes + 8192 + 4096) + (64 << 10);
+
+// Two output directories are the same when they are the same directory (device and inode; through
+// links, bind mounts or different spellings), or, before they exist, the same path once the part
+// that exists is resolved.
+bool sameDirectory(const std::string& a, const std::string& b) {
+    if (a == b) return true;
+    struct stat sa {
+    }, sb{};
+    if (::stat(a.c_str(), &sa) == 0 && ::stat(b.c_str(), &sb) == 0)
+        return sa.st_dev == sb.st_dev && sa.st_ino == sb.st_ino;
+    std::error_code ea, eb;
+    const fs::path ra = fs::weakly_canonical(a, ea), rb = fs::weakly_canonical(b, eb);
+    return !ea && !eb && ra == rb;
+}
+
+// Frames the sweep in `dir` lists now (0 without a readable one).
+uint32_t framesOnDisk(const std::string& dir) {
+    auto listed = hdr::readSweepManifest(dir);
+    return listed ? static_cast<uint32_t>(listed->frames.size()) : 0;
 }
 
 // The job as events and listings carry it: without the lens text, which can be 1 MiB.
@@ -95,6 +132,7 @@ public:
     void setFramesDone(uint32_t frames) override {
         std::lock_guard lock(manager_.mutex_);
         Entry& e = manager_.jobs_.at(number_);
+        if (frames > e.job.frames_done()) e.job.set_crashes(0);  // it gets further
         e.job.set_frames_done(frames);
         e.job.set_updated_unix_s(unixNow());
         // The journal is the job's record, not the sweep's: the sweep's manifest says which
@@ -105,7 +143,7 @@ public:
     void warning(const std::string& message) override {
         std::lock_guard lock(manager_.mutex_);
         Entry& e = manager_.jobs_.at(number_);
-        if (e.job.warnings_size() < 100) e.job.add_warnings(message);
+        if (e.job.warnings_size() < 100) e.job.add_warnings(clipped(message, kMaxWarningBytes));
         logEvent(LogLevel::Warn, "job.warning", {{"job", e.job.id()}, {"message", message}});
         v1::JobEvent event;
         event.set_kind(v1::WARNING);
@@ -151,6 +189,26 @@ Result<std::unique_ptr<JobManager>> JobManager::open(ManagerOptions options,
         if (job.state() == v1::RUNNING) {  // killed: it had no time to say so
             job.set_state(v1::INTERRUPTED);
             job.set_reason("the daemon stopped while the job ran");
+            // Counted before the job runs again: a job that crashes the daemon must not take it
+            // down at every start. Progress is what the sweep on disk holds beyond the record.
+            const uint32_t on_disk = framesOnDisk(job.output_dir());
+            job.set_crashes(on_disk > job.frames_done() ? 1 : job.crashes() + 1);
+            job.set_frames_done(std::max(job.frames_done(), on_disk));
+            const int limit = manager->options_.quarantine_after;
+            if (limit > 0 && job.crashes() >= static_cast<uint32_t>(limit)) {
+                job.set_state(v1::FAILED);
+                job.set_resumable(true);
+                job.set_reason("quarantined: the daemon died " + std::to_string(job.crashes()) +
+                               " times in a row while this job ran (phase " +
+                               v1::JobPhase_Name(job.phase()) + ", " +
+                               std::to_string(job.frames_done()) +
+                               " frames on disk) without it getting further; it is not resumed "
+                               "by itself again: find the cause in the daemon's log, then resume "
+                               "it by hand");
+                logEvent(LogLevel::Error, "job.quarantined",
+                         {{"job", job.id()}, {"crashes", std::to_string(job.crashes())}});
+                if (auto saved = manager->journal_.save(job); !saved) return saved.error();
+            }
         }
         if (job.state() == v1::INTERRUPTED) job.set_restarts(job.restarts() + 1);
         if (job.state() == v1::INTERRUPTED && manager->options_.resume) {
@@ -203,11 +261,25 @@ void JobManager::emit(Entry& entry, v1::JobEvent event) {
     changed_cv_.notify_all();
 }
 
-void JobManager::changed(Entry& entry, const std::string& log_note) {
+flarelab::Status JobManager::changed(Entry& entry, const std::string& log_note) {
     entry.job.set_updated_unix_s(unixNow());
-    if (auto saved = journal_.save(entry.job); !saved)
+    if (entry.job.reason().size() > kMaxReasonBytes)
+        entry.job.set_reason(clipped(entry.job.reason(), kMaxReasonBytes));
+    // A cancel a client was told about is on disk before the job stops, and stays there.
+    v1::Job record = entry.job;
+    if (entry.cancel_requested && !ended(record)) {
+        record.set_state(v1::CANCELLED);
+        record.set_resumable(false);
+    }
+    flarelab::Status saved = journal_.save(record);
+    if (!saved)
         logEvent(LogLevel::Error, "journal.write_failed",
                  {{"job", entry.job.id()}, {"message", saved.error().message}});
+    announce(entry, log_note);
+    return saved;
+}
+
+void JobManager::announce(Entry& entry, const std::string& log_note) {
     logEvent(LogLevel::Info, "job.state",
              {{"job", entry.job.id()},
               {"state", v1::JobState_Name(entry.job.state())},
@@ -219,6 +291,24 @@ void JobManager::changed(Entry& entry, const std::string& log_note) {
     event.set_kind(v1::STATE);
     event.set_message(entry.job.reason());
     emit(entry, std::move(event));
+}
+
+Status JobManager::commit(Entry& entry, const v1::Job& before, const std::string& note) {
+    entry.job.set_updated_unix_s(unixNow());
+    if (entry.job.reason().size() > kMaxReasonBytes)
+        entry.job.set_reason(clipped(entry.job.reason(), kMaxReasonBytes));
+    v1::Job record = entry.job;
+    if (entry.cancel_requested && !ended(record)) record.set_state(v1::CANCELLED);
+    if (flarelab::Status saved = journal_.save(record); !saved) {
+        logEvent(LogLevel::Error, "journal.write_failed",
+                 {{"job", entry.job.id()}, {"message", saved.error().message}, {"note", note}});
+        entry.job = before;
+        return Status(StatusCode::UNAVAILABLE,
+                      entry.job.id() + ": the change is refused, the journal cannot record it: " +
+                          saved.error().message);
+    }
+    announce(entry, note);
+    return Status::OK;
 }
 
 // With mutex_ held: the job after a stage, as `result` says.
@@ -241,6 +331,7 @@ void JobManager::finish(Entry& e, const RunResult& result) {
         case RunOutcome::Failed:
             e.job.set_state(v1::FAILED);
             e.job.set_reason(result.reason);
+            e.job.set_resumable(result.resumable && !e.cancel_requested);
             break;
         case RunOutcome::Stopped:
             if (e.cancel_requested) {
@@ -255,7 +346,8 @@ void JobManager::finish(Entry& e, const RunResult& result) {
     e.control.reset();
     if (result.capture_wall_s > 0.0)
         note << "capture " << result.capture_wall_s << " s, queue high water "
-             << result.queue_high_water;
+             << result.queue_high_water << " brackets, " << result.queue_high_water_bytes
+             << " bytes";
     if (result.fit_wall_s > 0.0) note << "fit " << result.fit_wall_s << " s";
     changed(e, note.str());
 }
@@ -387,7 +479,7 @@ Status JobManager::start(const v1::StartSweepRequest& request,
     for (const auto& [number, e] : jobs_) {
         if (ended(e.job)) continue;
         if (e.job.state() != v1::RUNNING) ++waiting;
-        if (e.job.output_dir() == prepared->output_dir)
+        if (sameDirectory(e.job.output_dir(), prepared->output_dir))
             return Status(StatusCode::INVALID_ARGUMENT, "config.output_dir: " + e.job.id() + " (" +
                                                             v1::JobState_Name(e.job.state()) +
                                                             ") writes to " + prepared->output_dir);
@@ -409,6 +501,21 @@ Status JobManager::start(const v1::StartSweepRequest& request,
     for (const std::string& w : prepared->warnings) e.job.add_warnings(w);
     *e.job.mutable_config() = prepared->config;
     e.job.mutable_config()->set_output_dir(prepared->output_dir);
+    // Its record must read back at every later start, however it grows until the job ends.
+    if (auto bytes = Journal::recordBytes(e.job);
+        !bytes || *bytes + kRecordGrowthBytes > kJournalMaxRecordBytes) {
+        const size_t lens = prepared->config.sim().lens().prescription_csv().size();
+        const std::string message =
+            bytes ? "config.sim.lens.prescription_csv: the job's journal record would take " +
+                        std::to_string(*bytes) + " bytes (" + std::to_string(lens) +
+                        " bytes of lens text, escaped as JSON), and with room to grow more than " +
+                        "the " + std::to_string(kJournalMaxRecordBytes) +
+                        " bytes a record may have; send a shorter lens file (comments can go)"
+                  : "cannot record the job: " + bytes.error().message;
+        jobs_.erase(number);
+        --next_number_;
+        return Status(bytes ? StatusCode::RESOURCE_EXHAUSTED : StatusCode::INTERNAL, message);
+    }
     if (auto saved = journal_.save(e.job); !saved) {
         const std::string message = saved.error().message;
         jobs_.erase(number);
@@ -449,6 +556,8 @@ Status JobManager::pause(const v1::JobControlRequest& request,
                          v1::Job* job) {
     std::lock_guard lock(mutex_);
     Entry* e = nullptr;
+    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
+    const v1::Job before = e->job;
     if (Status ok = mayControl(request, client, "pause", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state != v1::QUEUED && state != v1::RUNNING && state != v1::PAUSED)
@@ -461,7 +570,7 @@ Status JobManager::pause(const v1::JobControlRequest& request,
     if (state != v1::PAUSED) {
         e->job.set_state(v1::PAUSED);
         e->job.set_reason("paused by " + client);
-        changed(*e, "paused by a client");
+        if (Status ok = commit(*e, before, "paused by a client"); !ok.ok()) return ok;
     }
     *job = e->job;
     return Status::OK;
@@ -472,18 +581,38 @@ Status JobManager::resume(const v1::JobControlRequest& request,
                           v1::Job* job) {
     std::lock_guard lock(mutex_);
     Entry* e = nullptr;
+    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
+    const v1::Job before = e->job;
     if (Status ok = mayControl(request, client, "resume", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state == v1::RUNNING || state == v1::QUEUED) {
         *job = e->job;
         return Status::OK;
     }
-    if (state != v1::PAUSED && state != v1::INTERRUPTED)
-        return Status(StatusCode::FAILED_PRECONDITION,
-                      "resume " + e->job.id() + ": the job is " + v1::JobState_Name(state));
+    const bool failed_resumable = state == v1::FAILED && e->job.resumable() && !e->control;
+    if (state != v1::PAUSED && state != v1::INTERRUPTED && !failed_resumable)
+        return Status(
+            StatusCode::FAILED_PRECONDITION,
+            "resume " + e->job.id() + ": the job is " + v1::JobState_Name(state) +
+                (state == v1::FAILED ? " for a reason a resume does not change: " + e->job.reason()
+                                     : ""));
+    if (failed_resumable) {
+        // Another job may have taken its directory since it ended.
+        for (const auto& [number, other] : jobs_)
+            if (&other != e && !ended(other.job) &&
+                sameDirectory(other.job.output_dir(), e->job.output_dir()))
+                return Status(StatusCode::FAILED_PRECONDITION,
+                              "resume " + e->job.id() + ": " + other.job.id() + " (" +
+                                  v1::JobState_Name(other.job.state()) + ") writes to " +
+                                  e->job.output_dir() + " now");
+        // Its fit, if that is what failed, runs again on the sweep on disk.
+        e->job.set_resumable(false);
+        e->job.set_phase(v1::JOB_PHASE_UNSPECIFIED);
+        e->cancel_requested = false;
+    }
     e->job.set_state(e->control ? v1::RUNNING : v1::QUEUED);
     e->job.set_reason("");
-    changed(*e, "resumed by " + client);
+    if (Status ok = commit(*e, before, "resumed by " + client); !ok.ok()) return ok;
     *job = e->job;
     return Status::OK;
 }
@@ -493,12 +622,22 @@ Status JobManager::cancel(const v1::JobControlRequest& request,
                           v1::Job* job) {
     std::lock_guard lock(mutex_);
     Entry* e = nullptr;
+    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
+    const v1::Job before = e->job;
     if (Status ok = mayControl(request, client, "cancel", &e); !ok.ok()) return ok;
     if (ended(e->job))
         return Status(StatusCode::FAILED_PRECONDITION, "cancel " + e->job.id() + ": the job is " +
                                                            v1::JobState_Name(e->job.state()));
+    // On disk first: a cancel that the journal does not hold could run the job again after a
+    // restart.
+    const bool was_requested = e->cancel_requested;
     e->cancel_requested = true;
     e->job.set_reason("cancelled by " + client);
+    if (!e->control) e->job.set_state(v1::CANCELLED);
+    if (Status ok = commit(*e, before, e->control ? "cancel requested" : "cancelled"); !ok.ok()) {
+        e->cancel_requested = was_requested;
+        return ok;
+    }
     if (e->control) {
         // Its stage ends it: the capture once the frames captured so far are written, the fit
         // before its next frame.
@@ -506,9 +645,6 @@ Status JobManager::cancel(const v1::JobControlRequest& request,
         changed_cv_.notify_all();
         logEvent(LogLevel::Info, "job.cancel_requested",
                  {{"job", e->job.id()}, {"client", client}});
-    } else {
-        e->job.set_state(v1::CANCELLED);
-        changed(*e, "cancelled");
     }
     *job = e->job;
     return Status::OK;

@@ -20,6 +20,23 @@
 //     the daemon stops under a running job ──► INTERRUPTED; at the next start it is QUEUED again
 //     (resumed where its sweep on disk ends) unless the daemon runs with resume off, when a
 //     client's resume queues it.
+//     FAILED ──resume──► QUEUED, for a failure that may pass (Job.resumable; sweep_runner.h).
+//
+// Quarantine. A job under which the daemon died (killed, crashed: its record still says RUNNING)
+// quarantine_after times in a row without writing a frame in between is not resumed again: it
+// becomes FAILED with a reason that says so, and only a client's resume runs it once more. A job
+// that crashes the daemon would otherwise take it down at every start.
+//
+// The journal. Every change a client asks for (start, pause, resume, cancel) is written to the
+// journal before it takes effect; when the record cannot be written (a full or read-only disk, a
+// failed flush) the change is refused (UNAVAILABLE, naming the file and the error) and the job
+// stays as it was, in memory and on disk. The client then knows its request did not take, and the
+// daemon never holds a promise its disk does not: a cancelled job is recorded CANCELLED before
+// it stops (and stays so in every later record), so no restart runs it again. Changes the daemon
+// makes itself (a frame done, a job ended) cannot be refused: a failure is logged and the record
+// is written again at the job's next change. Refusing the one request keeps a running sweep going
+// through a transient fault (a disk another program filled and emptied) rather than stopping all
+// work.
 //
 // Control: the client that starts a job controls it; another client's pause, resume or cancel
 // is refused (PERMISSION_DENIED) unless it takes control. Errors are grpc::Status values whose
@@ -55,6 +72,7 @@ struct ManagerOptions {
     bool resume = true;         // queue interrupted jobs again at start
     size_t max_queued = 64;     // jobs QUEUED or PAUSED at once
     size_t events_kept = 1024;  // per job, for watchers that fall behind
+    int quarantine_after = 3;   // crashes in a row without progress; 0: never quarantine
 };
 
 // Events for a watcher, after the sequence number it has seen.
@@ -126,8 +144,14 @@ private:
     void work();     // the capture worker: one job at a time owns the rig
     void fitWork();  // the fit worker: fits finished captures while the rig goes on
     void finish(Entry& entry, const RunResult& result);
-    // With mutex_ held: persist and announce a change of `entry`.
-    void changed(Entry& entry, const std::string& log_note = "");
+    // With mutex_ held: persist and announce a change of `entry`. The journal's error, if it
+    // could not be written (the change is announced all the same).
+    flarelab::Status changed(Entry& entry, const std::string& log_note = "");
+    // With mutex_ held: a change a client asked for, `before` the job as it was. Persisted and
+    // announced, or, when the journal cannot be written, undone (the entry is `before` again) and
+    // refused as UNAVAILABLE.
+    grpc::Status commit(Entry& entry, const flarelab::v1::Job& before, const std::string& note);
+    void announce(Entry& entry, const std::string& log_note);  // log line and STATE event
     void emit(Entry& entry, flarelab::v1::JobEvent event);
     grpc::Status find(const std::string& id, Entry** entry);
     grpc::Status findConst(const std::string& id, const Entry** entry) const;

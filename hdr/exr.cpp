@@ -126,7 +126,8 @@ private:
 // table from OutputFile's destructor and drops any exception there, so the caller asks error().
 class FileOStream final : public Imf::OStream {
 public:
-    FileOStream(const std::string& name, int fd) : Imf::OStream(name.c_str()), fd_(fd) {
+    FileOStream(const std::string& name, int fd)
+        : Imf::OStream(name.c_str()), fd_(fd), name_(name) {
         buffer_.reserve(kWriteBufferBytes);
     }
     void write(const char c[], int n) override {
@@ -141,6 +142,11 @@ public:
     }
     void flush() {
         if (!error_.empty()) throw Iex::IoExc(error_);
+        if (const int injected = detail::injectedFault(false, name_); injected != 0) {
+            error_ = "write failed: " + osMessage(injected);
+            buffer_.clear();
+            throw Iex::IoExc(error_);
+        }
         size_t done = 0;
         while (done < buffer_.size()) {
             const ssize_t wrote = ::pwrite(fd_, buffer_.data() + done, buffer_.size() - done,
@@ -160,6 +166,7 @@ public:
 
 private:
     int fd_;
+    std::string name_;
     uint64_t offset_ = 0;
     std::vector<char> buffer_;
     std::string error_;
@@ -429,6 +436,12 @@ Result<HeaderFacts> checkHeader(SizedIStream& in,
             << options.max_side << " pixels per side and " << options.max_pixels << " pixels";
         return unsupported(out.str());
     }
+    if ((options.expected_width_px > 0 && width != options.expected_width_px) ||
+        (options.expected_height_px > 0 && height != options.expected_height_px))
+        return parseError(
+            "the header declares a " + std::to_string(width) + "x" + std::to_string(height) +
+            " image, but " + std::to_string(options.expected_width_px) + "x" +
+            std::to_string(options.expected_height_px) + " was expected; nothing was read");
     if (channel_count > options.max_channels)
         return unsupported(std::to_string(channel_count) + " channels, more than the limit of " +
                            std::to_string(options.max_channels));
@@ -866,9 +879,9 @@ Status writeFile(const std::string& temporary,
     }
     if (!out.error().empty())
         return makeError(ErrorCode::IoError, "cannot write " + temporary + ": " + out.error());
-    if (::fsync(fd.get()) != 0)
+    if (const int error = syncFile(fd.get(), temporary); error != 0)
         return makeError(ErrorCode::IoError,
-                         "cannot flush " + temporary + " to disk: " + osMessage(errno));
+                         "cannot flush " + temporary + " to disk (fsync): " + osMessage(error));
     if (const int error = fd.close(); error != 0)
         return makeError(ErrorCode::IoError, "cannot close " + temporary + ": " + osMessage(error));
     return Ok{};
@@ -961,12 +974,13 @@ Result<ExrWriteReport> writeExr(const std::string& path,
         return makeError(ErrorCode::Internal, path + ": cannot build the EXR header: " + e.what());
     }
 
-    // Make the rename itself durable. It has happened, so a failure here is not reported as a
-    // failed write: the caller would take the old file to be still in place.
+    // Make the rename itself durable. It has happened: the error says so, for a caller that
+    // must know whether the frame will survive a crash (a sweep writer does).
     const std::string directory = std::filesystem::path(path).parent_path().string();
-    FileDescriptor dir(
-        ::open(directory.empty() ? "." : directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
-    if (dir.valid()) ::fsync(dir.get());
+    if (Status synced = syncDirectory(directory); !synced)
+        return makeError(ErrorCode::IoError, path + ": renamed into place, but " +
+                                                 synced.error().message +
+                                                 "; the file may not survive a crash");
     return report;
 }
 

@@ -166,6 +166,11 @@ struct ExrReadOptions {
     int64_t max_side = int64_t{1} << 15;    // data window width and height, pixels
     int64_t max_pixels = int64_t{1} << 28;  // width * height; the image takes 12 bytes per pixel
     int max_channels = 64;                  // channels in the file, read or not
+    // The size the caller knows the image has (a sweep's frame size, hdr/sweep.h); 0 = any. A
+    // data window of another size is refused (ParseError) before the image is allocated, so a
+    // small file that declares a huge image costs nothing.
+    int64_t expected_width_px = 0;
+    int64_t expected_height_px = 0;
 };
 
 struct ExrImage {
@@ -182,10 +187,12 @@ struct ExrImage {
 // Writes `image` (at least 1x1, at most 2^15 pixels per side, every value finite) with `meta` to
 // `path` as a single-part scanline EXR with channels R, G, B and data and display window
 // [0, width - 1] x [0, height - 1]. The file is written to "<path>.tmp-<pid>" in the same
-// directory, flushed to disk and renamed onto `path`; on any failure the temporary file is
-// removed and whatever was at `path` is left as it was. Errors name the path and what failed: the
-// first non-finite pixel (x, y, channel), the first value that does not fit half when Half was
-// asked for, an invalid metadata field, or the operating system's or OpenEXR's complaint.
+// directory, flushed to disk and renamed onto `path`, and the directory flushed; on any failure
+// before the rename the temporary file is removed and whatever was at `path` is left as it was.
+// When only the directory's flush fails, the error says that the file was renamed into place.
+// Errors name the path and what failed: the first non-finite pixel (x, y, channel), the first value
+// that does not fit half when Half was asked for, an invalid metadata field, or the operating
+// system's or OpenEXR's complaint.
 Result<ExrWriteReport> writeExr(const std::string& path,
                                 const render::ImageRGB& image,
                                 const ExrMetadata& meta,
