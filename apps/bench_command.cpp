@@ -4,9 +4,11 @@
 #include <memory>
 #include <ostream>
 
+#include "bench/bracket_bench.h"
 #include "bench/fit_bench.h"
 #include "bench/merge_bench.h"
 #include "bench/render_bench.h"
+#include "bench/response_bench.h"
 
 namespace flarelab::apps {
 
@@ -137,6 +139,133 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             file << bench::fitBenchJson(*report) << "\n";
             if (!file) {
                 err << "flarelab: cannot write " << *fit_json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+
+    auto response_options = std::make_shared<bench::ResponseBenchOptions>();
+    auto response_json_path = std::make_shared<std::string>();
+    CLI::App* response = bench->add_subcommand(
+        "response",
+        "camera response recovery (flarelab calibrate) against OpenCV's CalibrateDebevec and "
+        "CalibrateRobertson, on the simulated camera with a known curve");
+    response
+        ->add_option("--curve", response_options->curves,
+                     "curves to recover: linear, gamma:G, log:A (repeat)")
+        ->capture_default_str();
+    response->add_option("--seed", response_options->seeds, "noise seeds (repeat)")
+        ->capture_default_str();
+    response->add_option("--lens", response_options->lens_file,
+                         "the simulated camera's lens (default: "
+                         "data/lenses/heliar-tronnier.csv)");
+    response->add_option("--angle-deg", response_options->angle_deg, "the light's angle")
+        ->capture_default_str();
+    response->add_option("--width", response_options->width, "frame width")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    response->add_option("--height", response_options->height, "frame height")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    response->add_option("--stops", response_options->stops, "stops below the clip level scored")
+        ->capture_default_str();
+    response->add_flag("!--no-opencv", response_options->opencv, "skip OpenCV's calibrations");
+    response->add_option("--json", *response_json_path, "also write the results as JSON here");
+    response->callback([response_options, response_json_path, &out, &err, &exit_code] {
+        auto rows = bench::runResponseBench(*response_options, err);
+        if (!rows) {
+            err << "flarelab: " << rows.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printResponseBench(*rows, out);
+        if (!response_json_path->empty()) {
+            std::ofstream file(*response_json_path);
+            file << bench::responseBenchJson(*rows).dump(2) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *response_json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+
+    auto bracket_options = std::make_shared<bench::BracketBenchOptions>();
+    auto bracket_json_path = std::make_shared<std::string>();
+    auto bracket_fixed = std::make_shared<std::vector<double>>(bracket_options->fixed_s);
+    CLI::App* bracket = bench->add_subcommand(
+        "bracket",
+        "auto-bracketing against fixed brackets on the simulated rig, every lens, scored along "
+        "the sweep against the simulator's truth");
+    bracket->add_option("--lens", bracket_options->lens_files,
+                        "lens files (repeat; default: every *.csv in --lens-dir)");
+    bracket->add_option("--lens-dir", bracket_options->lens_dir, "where the lenses are")
+        ->capture_default_str();
+    bracket->add_option("--f-number", bracket_options->f_number,
+                        "working f-number of every lens (default: each file's)");
+    bracket
+        ->add_option("--from", bracket_options->first_angles_deg,
+                     "first angles of the sweeps, deg (repeat)")
+        ->capture_default_str();
+    bracket
+        ->add_option("--offset", bracket_options->sweep_offsets_deg,
+                     "angles after the first where the plan is scored, deg (repeat)")
+        ->capture_default_str();
+    bracket->add_option("--seed", bracket_options->seeds, "noise seeds (repeat)")
+        ->capture_default_str();
+    bracket->add_option("--width", bracket_options->width, "frame width")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    bracket->add_option("--height", bracket_options->height, "frame height")
+        ->check(CLI::Range(int64_t{32}, int64_t{8192}))
+        ->capture_default_str();
+    bracket->add_option("--min-exposure", bracket_options->min_exposure_s,
+                        "the simulated camera's shortest exposure, s (default: its own, 1e-9)");
+    bracket
+        ->add_option("--floor-headroom", bracket_options->plan.floor_headroom,
+                     "aim at a floor this many times dimmer than the first angle's")
+        ->capture_default_str();
+    bracket->add_option("--fixed", *bracket_fixed, "the fixed bracket compared with, s")
+        ->delimiter(',')
+        ->capture_default_str();
+    bracket
+        ->add_option("--core-level", bracket_options->plan.core_level,
+                     "the core's peak in the shortest exposure, of the range")
+        ->capture_default_str();
+    bracket
+        ->add_option("--floor-snr", bracket_options->plan.floor_snr,
+                     "the floor's signal-to-noise ratio in the longest exposure")
+        ->capture_default_str();
+    bracket
+        ->add_option("--floor-percentile", bracket_options->plan.floor_percentile,
+                     "the scene's dark level, as a fraction of the pixels")
+        ->capture_default_str();
+    bracket
+        ->add_option("--max-ratio", bracket_options->plan.max_ratio,
+                     "most ratio between neighbouring exposures")
+        ->capture_default_str();
+    bracket
+        ->add_option("--budget", bracket_options->plan.budget_s,
+                     "most exposure time of one bracket, s")
+        ->capture_default_str();
+    bracket->add_option("--json", *bracket_json_path, "also write the results as JSON here");
+    bracket->callback([bracket_options, bracket_fixed, bracket_json_path, &out, &err, &exit_code] {
+        bracket_options->fixed_s = *bracket_fixed;
+        auto rows = bench::runBracketBench(*bracket_options, err);
+        if (!rows) {
+            err << "flarelab: " << rows.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printBracketBench(*rows, *bracket_options, out);
+        if (!bracket_json_path->empty()) {
+            std::ofstream file(*bracket_json_path);
+            file << bench::bracketBenchJson(*rows).dump(2) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *bracket_json_path << "\n";
                 exit_code = 1;
                 return;
             }

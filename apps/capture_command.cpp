@@ -13,6 +13,8 @@
 #include <vector>
 
 #include "apps/camera_flags.h"
+#include "drivers/auto_bracket.h"
+#include "drivers/calibration.h"
 #include "drivers/rig.h"
 #include "hdr/merge.h"
 #include "hdr/raw_io.h"
@@ -32,7 +34,8 @@ struct CaptureState {
     double from_deg = 0.0;
     double to_deg = 30.0;
     double step_deg = 0.2;
-    std::string brackets = "0.25,1,4";
+    std::string brackets = "auto";
+    std::string calibration_file;
     int64_t width = 640;
     int64_t height = 427;
     bool fast = false;
@@ -61,6 +64,12 @@ void progress(std::ostream& err, bool terminal, size_t done, size_t total, doubl
         << std::flush;
 }
 
+std::string bracketText(const std::vector<double>& times) {
+    std::ostringstream o;
+    for (size_t k = 0; k < times.size(); ++k) o << (k ? "," : "") << times[k];
+    return o.str();
+}
+
 int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     const std::string camera_uri = !s.camera_uri.empty() ? s.camera_uri : s.sim ? "sim:" : "";
     const std::string head_uri = !s.head_uri.empty() ? s.head_uri : s.sim ? "sim:" : "";
@@ -69,10 +78,24 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
                "devices`), or --sim for the simulated rig\n";
         return 1;
     }
-    const auto times = parseBrackets(s.brackets);
-    if (!times) {
-        err << "flarelab: " << times.error().message << "\n";
-        return 1;
+    const bool auto_brackets = s.brackets == "auto";
+    std::vector<double> times;
+    if (!auto_brackets) {
+        auto given = parseBrackets(s.brackets);
+        if (!given) {
+            err << "flarelab: " << given.error().message << "\n";
+            return 1;
+        }
+        times = std::move(*given);
+    }
+    std::optional<drivers::CameraCalibration> calibration;
+    if (!s.calibration_file.empty()) {
+        auto read = drivers::readCalibration(s.calibration_file);
+        if (!read) {
+            err << "flarelab: --calibration: " << read.error().message << "\n";
+            return 1;
+        }
+        calibration = std::move(*read);
     }
     if (!(s.step_deg > 0.0) || !std::isfinite(s.from_deg) || !std::isfinite(s.to_deg) ||
         s.to_deg < s.from_deg) {
@@ -117,10 +140,48 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     drivers::Head& head = *rig->head;
     const drivers::CameraCapabilities caps = camera.capabilities();
     for (const std::string& note : camera.notes()) err << "flarelab: note: " << note << "\n";
+    // A camera known not to be linear is merged only through its response curve.
+    if (Status ok = drivers::checkCalibrationFor(camera, calibration ? &*calibration : nullptr);
+        !ok) {
+        err << "flarelab: " << ok.error().message << "\n";
+        return 1;
+    }
     constexpr double kTimeout_s = 600.0;
     if (Status homed = head.home(kTimeout_s); !homed) {
         err << "flarelab: " << homed.error().message << "\n";
         return 1;
+    }
+    // The bracket: given, the one a resumed sweep was taken with, or planned from probes at the
+    // first angle.
+    if (auto_brackets) {
+        std::optional<std::vector<double>> resumed;
+        if (s.resume)
+            if (auto existing = hdr::readSweepManifest(s.output))
+                resumed = existing->header.capture.exposure_times_s;
+        if (resumed) {
+            times = *resumed;
+        } else {
+            if (auto at = head.moveTo(s.from_deg, kTimeout_s); !at) {
+                err << "flarelab: " << at.error().message << "\n";
+                return 1;
+            }
+            drivers::BracketPlanOptions plan_options;
+            plan_options.calibration = calibration ? &*calibration : nullptr;
+            auto plan = drivers::planBrackets(camera, plan_options);
+            if (!plan) {
+                err << "flarelab: planning the bracket: " << plan.error().message << "\n";
+                return 1;
+            }
+            for (const std::string& reason : plan->reasons)
+                err << "flarelab: bracket: " << reason << "\n";
+            if (!plan->core_unclipped || !plan->floor_reached)
+                err << "flarelab: warning: the planned bracket "
+                    << (!plan->core_unclipped ? "clips the light's core" : "")
+                    << (!plan->core_unclipped && !plan->floor_reached ? " and " : "")
+                    << (!plan->floor_reached ? "does not reach the ghosts' noise floor" : "")
+                    << " (the lines above say why)\n";
+            times = plan->exposure_times_s;
+        }
     }
 
     hdr::SweepHeader header;
@@ -150,7 +211,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     header.capture.from_deg = s.from_deg;
     header.capture.to_deg = s.to_deg;
     header.capture.step_deg = s.step_deg;
-    header.capture.exposure_times_s = *times;
+    header.capture.exposure_times_s = times;
     header.capture.gain = camera.gain();
     header.capture.width_px = caps.width_px;
     header.capture.height_px = caps.height_px;
@@ -186,8 +247,8 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
         }
         std::vector<hdr::RawFrame> bracket;
         hdr::SweepFrame frame;
-        for (size_t k = 0; k < times->size(); ++k) {
-            const double t = (*times)[k];
+        for (size_t k = 0; k < times.size(); ++k) {
+            const double t = times[k];
             auto captured = [&]() -> Result<hdr::RawFrame> {
                 if (Status set = camera.setExposure(t); !set) return set.error();
                 return camera.capture(kTimeout_s);
@@ -207,6 +268,16 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
                     return 1;
                 }
                 frame.raw_files.push_back(name.str());
+            }
+            // Kept as the camera gave it (above); merged through its calibration.
+            if (calibration) {
+                auto calibrated = drivers::applyCalibration(*captured, *calibration);
+                if (!calibrated) {
+                    err << "\nflarelab: frame " << i << " at " << angle << " deg, exposure " << t
+                        << " s: " << calibrated.error().message << "\n";
+                    return 1;
+                }
+                *captured = std::move(*calibrated);
             }
             // Which of its samples the merge can use: recorded per exposure in the manifest.
             const auto counts = hdr::countExposure(*captured);
@@ -232,7 +303,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
         // Where the head reported it stood, to a nanodegree (its arithmetic may add an ulp).
         frame.angle_deg = std::round(*at * 1e9) / 1e9;
         // The manifest lists the bracket in the order it was taken, with its raw files.
-        frame.exposure_times_s = *times;
+        frame.exposure_times_s = times;
         frame.merge_method = merged->method;
         auto added = writer->addFrame(*image, frame);
         if (!added) {
@@ -263,8 +334,9 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
         << (skipped ? " (" + std::to_string(skipped) + " already there)" : "") << " of "
         << (header.lens.description.empty() ? camera_uri : header.lens.description) << ", "
         << s.from_deg << " to " << s.to_deg << " deg in steps of " << s.step_deg << ", brackets "
-        << s.brackets << " s, " << caps.width_px << "x" << caps.height_px << ", "
-        << seconds(elapsed()) << (s.fast ? " (fast)" : "") << " -> " << s.output << "\n";
+        << bracketText(times) << (auto_brackets ? " s (planned), " : " s, ") << caps.width_px << "x"
+        << caps.height_px << ", " << seconds(elapsed()) << (s.fast ? " (fast)" : "") << " -> "
+        << s.output << "\n";
     return 0;
 }
 
@@ -311,8 +383,12 @@ void addCaptureCommand(CLI::App& app, std::ostream& out, std::ostream& err, int&
     cmd->add_option("--from", state->from_deg, "first angle (deg)")->capture_default_str();
     cmd->add_option("--to", state->to_deg, "last angle (deg)")->capture_default_str();
     cmd->add_option("--step", state->step_deg, "angle step (deg)")->capture_default_str();
-    cmd->add_option("--brackets", state->brackets, "exposure times in seconds, comma separated")
+    cmd->add_option("--brackets", state->brackets,
+                    "exposure times in seconds, comma separated, or auto: planned from probes of "
+                    "the light at the first angle")
         ->capture_default_str();
+    cmd->add_option("--calibration", state->calibration_file,
+                    "the camera's calibration (flarelab calibrate): frames are merged through it");
     cmd->add_option("--width", state->width, "frame width of the simulated camera")
         ->check(CLI::Range(int64_t{1}, int64_t{32768}))
         ->capture_default_str();

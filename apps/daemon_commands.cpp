@@ -239,7 +239,7 @@ struct StartState {
     std::string lens_file;
     CameraFlags camera;
     double from_deg = 0.0, to_deg = 30.0, step_deg = 0.2;
-    std::string brackets = "0.25,1,4";
+    std::string brackets = "auto";
     int64_t width = 0, height = 0;  // 0: the rig's default (640 x 427 simulated)
     double gain = 1.0;
     bool fast = false;
@@ -253,7 +253,9 @@ struct StartState {
 };
 
 int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
-    auto times = parseBrackets(s.brackets);
+    // "auto": none sent, and the daemon plans the bracket at the first angle.
+    auto times = s.brackets == "auto" ? Result<std::vector<double>>(std::vector<double>{})
+                                      : parseBrackets(s.brackets);
     if (!times) {
         err << "flarelab: " << times.error().message << "\n";
         return 2;
@@ -436,7 +438,9 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
     cmd->add_option("--from", s->from_deg, "first angle (deg)")->capture_default_str();
     cmd->add_option("--to", s->to_deg, "last angle (deg)")->capture_default_str();
     cmd->add_option("--step", s->step_deg, "angle step (deg)")->capture_default_str();
-    cmd->add_option("--brackets", s->brackets, "exposure times in seconds, comma separated")
+    cmd->add_option("--brackets", s->brackets,
+                    "exposure times in seconds, comma separated, or auto: planned by the daemon at "
+                    "the first angle")
         ->capture_default_str();
     cmd->add_option("--gain", s->gain, "linear gain")->capture_default_str();
     cmd->add_option("--width", s->width, "frame width (default: the rig's, 640 simulated)")

@@ -5,6 +5,7 @@
 #include <iostream>
 
 #include "apps/bench_command.h"
+#include "apps/calibrate_command.h"
 #include "apps/capture_command.h"
 #include "apps/daemon_commands.h"
 #include "apps/fit_command.h"
@@ -23,6 +24,7 @@ int main(int argc, char** argv) {
         flarelab::apps::addSimulateCommand(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addMergeCommand(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addCaptureCommand(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addCalibrateCommand(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addSweepCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addModelCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addFitCommands(app, std::cout, std::cerr, exit_code);

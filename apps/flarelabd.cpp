@@ -3,8 +3,10 @@
 //     flarelabd --state-dir DIR [--output-root DIR]
 //               [--listen HOST:PORT --token-file FILE [--allow-remote --tls-cert F --tls-key F]]
 //               [--no-resume] [--camera-retries N] [--min-free-mb N]
+//               [--memory-budget-mb N] [--quarantine-after N]
 //               [--keep-ended-jobs N] [--keep-ended-days D]
-//               [--camera URI ...] [--head URI ...] | [--replay RECORDED_SWEEP]
+//               [--camera URI ...] [--head URI ...] [--calibration FILE ...]
+//               | [--replay RECORDED_SWEEP]
 //
 // Without --camera and --head every job runs on the simulated rig its config describes; with
 // them, jobs run on those devices (drivers/rig.h URIs: aravis:ID, v4l2:/dev/video0, zaber:...,
@@ -31,6 +33,7 @@
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <filesystem>
@@ -46,6 +49,7 @@
 #include "daemon/notify.h"
 #include "daemon/service.h"
 #include "daemon/sweep_runner.h"
+#include "drivers/calibration.h"
 #include "drivers/device.h"
 #include "hdr/sweep.h"
 
@@ -60,6 +64,16 @@ timespec toTimespec(std::chrono::nanoseconds d) {
                     static_cast<long>(d.count() % 1'000'000'000)};
 }
 
+// The default memory budget: half the machine's memory, at most 4 GiB. Half, because the fit of
+// the last sweep runs beside the next capture and the page cache carries every EXR to the disk;
+// 4 GiB holds the pipeline of a 24-Mpx camera with a three-exposure bracket (about 1.3 GiB, see
+// daemon/sweep_config.h) with a queue of some twenty brackets, a minute of capture at most rates.
+int64_t defaultMemoryBudgetMb() {
+    const long pages = ::sysconf(_SC_PHYS_PAGES), page = ::sysconf(_SC_PAGESIZE);
+    const int64_t half_mb = pages > 0 && page > 0 ? (int64_t{pages} * page >> 20) / 2 : 4096;
+    return std::clamp<int64_t>(half_mb, 256, 4096);
+}
+
 int run(int argc, char** argv) {
     settleAllocator();
     setLogTarget(detectLogTarget());
@@ -68,10 +82,11 @@ int run(int argc, char** argv) {
     std::string tls_cert, tls_key;
     size_t keep_ended_jobs = 100;
     double keep_ended_days = 30.0;
-    std::vector<std::string> cameras, heads;
+    std::vector<std::string> cameras, heads, calibration_files;
     bool no_resume = false, allow_remote = false;
     int camera_retries = 3, head_retries = 2;
-    int64_t min_free_mb = 64;
+    int64_t min_free_mb = 64, memory_budget_mb = defaultMemoryBudgetMb();
+    int quarantine_after = 3;
     app.add_option("--state-dir", state_dir,
                    "journal, lock and socket (DIR/flarelabd.sock) live here")
         ->required();
@@ -103,6 +118,9 @@ int run(int argc, char** argv) {
     app.add_option("--head", heads,
                    "a head jobs may use, by URI (repeat for several; the first is the default; "
                    "none: jobs simulate theirs)");
+    app.add_option("--calibration", calibration_files,
+                   "a camera's calibration (flarelab calibrate; repeat for several cameras): a "
+                   "job's frames are merged through the one measured on its camera");
     app.add_flag("--no-resume", no_resume,
                  "do not resume interrupted jobs at start (they wait for a client's resume)");
     app.add_option("--camera-retries", camera_retries, "camera timeouts retried per exposure")
@@ -113,6 +131,17 @@ int run(int argc, char** argv) {
         ->capture_default_str();
     app.add_option("--min-free-mb", min_free_mb, "free disk space a job leaves (MiB)")
         ->check(CLI::Range(int64_t{0}, int64_t{1} << 30))
+        ->capture_default_str();
+    app.add_option("--memory-budget-mb", memory_budget_mb,
+                   "memory a job may hold (MiB): larger frames are refused, the queue between "
+                   "capture and processing holds the rest (default: half the machine's, at most "
+                   "4096)")
+        ->check(CLI::Range(int64_t{128}, int64_t{1} << 30))
+        ->capture_default_str();
+    app.add_option("--quarantine-after", quarantine_after,
+                   "a job under which the daemon died this many times in a row without getting "
+                   "further is not resumed again but failed (0: never)")
+        ->check(CLI::Range(0, 1000000))
         ->capture_default_str();
     app.add_option("--log-level", log_level, "debug, info, warn or error")->capture_default_str();
     CLI11_PARSE(app, argc, argv);
@@ -233,6 +262,8 @@ int run(int argc, char** argv) {
     options.runner.camera_retries = camera_retries;
     options.runner.head_retries = head_retries;
     options.runner.min_free_bytes = min_free_mb << 20;
+    options.runner.limits.memory_budget_bytes = memory_budget_mb << 20;
+    options.quarantine_after = quarantine_after;
     options.runner.software_version = "flarelabd 0.1.0";
     options.keep_ended = keep_ended_jobs;
     options.keep_ended_s = keep_ended_days * 86400.0;
@@ -251,6 +282,14 @@ int run(int argc, char** argv) {
                           << "': " << (parsed ? "empty" : parsed.error().message) << "\n";
                 return 2;
             }
+    for (const std::string& file : calibration_files) {
+        auto calibration = drivers::readCalibration(file);
+        if (!calibration) {
+            std::cerr << "flarelabd: --calibration: " << calibration.error().message << "\n";
+            return 1;
+        }
+        options.runner.calibrations.push_back(std::move(*calibration));
+    }
     options.runner.limits.cameras = cameras;
     options.runner.limits.heads = heads;
     if (!cameras.empty() || !heads.empty()) {

@@ -35,6 +35,37 @@ bool validRequestId(const std::string& id) {
     return true;
 }
 
+// `text` cut to at most `bytes` bytes, at a UTF-8 character boundary.
+std::string clipped(const std::string& text, size_t bytes) {
+    if (text.size() <= bytes) return text;
+    size_t end = bytes;
+    while (end > 0 && (static_cast<unsigned char>(text[end]) & 0xC0) == 0x80) --end;
+    return text.substr(0, end) + "...";
+}
+
+// What a job's record may grow by after it was accepted: its warnings (at most 100, each clipped
+// to kMaxWarningBytes), its reason (kMaxReasonBytes), a controller's name (gRPC metadata, at most
+// 8 KiB) and peer, and the other fields, all of which JSON may grow sixfold.
+constexpr size_t kMaxWarningBytes = 1024;
+constexpr size_t kMaxReasonBytes = 4096;
+constexpr int64_t kRecordGrowthBytes =
+    6 * (100 * (kMaxWarningBytes + 8) + kMaxReasonBytes + 8192 + 4096) + (64 << 10);
+
+// An output directory as the start of a job resolves it: the part that exists with its links
+// followed (so that another spelling, or a link to it, is the same directory), the rest as given.
+// It reads the file system: never called under the manager's lock.
+std::string directoryKey(const std::string& dir) {
+    std::error_code ec;
+    const fs::path resolved = fs::weakly_canonical(dir, ec);
+    return ec ? fs::path(dir).lexically_normal().string() : resolved.string();
+}
+
+// Frames the sweep in `dir` lists now (0 without a readable one).
+uint32_t framesOnDisk(const std::string& dir) {
+    auto listed = hdr::readSweepManifest(dir);
+    return listed ? static_cast<uint32_t>(listed->frames.size()) : 0;
+}
+
 // The job as events and listings carry it: without the lens text, which can be 1 MiB.
 v1::Job summary(const v1::Job& job) {
     v1::Job out = job;
@@ -139,6 +170,7 @@ public:
     void setFramesDone(uint32_t frames) override {
         std::lock_guard lock(manager_.mutex_);
         Entry& e = manager_.jobs_.at(number_);
+        if (frames > e.job.frames_done()) e.job.set_crashes(0);  // it gets further
         e.job.set_frames_done(frames);
         e.job.set_updated_unix_s(unixNow());
         // The journal is the job's record, not the sweep's: the sweep's manifest says which
@@ -149,7 +181,7 @@ public:
     void warning(const std::string& message) override {
         std::lock_guard lock(manager_.mutex_);
         Entry& e = manager_.jobs_.at(number_);
-        if (e.job.warnings_size() < 100) e.job.add_warnings(message);
+        if (e.job.warnings_size() < 100) e.job.add_warnings(clipped(message, kMaxWarningBytes));
         logEvent(LogLevel::Warn, "job.warning", {{"job", e.job.id()}, {"message", message}});
         v1::JobEvent event;
         event.set_kind(v1::WARNING);
@@ -193,9 +225,30 @@ Result<std::unique_ptr<JobManager>> JobManager::open(ManagerOptions options,
     for (v1::Job& job : loaded->jobs) {
         const uint64_t number = jobNumber(job.id());
         Entry& e = manager->jobs_[number];
+        bool quarantined = false;
         if (job.state() == v1::RUNNING) {  // killed: it had no time to say so
             job.set_state(v1::INTERRUPTED);
             job.set_reason("the daemon stopped while the job ran");
+            // Counted before the job runs again: a job that crashes the daemon must not take it
+            // down at every start. Progress is what the sweep on disk holds beyond the record.
+            const uint32_t on_disk = framesOnDisk(job.output_dir());
+            job.set_crashes(on_disk > job.frames_done() ? 1 : job.crashes() + 1);
+            job.set_frames_done(std::max(job.frames_done(), on_disk));
+            const int limit = manager->options_.quarantine_after;
+            if (limit > 0 && job.crashes() >= static_cast<uint32_t>(limit)) {
+                quarantined = true;
+                job.set_state(v1::FAILED);
+                job.set_resumable(true);
+                job.set_reason("quarantined: the daemon died " + std::to_string(job.crashes()) +
+                               " times in a row while this job ran (phase " +
+                               v1::JobPhase_Name(job.phase()) + ", " +
+                               std::to_string(job.frames_done()) +
+                               " frames on disk) without it getting further; it is not resumed "
+                               "by itself again: find the cause in the daemon's log, then resume "
+                               "it by hand");
+                logEvent(LogLevel::Error, "job.quarantined",
+                         {{"job", job.id()}, {"crashes", std::to_string(job.crashes())}});
+            }
         }
         if (job.state() == v1::INTERRUPTED) job.set_restarts(job.restarts() + 1);
         if (job.state() == v1::INTERRUPTED && manager->options_.resume) {
@@ -207,10 +260,12 @@ Result<std::unique_ptr<JobManager>> JobManager::open(ManagerOptions options,
         e.job = std::move(job);
         e.version = e.attempted = e.recorded = 1;
         e.told = e.job;
+        e.directory_key = directoryKey(e.job.output_dir());
         if (!e.job.request_id().empty()) manager->by_request_[e.job.request_id()] = number;
         manager->next_number_ = std::max(manager->next_number_, number + 1);
-        if (!ended(e.job)) {
-            // (An ended job keeps its time: the time it ended, by which it is pruned.)
+        if (!ended(e.job) || quarantined) {
+            // (An ended job keeps its time: the time it ended, by which it is pruned; a job
+            // quarantined now ends now.)
             e.job.set_updated_unix_s(unixNow());
             // No thread runs yet: the record is written here, before the daemon says anything.
             if (auto saved = manager->journal_.save(e.job); !saved) return saved.error();
@@ -283,10 +338,20 @@ void JobManager::emit(Entry& entry, v1::JobEvent event) {
     outbox_cv_.notify_all();
 }
 
+v1::Job JobManager::asWritten(v1::Job job, bool cancelled) {
+    // A cancel a client was told about is on disk before the job stops, and stays there.
+    if (cancelled && !ended(job)) {
+        job.set_state(v1::CANCELLED);
+        job.set_resumable(false);
+    }
+    return job;
+}
+
 void JobManager::save(Entry& entry) {
     Outgoing out;
     out.number = jobNumber(entry.job.id());
     out.record = entry.job;
+    out.cancelled = entry.cancel_requested;
     out.version = ++entry.version;
     outbox_.push_back(std::move(out));
     outbox_cv_.notify_all();
@@ -319,7 +384,9 @@ void JobManager::record() {
                 continue;
             }
             if (options_.before_journal_write) options_.before_journal_write(out.record->id());
-            if (auto saved = journal_.save(*out.record); !saved) {
+            const v1::Job written =
+                out.cancelled ? asWritten(*out.record, true) : v1::Job(*out.record);
+            if (auto saved = journal_.save(written); !saved) {
                 errors[i] = saved.error().message;
                 logEvent(LogLevel::Error, "journal.write_failed",
                          {{"job", out.record->id()}, {"message", errors[i]}});
@@ -334,12 +401,16 @@ void JobManager::record() {
             if (out.record && newest[out.number] == i) {
                 e.attempted = std::max(e.attempted, out.version);
                 e.record_error = errors[i];
-                if (errors[i].empty() && out.version > e.recorded) {
-                    e.recorded = out.version;
-                    e.told = std::move(*out.record);
-                }
+                if (errors[i].empty() && out.version > e.recorded) e.recorded = out.version;
+                // The daemon's own change is told even when the disk refused it (it happened,
+                // and the next record carries it); a client's refused change is undone instead.
+                if (errors[i].empty() || !out.refusable) e.told = std::move(*out.record);
             }
-            if (out.event) publish(e, std::move(*out.event));
+            // A client's change the journal could not record is not announced: it is undone.
+            const auto written = newest.find(out.number);
+            const bool refused =
+                out.refusable && written != newest.end() && !errors[written->second].empty();
+            if (out.event && !refused) publish(e, std::move(*out.event));
         }
         recording_ = false;
         changed_cv_.notify_all();
@@ -378,7 +449,9 @@ v1::Job JobManager::shown(const Entry& entry) {
 void JobManager::prune(double now_unix_s) {
     std::vector<uint64_t> ended_jobs;  // oldest first (job numbers grow)
     for (const auto& [number, e] : jobs_)
-        if (ended(e.job) && !e.control && e.recorded > 0) ended_jobs.push_back(number);
+        // (Not one a client's change to is being written: a refused change is undone.)
+        if (ended(e.job) && !e.control && e.recorded > 0 && e.proposals == 0)
+            ended_jobs.push_back(number);
     const size_t beyond =
         ended_jobs.size() > options_.keep_ended ? ended_jobs.size() - options_.keep_ended : 0;
     for (size_t i = 0; i < ended_jobs.size(); ++i) {
@@ -401,8 +474,10 @@ void JobManager::prune(double now_unix_s) {
     if (!outbox_.empty()) outbox_cv_.notify_all();
 }
 
-void JobManager::changed(Entry& entry, const std::string& log_note) {
+uint64_t JobManager::changed(Entry& entry, const std::string& log_note, bool refusable) {
     entry.job.set_updated_unix_s(unixNow());
+    if (entry.job.reason().size() > kMaxReasonBytes)
+        entry.job.set_reason(clipped(entry.job.reason(), kMaxReasonBytes));
     logEvent(LogLevel::Info, "job.state",
              {{"job", entry.job.id()},
               {"state", v1::JobState_Name(entry.job.state())},
@@ -417,10 +492,56 @@ void JobManager::changed(Entry& entry, const std::string& log_note) {
     Outgoing out;
     out.number = jobNumber(entry.job.id());
     out.record = entry.job;
+    out.cancelled = entry.cancel_requested;
     out.version = ++entry.version;
+    out.refusable = refusable;
     out.event = std::move(event);
     outbox_.push_back(std::move(out));
     outbox_cv_.notify_all();
+    return out.version;
+}
+
+JobManager::Proposal JobManager::propose(Entry& entry,
+                                         const v1::Job& before,
+                                         bool cancel_before,
+                                         const std::string& note) {
+    Proposal p;
+    p.number = jobNumber(entry.job.id());
+    p.before = before;
+    p.cancel_before = cancel_before;
+    p.version = changed(entry, note, true);
+    p.after = entry.job;
+    ++entry.proposals;
+    return p;
+}
+
+Status JobManager::commit(std::unique_lock<std::mutex>& lock, const Proposal& p) {
+    const Status recorded = waitRecorded(lock, p.number, p.version);
+    const auto it = jobs_.find(p.number);
+    if (it == jobs_.end()) return recorded;
+    Entry& e = it->second;
+    --e.proposals;
+    changed_cv_.notify_all();  // the worker may take the job now
+    if (recorded.ok()) return recorded;
+    // Undone: each field the change set, unless the daemon changed it since (the job went on, or
+    // ended, meanwhile). A running job's state stays RUNNING only while it has its worker.
+    const v1::Job& b = p.before;
+    const v1::Job& a = p.after;
+    if (e.job.state() == a.state() && a.state() != b.state() &&
+        (b.state() != v1::RUNNING || e.control))
+        e.job.set_state(b.state());
+    if (e.job.reason() == a.reason()) e.job.set_reason(b.reason());
+    if (e.job.phase() == a.phase()) e.job.set_phase(b.phase());
+    if (e.job.resumable() == a.resumable()) e.job.set_resumable(b.resumable());
+    if (e.job.controller() == a.controller() && e.job.controller_peer() == a.controller_peer()) {
+        e.job.set_controller(b.controller());
+        e.job.set_controller_peer(b.controller_peer());
+    }
+    if (!ended(e.job)) e.cancel_requested = p.cancel_before;
+    // Written again: a later record of the daemon's own may have carried the change to disk.
+    changed(e, "a client's change undone: " + recorded.error_message());
+    return Status(StatusCode::UNAVAILABLE,
+                  e.job.id() + ": the change is refused: " + recorded.error_message());
 }
 
 // With mutex_ held: the job after a stage, as `result` says.
@@ -432,7 +553,8 @@ void JobManager::finish(Entry& e, const RunResult& result) {
             e.job.set_phase(v1::FITTING);
             fit_queue_.push_back(jobNumber(e.job.id()));
             note << "captured in " << result.capture_wall_s << " s, queue high water "
-                 << result.queue_high_water << "; fit queued";
+                 << result.queue_high_water << " brackets, " << result.queue_high_water_bytes
+                 << " bytes; fit queued";
             changed(e, note.str());
             return;
         case RunOutcome::Succeeded:
@@ -443,6 +565,7 @@ void JobManager::finish(Entry& e, const RunResult& result) {
         case RunOutcome::Failed:
             e.job.set_state(v1::FAILED);
             e.job.set_reason(result.reason);
+            e.job.set_resumable(result.resumable && !e.cancel_requested);
             break;
         case RunOutcome::Stopped:
             if (e.cancel_requested) {
@@ -457,7 +580,8 @@ void JobManager::finish(Entry& e, const RunResult& result) {
     e.control.reset();
     if (result.capture_wall_s > 0.0)
         note << "capture " << result.capture_wall_s << " s, queue high water "
-             << result.queue_high_water;
+             << result.queue_high_water << " brackets, " << result.queue_high_water_bytes
+             << " bytes";
     if (result.fit_wall_s > 0.0) note << "fit " << result.fit_wall_s << " s";
     changed(e, note.str());
     if (ended(e.job)) prune(unixNow());
@@ -470,7 +594,9 @@ void JobManager::work() {
         changed_cv_.wait(lock, [&] {
             if (shutting_down_) return true;
             for (auto& [number, e] : jobs_)
-                if (e.job.state() == v1::QUEUED && e.recorded > 0) {
+                // Not before its first record is on disk, nor while a client's change to it is
+                // being written (it may be refused and undone).
+                if (e.job.state() == v1::QUEUED && e.recorded > 0 && e.proposals == 0) {
                     next = &e;
                     return true;
                 }
@@ -591,6 +717,36 @@ Status JobManager::start(const v1::StartSweepRequest& request, const Caller& cli
         auto prepared =
             prepareSweep(request.config(), options_.runner.output_root, options_.runner.limits);
         if (!prepared) return Status(StatusCode::INVALID_ARGUMENT, prepared.error().message);
+        // Its record must read back at every later start, however it grows until the job ends.
+        // (Printed here, without the lock: a record may take megabytes.)
+        {
+            v1::Job probe;
+            probe.set_id(jobId(999999));  // as long as the ids of the next million jobs
+            probe.set_request_id(request.request_id());
+            probe.set_client(client.name);
+            probe.set_controller(client.name);
+            probe.set_controller_peer(client.peer);
+            probe.set_output_dir(prepared->output_dir);
+            for (const std::string& w : prepared->warnings) probe.add_warnings(w);
+            *probe.mutable_config() = prepared->config;
+            probe.mutable_config()->set_output_dir(prepared->output_dir);
+            auto bytes = Journal::recordBytes(probe);
+            if (!bytes)
+                return Status(StatusCode::INTERNAL,
+                              "cannot record the job: " + bytes.error().message);
+            if (*bytes + kRecordGrowthBytes > kJournalMaxRecordBytes) {
+                const size_t lens = prepared->config.sim().lens().prescription_csv().size();
+                return Status(
+                    StatusCode::RESOURCE_EXHAUSTED,
+                    "config.sim.lens.prescription_csv: the job's journal record would take " +
+                        std::to_string(*bytes) + " bytes (" + std::to_string(lens) +
+                        " bytes of lens text, escaped as JSON), and with room to grow more than "
+                        "the " +
+                        std::to_string(kJournalMaxRecordBytes) +
+                        " bytes a record may have; send a shorter lens file (comments can go)");
+            }
+        }
+        const std::string directory_key = directoryKey(prepared->output_dir);
         lock.lock();
         if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
         if (!request.request_id().empty() && by_request_.count(request.request_id())) continue;
@@ -599,7 +755,8 @@ Status JobManager::start(const v1::StartSweepRequest& request, const Caller& cli
         for (const auto& [number, e] : jobs_) {
             if (ended(e.job)) continue;
             if (e.job.state() != v1::RUNNING) ++waiting;
-            if (e.job.output_dir() == prepared->output_dir)
+            // The same directory by another spelling or through a link is the same directory.
+            if (e.job.output_dir() == prepared->output_dir || e.directory_key == directory_key)
                 return Status(StatusCode::INVALID_ARGUMENT,
                               "config.output_dir: " + e.job.id() + " (" +
                                   v1::JobState_Name(e.job.state()) + ") writes to " +
@@ -624,6 +781,7 @@ Status JobManager::start(const v1::StartSweepRequest& request, const Caller& cli
         for (const std::string& w : prepared->warnings) e.job.add_warnings(w);
         *e.job.mutable_config() = std::move(prepared->config);
         e.job.mutable_config()->set_output_dir(prepared->output_dir);
+        e.directory_key = directory_key;
         if (!request.request_id().empty()) by_request_[request.request_id()] = number;
         logEvent(LogLevel::Info, "job.start",
                  {{"job", e.job.id()},
@@ -682,21 +840,33 @@ Status JobManager::pause(const v1::JobControlRequest& request, const Caller& cli
     std::unique_lock lock(mutex_);
     Entry* e = nullptr;
     if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
+    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
+    const v1::Job before = e->job;
+    const uint64_t number = jobNumber(e->job.id());
     if (Status ok = mayControl(request, client, "pause", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state != v1::QUEUED && state != v1::RUNNING && state != v1::PAUSED)
-        return Status(StatusCode::FAILED_PRECONDITION,
-                      "pause " + e->job.id() + ": the job is " + v1::JobState_Name(state));
+        return undoControl(
+            *e, before,
+            Status(StatusCode::FAILED_PRECONDITION,
+                   "pause " + e->job.id() + ": the job is " + v1::JobState_Name(state)));
     if (e->job.phase() == v1::FITTING)
-        return Status(StatusCode::FAILED_PRECONDITION,
-                      "pause " + e->job.id() +
-                          ": the job is fitting, which holds no device; cancel it or let it end");
+        return undoControl(
+            *e, before,
+            Status(StatusCode::FAILED_PRECONDITION,
+                   "pause " + e->job.id() +
+                       ": the job is fitting, which holds no device; cancel it or let it end"));
     if (state != v1::PAUSED) {
         e->job.set_state(v1::PAUSED);
         e->job.set_reason("paused by " + client.name);
-        changed(*e, "paused by a client");
     }
-    return answer(lock, jobNumber(e->job.id()), e->version, job);
+    if (state != v1::PAUSED || tookControl(before, e->job)) {
+        const Proposal p = propose(*e, before, e->cancel_requested,
+                                   state != v1::PAUSED ? "paused by a client" : "control taken");
+        if (Status ok = commit(lock, p); !ok.ok()) return ok;
+        return answer(lock, number, p.version, job);
+    }
+    return answer(lock, number, e->version, job);
 }
 
 Status JobManager::resume(const v1::JobControlRequest& request,
@@ -705,17 +875,49 @@ Status JobManager::resume(const v1::JobControlRequest& request,
     std::unique_lock lock(mutex_);
     Entry* e = nullptr;
     if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
+    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
+    const v1::Job before = e->job;
+    const bool cancel_before = e->cancel_requested;
+    const uint64_t number = jobNumber(e->job.id());
     if (Status ok = mayControl(request, client, "resume", &e); !ok.ok()) return ok;
     const v1::JobState state = e->job.state();
     if (state != v1::RUNNING && state != v1::QUEUED) {
-        if (state != v1::PAUSED && state != v1::INTERRUPTED)
-            return Status(StatusCode::FAILED_PRECONDITION,
-                          "resume " + e->job.id() + ": the job is " + v1::JobState_Name(state));
+        const bool failed_resumable = state == v1::FAILED && e->job.resumable() && !e->control;
+        if (state != v1::PAUSED && state != v1::INTERRUPTED && !failed_resumable)
+            return undoControl(
+                *e, before,
+                Status(StatusCode::FAILED_PRECONDITION,
+                       "resume " + e->job.id() + ": the job is " + v1::JobState_Name(state) +
+                           (state == v1::FAILED
+                                ? " for a reason a resume does not change: " + e->job.reason()
+                                : "")));
+        if (failed_resumable) {
+            // Another job may have taken its directory since it ended.
+            for (const auto& [other_number, other] : jobs_)
+                if (&other != e && !ended(other.job) &&
+                    (other.job.output_dir() == e->job.output_dir() ||
+                     other.directory_key == e->directory_key))
+                    return undoControl(*e, before,
+                                       Status(StatusCode::FAILED_PRECONDITION,
+                                              "resume " + e->job.id() + ": " + other.job.id() +
+                                                  " (" + v1::JobState_Name(other.job.state()) +
+                                                  ") writes to " + e->job.output_dir() + " now"));
+            // Its fit, if that is what failed, runs again on the sweep on disk.
+            e->job.set_resumable(false);
+            e->job.set_phase(v1::JOB_PHASE_UNSPECIFIED);
+            e->cancel_requested = false;
+        }
         e->job.set_state(e->control ? v1::RUNNING : v1::QUEUED);
         e->job.set_reason("");
-        changed(*e, "resumed by " + client.name);
     }
-    return answer(lock, jobNumber(e->job.id()), e->version, job);
+    const bool resumed = state != v1::RUNNING && state != v1::QUEUED;
+    if (resumed || tookControl(before, e->job)) {
+        const Proposal p = propose(*e, before, cancel_before,
+                                   resumed ? "resumed by " + client.name : "control taken");
+        if (Status ok = commit(lock, p); !ok.ok()) return ok;
+        return answer(lock, number, p.version, job);
+    }
+    return answer(lock, number, e->version, job);
 }
 
 Status JobManager::cancel(const v1::JobControlRequest& request,
@@ -724,25 +926,46 @@ Status JobManager::cancel(const v1::JobControlRequest& request,
     std::unique_lock lock(mutex_);
     Entry* e = nullptr;
     if (shutting_down_) return Status(StatusCode::UNAVAILABLE, "the daemon is stopping");
+    if (Status ok = find(request.job_id(), &e); !ok.ok()) return ok;
+    const v1::Job before = e->job;
+    const bool cancel_before = e->cancel_requested;
+    const uint64_t number = jobNumber(e->job.id());
     if (Status ok = mayControl(request, client, "cancel", &e); !ok.ok()) return ok;
     if (ended(e->job))
-        return Status(StatusCode::FAILED_PRECONDITION, "cancel " + e->job.id() + ": the job is " +
-                                                           v1::JobState_Name(e->job.state()));
+        return undoControl(
+            *e, before,
+            Status(StatusCode::FAILED_PRECONDITION,
+                   "cancel " + e->job.id() + ": the job is " + v1::JobState_Name(e->job.state())));
+    // On disk first: a cancel that the journal does not hold could run the job again after a
+    // restart. Its record says CANCELLED (asWritten) while the job still stops.
     e->cancel_requested = true;
     e->job.set_reason("cancelled by " + client.name);
-    if (e->control) {
+    const bool running = e->control != nullptr;
+    if (!running) e->job.set_state(v1::CANCELLED);
+    const Proposal p =
+        propose(*e, before, cancel_before, running ? "cancel requested" : "cancelled");
+    if (Status ok = commit(lock, p); !ok.ok()) return ok;
+    if (auto it = jobs_.find(number); it != jobs_.end() && it->second.control) {
         // Its stage ends it: the capture stops the rig at once and writes the frames captured so
         // far, the fit stops before its next frame.
-        e->control->requestStop();
+        it->second.control->requestStop();
         changed_cv_.notify_all();
         logEvent(LogLevel::Info, "job.cancel_requested",
-                 {{"job", e->job.id()}, {"client", client.name}, {"peer", client.peer}});
-        changed(*e, "cancel requested");  // the reason on disk; the state follows at its end
-    } else {
-        e->job.set_state(v1::CANCELLED);
-        changed(*e, "cancelled");
+                 {{"job", it->second.job.id()}, {"client", client.name}, {"peer", client.peer}});
     }
-    return answer(lock, jobNumber(e->job.id()), e->version, job);
+    return answer(lock, number, p.version, job);
+}
+
+bool JobManager::tookControl(const v1::Job& before, const v1::Job& now) {
+    return before.controller() != now.controller() ||
+           before.controller_peer() != now.controller_peer();
+}
+
+Status JobManager::undoControl(Entry& entry, const v1::Job& before, Status refused) {
+    // A refused call takes no control either.
+    entry.job.set_controller(before.controller());
+    entry.job.set_controller_peer(before.controller_peer());
+    return refused;
 }
 
 Status JobManager::answer(std::unique_lock<std::mutex>& lock,
@@ -751,9 +974,9 @@ Status JobManager::answer(std::unique_lock<std::mutex>& lock,
                           v1::Job* job) {
     // A change is answered once it is on disk, as it is announced.
     if (Status recorded = waitRecorded(lock, number, version); !recorded.ok()) return recorded;
-    const auto it = jobs_.find(number);
-    if (it == jobs_.end()) return Status(StatusCode::NOT_FOUND, "job_id: the job was forgotten");
-    *job = shown(it->second);
+    const auto found = jobs_.find(number);
+    if (found == jobs_.end()) return Status(StatusCode::NOT_FOUND, "job_id: the job was forgotten");
+    *job = shown(found->second);
     return Status::OK;
 }
 

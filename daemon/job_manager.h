@@ -13,8 +13,22 @@
 // log reader) never freezes the rig, the watchers or the other calls: the journal is written by
 // a thread of its own. A change is made in memory under the lock and queued, in order, with the
 // events that follow it; the journal's thread writes the record and only then publishes its STATE
-// event and everything queued behind it. A call that changes a job (start, pause, resume, cancel)
-// answers once its record is on disk. Events that follow no pending record are published at once.
+// event and everything queued behind it. Events that follow no pending record are published at
+// once.
+//
+// The journal's refusals. A change a client asks for (start, pause, resume, cancel) is answered
+// once its record is on disk. When the record cannot be written (a full or read-only disk, a
+// failed flush) the change is refused (UNAVAILABLE, naming the file and the error) and undone:
+// the job is as it was, in memory, for watchers, and on disk (its record is written again). The
+// client then knows its request did not take, and the daemon never holds a promise its disk does
+// not: the worker does not take a queued job while a client's change to it waits for the disk,
+// and a cancel stops the rig only once the journal holds the job CANCELLED (as does every later
+// record of it), so no restart runs it again. A job whose record could grow past what the journal
+// reads back (kJournalMaxRecordBytes: a lens text full of characters JSON escapes) is refused at
+// start (RESOURCE_EXHAUSTED, naming the field). Changes the daemon makes itself (a frame done, a
+// job ended) cannot be refused: a failure is logged and the record is written again at the job's
+// next change. Refusing the one request keeps a running sweep going through a transient fault (a
+// disk another program filled and emptied) rather than stopping all work.
 //
 // Ended jobs are forgotten, in memory and in the journal (their sweeps stay on disk), beyond the
 // newest keep_ended of them and keep_ended_s after they ended.
@@ -30,6 +44,12 @@
 //     the daemon stops under a running job ──► INTERRUPTED; at the next start it is QUEUED again
 //     (resumed where its sweep on disk ends) unless the daemon runs with resume off, when a
 //     client's resume queues it.
+//     FAILED ──resume──► QUEUED, for a failure that may pass (Job.resumable; sweep_runner.h).
+//
+// Quarantine. A job under which the daemon died (killed, crashed: its record still says RUNNING)
+// quarantine_after times in a row without writing a frame in between is not resumed again: it
+// becomes FAILED with a reason that says so, and only a client's resume runs it once more. A job
+// that crashes the daemon would otherwise take it down at every start.
 //
 // Control: the client that starts a job controls it; another client's pause, resume or cancel
 // is refused (PERMISSION_DENIED) unless it takes control. A client is its name together with its
@@ -76,6 +96,7 @@ struct ManagerOptions {
     bool resume = true;         // queue interrupted jobs again at start
     size_t max_queued = 64;     // jobs QUEUED or PAUSED at once
     size_t events_kept = 1024;  // per job, for watchers that fall behind
+    int quarantine_after = 3;   // crashes in a row without progress; 0: never quarantine
     // Ended jobs kept: `job list` shows the last ones, and a retried start finds its job. Each
     // costs its record in memory (a lens text is up to 1 MiB; most are a few KiB) and is read at
     // every start, so the count is bounded; a month covers the questions a lab asks of its jobs.
@@ -156,13 +177,20 @@ private:
         uint64_t next_sequence = 1;
         bool cancel_requested = false;
         std::unique_ptr<Control> control;  // while the job runs a stage
+        // Client changes queued and not yet written (the worker leaves such a job alone).
+        int proposals = 0;
+        // The output directory resolved (links followed) when the job was made, so that two
+        // spellings of one directory are found the same without touching the disk under the lock.
+        std::string directory_key;
         // Versions of the job's record: of the last change, the last one the journal's thread
         // tried to write, and the last one on disk (0: none yet; such a job is not yet known to
         // clients). record_error: why the last write failed.
         uint64_t version = 0, attempted = 0, recorded = 0;
         std::string record_error;
-        // The job as its record on disk says: what clients are told (with frames_done, which
-        // the sweep's manifest vouches for, from `job`).
+        // What clients are told: the job as its latest record written says, or as the daemon's
+        // own change the disk refused would have said (with frames_done, which the sweep's
+        // manifest vouches for, from `job`; and a cancelled job still stopping as it is, where
+        // its record says CANCELLED already).
         flarelab::v1::Job told;
     };
     // What the journal's thread does next, in order: write a record (or forget one), then
@@ -172,6 +200,8 @@ private:
         std::optional<flarelab::v1::Job> record;
         uint64_t version = 0;
         bool forget = false;
+        bool cancelled = false;  // a cancel was requested: the record says CANCELLED (asWritten)
+        bool refusable = false;  // a client's change: its event is dropped when the write fails
         std::optional<flarelab::v1::JobEvent> event;
     };
 
@@ -180,10 +210,29 @@ private:
     void fitWork();  // the fit worker: fits finished captures while the rig goes on
     void record();   // the journal's thread: writes records, then publishes what follows them
     void finish(Entry& entry, const RunResult& result);
-    // With mutex_ held: queue a change of `entry` to be written and then announced.
-    void changed(Entry& entry, const std::string& log_note = "");
+    // With mutex_ held: queue a change of `entry` to be written and then announced; its version.
+    // A change the daemon makes itself: its STATE event is published even when the write fails
+    // (unless `refusable`, as propose() queues a client's).
+    uint64_t changed(Entry& entry, const std::string& log_note = "", bool refusable = false);
+    // With mutex_ held: queue a change a client asked for, `before` the job as it was; its STATE
+    // event is published only once the record is on disk. commit() then waits for it.
+    struct Proposal {
+        uint64_t number = 0, version = 0;
+        flarelab::v1::Job before, after;
+        bool cancel_before = false;
+    };
+    Proposal propose(Entry& entry,
+                     const flarelab::v1::Job& before,
+                     bool cancel_before,
+                     const std::string& note);
+    // With `lock` held: waits until the proposal's record was written; when it could not be, the
+    // change is undone (each field it set that nothing changed since is as before, and recorded
+    // again) and refused as UNAVAILABLE.
+    grpc::Status commit(std::unique_lock<std::mutex>& lock, const Proposal& proposal);
     // With mutex_ held: queue the entry's record to be written, announcing nothing.
     void save(Entry& entry);
+    // A job's record as the journal keeps it: with a cancel requested, CANCELLED already.
+    static flarelab::v1::Job asWritten(flarelab::v1::Job job, bool cancelled);
     // With mutex_ held: announce `event`, after whatever the journal's thread has still to do.
     void emit(Entry& entry, flarelab::v1::JobEvent event);
     void publish(Entry& entry, flarelab::v1::JobEvent event);
@@ -198,6 +247,11 @@ private:
                         uint64_t number,
                         uint64_t version,
                         flarelab::v1::Job* job);
+    static bool tookControl(const flarelab::v1::Job& before, const flarelab::v1::Job& now);
+    // `refused`, after the control mayControl took for the call is given back.
+    static grpc::Status undoControl(Entry& entry,
+                                    const flarelab::v1::Job& before,
+                                    grpc::Status refused);
     // With mutex_ held: the job as clients see it (told, with the frames on disk now).
     static flarelab::v1::Job shown(const Entry& entry);
     // With mutex_ held: forgets ended jobs beyond the options' count and age.

@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <google/protobuf/util/json_util.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cstdio>
@@ -9,6 +10,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "common/durable_io.h"
 #include "common/file_descriptor.h"
 
 namespace flarelab::daemon {
@@ -18,7 +20,15 @@ namespace fs = std::filesystem;
 using google::protobuf::util::JsonParseOptions;
 using google::protobuf::util::JsonPrintOptions;
 
-constexpr int64_t kMaxRecordBytes = 4 << 20;  // a record holds a lens file of at most 1 MiB
+Result<std::string> recordText(const v1::Job& job) {
+    std::string json;
+    JsonPrintOptions print;
+    print.add_whitespace = true;
+    print.preserve_proto_field_names = true;
+    if (auto s = google::protobuf::util::MessageToJsonString(job, &json, print); !s.ok())
+        return makeError(ErrorCode::Internal, "journal: " + job.id() + ": " + s.ToString());
+    return json;
+}
 
 }  // namespace
 
@@ -41,24 +51,36 @@ uint64_t jobNumber(const std::string& id) {
 Result<Journal> Journal::open(const std::string& state_dir) {
     const fs::path dir = fs::path(state_dir) / "jobs";
     std::error_code ec;
+    const bool existed = fs::exists(fs::symlink_status(dir, ec));
     fs::create_directories(dir, ec);
     if (ec) return makeError(ErrorCode::IoError, dir.string() + ": cannot create: " + ec.message());
+    // The folder's name must survive a crash as much as the records in it.
+    if (!existed)
+        if (Status synced = syncDirectory(state_dir); !synced) return synced.error();
     return Journal(dir.string());
+}
+
+Result<int64_t> Journal::recordBytes(const v1::Job& job) {
+    auto json = recordText(job);
+    if (!json) return json.error();
+    return static_cast<int64_t>(json->size());
 }
 
 Status Journal::save(const v1::Job& job) const {
     if (jobNumber(job.id()) == 0)
         return makeError(ErrorCode::InvalidArgument, "journal: '" + job.id() + "' is not a job id");
-    std::string json;
-    JsonPrintOptions print;
-    print.add_whitespace = true;
-    print.preserve_proto_field_names = true;
-    if (auto s = google::protobuf::util::MessageToJsonString(job, &json, print); !s.ok())
-        return makeError(ErrorCode::Internal, "journal: " + job.id() + ": " + s.ToString());
+    auto json = recordText(job);
+    if (!json) return json.error();
+    // A record the next start could not read would lose the job: refused, not written.
+    if (static_cast<int64_t>(json->size()) > kJournalMaxRecordBytes)
+        return makeError(ErrorCode::InvalidArgument,
+                         "journal: " + job.id() + ": the record would take " +
+                             std::to_string(json->size()) + " bytes, more than the " +
+                             std::to_string(kJournalMaxRecordBytes) + " a record may have");
     FileDescriptor dir_fd(::open(directory_.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
     if (!dir_fd.valid())
         return makeError(ErrorCode::IoError, directory_ + ": cannot open: " + osMessage(errno));
-    return replaceFile(directory_, dir_fd.get(), job.id() + ".json", json, {});
+    return replaceFile(directory_, dir_fd.get(), job.id() + ".json", *json, {});
 }
 
 Status Journal::remove(const std::string& id) const {
@@ -89,9 +111,10 @@ Result<JournalLoad> Journal::load() const {
     JournalLoad out;
     std::error_code ec;
     std::vector<fs::path> files;
+    // Every entry named *.json, whatever it is: one that is not a regular file is set aside and
+    // reported, not skipped in silence (nor opened: a FIFO would block the start).
     for (fs::directory_iterator it(directory_, ec), end; !ec && it != end; it.increment(ec))
-        if (it->path().extension() == ".json" && it->is_regular_file(ec))
-            files.push_back(it->path());
+        if (it->path().extension() == ".json") files.push_back(it->path());
     if (ec) return makeError(ErrorCode::IoError, directory_ + ": cannot list: " + ec.message());
     std::sort(files.begin(), files.end());
     for (const fs::path& file : files) {
@@ -103,17 +126,35 @@ Result<JournalLoad> Journal::load() const {
                 why + (rename_ec ? " (could not set it aside: " + rename_ec.message() + ")"
                                  : "; set aside as " + to));
         };
-        const auto size = fs::file_size(file, ec);
-        if (ec || size > static_cast<uintmax_t>(kMaxRecordBytes)) {
-            setAside(file.string() + ": unreadable or over " + std::to_string(kMaxRecordBytes) +
-                     " bytes");
-            ec.clear();
+        auto opened = openRegularFile(file.string());
+        if (!opened) {
+            setAside(opened.error().message);
             continue;
         }
-        std::ifstream in(file, std::ios::binary);
-        std::stringstream text;
-        text << in.rdbuf();
-        auto job = parse(text.str(), file.string());
+        if (opened->size > kJournalMaxRecordBytes) {
+            setAside(file.string() + ": " + std::to_string(opened->size) +
+                     " bytes, more than a record may have (" +
+                     std::to_string(kJournalMaxRecordBytes) + ")");
+            continue;
+        }
+        std::string text(static_cast<size_t>(opened->size), '\0');
+        size_t done = 0;
+        bool read_failed = false;
+        while (done < text.size()) {
+            const ssize_t got = ::read(opened->fd.get(), text.data() + done, text.size() - done);
+            if (got < 0 && errno == EINTR) continue;
+            if (got <= 0) {
+                read_failed = got < 0;
+                break;
+            }
+            done += static_cast<size_t>(got);
+        }
+        if (read_failed) {
+            setAside(file.string() + ": cannot read: " + osMessage(errno));
+            continue;
+        }
+        text.resize(done);
+        auto job = parse(text, file.string());
         if (!job) {
             setAside(job.error().message);
             continue;

@@ -92,6 +92,38 @@ Status prepareSimLens(v1::SweepConfig& c, const SweepLimits& limits, PreparedSwe
 
 }  // namespace
 
+JobMemory jobMemory(int64_t width_px, int64_t height_px, int64_t exposures, bool simulated_camera) {
+    const int64_t pixels = width_px * height_px;
+    // A simulated camera renders the scene as RGB floats (12 bytes a pixel) and keeps the last
+    // four angles' planes (16); a real camera's driver keeps a few frames of its own.
+    const int64_t capture_work = pixels * (simulated_camera ? 28 : 8);
+    const int64_t processing_work = pixels * (5 + 12 + 3);
+    JobMemory m;
+    m.bracket_bytes = pixels * 2 * std::max<int64_t>(1, exposures);
+    m.fixed_bytes = kDaemonBaselineBytes + 2 * m.bracket_bytes + capture_work + processing_work;
+    m.minimum_bytes = m.fixed_bytes + m.bracket_bytes;
+    return m;
+}
+
+Status checkMemoryBudget(int64_t width_px,
+                         int64_t height_px,
+                         int64_t exposures,
+                         bool simulated_camera,
+                         const SweepLimits& limits,
+                         const std::string& field) {
+    const JobMemory m = jobMemory(width_px, height_px, exposures, simulated_camera);
+    if (m.minimum_bytes <= limits.memory_budget_bytes) return Ok{};
+    const auto mib = [](int64_t bytes) { return std::to_string((bytes + (1 << 20) - 1) >> 20); };
+    return bad(field,
+               std::to_string(width_px) + " x " + std::to_string(height_px) +
+                   " frames with a bracket of " + std::to_string(exposures) +
+                   " exposures need at least " + mib(m.minimum_bytes) + " MiB in the daemon (" +
+                   mib(m.bracket_bytes) +
+                   " MiB per bracket, three held at once, and the merge, image and files), " +
+                   "more than its memory budget of " + mib(limits.memory_budget_bytes) +
+                   " MiB (flarelabd --memory-budget-mb)");
+}
+
 std::vector<double> sweepAngles(double from_deg, double to_deg, double step_deg) {
     std::vector<double> angles;
     const size_t frames =
@@ -257,8 +289,7 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
     }
 
     // The bracket and the sensor.
-    if (c.exposure_times_s().empty())
-        for (const double t : {0.25, 1.0, 4.0}) c.add_exposure_times_s(t);
+    // None: the job plans its bracket from probes at the first angle (drivers/auto_bracket.h).
     if (c.exposure_times_s_size() > limits.max_exposures)
         return bad("config.exposure_times_s", "has " + std::to_string(c.exposure_times_s_size()) +
                                                   " times, more than " +
@@ -294,6 +325,13 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
                                           std::to_string(limits.max_pixels) + " pixels");
     if (Status ok = inRange("config.preview_stops", c.preview_stops(), -64.0, 64.0); !ok)
         return ok.error();
+    // A real camera's size is known once the job opens it; the job checks it then.
+    if (c.width_px() > 0 && c.height_px() > 0)
+        if (Status ok = checkMemoryBudget(c.width_px(), c.height_px(), c.exposure_times_s_size(),
+                                          !limits.replay && p.camera_uri.empty(), limits,
+                                          "config.width_px");
+            !ok)
+            return ok.error();
     if (c.fit() && p.angles_deg.size() < 2)
         return bad("config.fit", "a model needs a sweep of at least two angles");
 
@@ -321,6 +359,11 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
     p.rig_time_s = move(p.angles_deg.front()) + bracket_s * p.angles_deg.size();
     for (size_t i = 1; i < p.angles_deg.size(); ++i)
         p.rig_time_s += move(p.angles_deg[i] - p.angles_deg[i - 1]);
+    if (p.exposure_times_s.empty())
+        p.warnings.push_back(
+            "the bracket is planned from probes of the light when the job reaches the first "
+            "angle: the rig time counts head moves only, and each frame adds the planned "
+            "bracket's exposures (at most 30 s)");
     return p;
 }
 

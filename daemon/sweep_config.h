@@ -1,5 +1,6 @@
 // ============================================================================
-//  flarelab daemon: SweepLimits, PreparedSweep, prepareSweep, resolveOutputDir, sweepAngles
+//  flarelab daemon: SweepLimits, PreparedSweep, prepareSweep, resolveOutputDir, sweepAngles,
+//                   JobMemory, jobMemory, checkMemoryBudget
 // ============================================================================
 //
 // A sweep request (flarelab.v1.SweepConfig, proto/daemon.proto) checked field by field and
@@ -28,13 +29,17 @@ struct SweepLimits {
     int max_exposures = 16;                  // per bracket
     int64_t max_pixels = int64_t{64} << 20;  // per frame
     int64_t max_prescription_bytes = 1 << 20;
+    // What the daemon may hold in memory while it runs a job (flarelabd --memory-budget-mb): a
+    // job whose frames could not fit (jobMemory) is refused, and the queue between capture and
+    // processing holds what is left of it.
+    int64_t memory_budget_bytes = int64_t{4} << 30;
     // The rig's ranges (the simulated rig's by default).
     double head_min_deg = -90.0;
     double head_max_deg = 90.0;
     double head_speed_deg_s = 20.0;
     double head_acceleration_deg_s2 = 100.0;
     double head_settle_s = 0.1;
-    double min_exposure_s = 1e-5;
+    double min_exposure_s = 1e-9;  // the simulated camera's (sim_camera.h)
     double max_exposure_s = 60.0;
     double min_gain = 1.0;
     double max_gain = 16.0;
@@ -61,6 +66,28 @@ struct PreparedSweep {
     double rig_time_s = 0.0;  // exposures, readouts and moves, from angle 0
     std::vector<std::string> warnings;
 };
+
+// What a job holds in memory, by the size of its frames (pixels), its bracket (exposures) and
+// whether its camera is simulated. The capture thread holds the bracket it is taking (and a
+// simulated camera its rendered planes), the processing thread the bracket it merges with the
+// merged radiance (5 bytes a pixel), the RGB image (12) and its preview (3), and the queue between
+// them whole brackets; the rest of the daemon (gRPC, the journal, code) is the baseline, measured
+// (README, "The daemon: measured").
+struct JobMemory {
+    int64_t bracket_bytes = 0;  // one bracket of raw frames, 2 bytes a sample
+    int64_t fixed_bytes = 0;    // everything but the queue: baseline, two brackets, work buffers
+    int64_t minimum_bytes = 0;  // fixed_bytes and a queue of one bracket
+};
+inline constexpr int64_t kDaemonBaselineBytes = int64_t{96} << 20;
+JobMemory jobMemory(int64_t width_px, int64_t height_px, int64_t exposures, bool simulated_camera);
+// InvalidArgument starting with `field` and giving the figures, when a job of this size could not
+// run within limits.memory_budget_bytes.
+Status checkMemoryBudget(int64_t width_px,
+                         int64_t height_px,
+                         int64_t exposures,
+                         bool simulated_camera,
+                         const SweepLimits& limits,
+                         const std::string& field);
 
 // Checks `config` and fills in its defaults; InvalidArgument naming the field otherwise.
 // `output_root` is an absolute, canonical directory (the daemon's).

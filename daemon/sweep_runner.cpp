@@ -11,15 +11,18 @@
 #include <filesystem>
 #include <iomanip>
 #include <mutex>
+#include <new>
 #include <optional>
 #include <set>
 #include <sstream>
 #include <stop_token>
 #include <thread>
 
+#include "common/durable_io.h"
 #include "common/file_descriptor.h"
 #include "daemon/bounded_queue.h"
 #include "daemon/log.h"
+#include "drivers/auto_bracket.h"
 #include "drivers/replay.h"
 #include "drivers/sim_camera.h"
 #include "drivers/sim_head.h"
@@ -69,39 +72,22 @@ struct Captured {
     std::vector<hdr::RawFrame> bracket;
 };
 
-// Moves files in the sweep directory that its manifest does not list (and that are not its
-// products) to `to`, keeping their relative paths. Returns the moved names.
-Result<std::vector<std::string>> setAsideUnlisted(const hdr::Sweep& sweep, const fs::path& to) {
-    std::set<std::string> listed;
-    for (const hdr::SweepFrame& f : sweep.frames) {
-        listed.insert(f.exr_file);
-        for (const std::string& raw : f.raw_files) listed.insert(raw);
-    }
-    std::vector<fs::path> extra;
+// A directory below `parent` named `stem` (or `stem-2`, `stem-3`, ...) that does not exist yet:
+// files set aside there never meet older ones. Only this daemon writes below its state directory
+// (its lock), and one job captures at a time.
+std::string freshDirectory(const fs::path& parent, const std::string& stem) {
     std::error_code ec;
-    for (fs::recursive_directory_iterator it(sweep.directory, ec), end; !ec && it != end;
-         it.increment(ec)) {
-        if (it->is_directory(ec) && !it->is_symlink(ec)) continue;
-        const std::string relative =
-            it->path().lexically_relative(sweep.directory).generic_string();
-        if (relative == hdr::kSweepManifestFile || listed.count(relative) ||
-            hdr::isSweepProduct(relative))
-            continue;
-        extra.push_back(it->path());
-    }
-    if (ec)
-        return makeError(ErrorCode::IoError, sweep.directory + ": cannot list: " + ec.message());
-    std::vector<std::string> moved;
-    for (const fs::path& file : extra) {
-        const fs::path target = to / file.lexically_relative(sweep.directory);
-        fs::create_directories(target.parent_path(), ec);
-        if (!ec) fs::rename(file, target, ec);
-        if (ec)
-            return makeError(ErrorCode::IoError, file.string() + ": cannot move it aside to " +
-                                                     target.string() + ": " + ec.message());
-        moved.push_back(file.lexically_relative(sweep.directory).generic_string());
-    }
-    return moved;
+    fs::path candidate = parent / stem;
+    for (int n = 2; fs::exists(fs::symlink_status(candidate, ec)); ++n)
+        candidate = parent / (stem + "-" + std::to_string(n));
+    return candidate.string();
+}
+
+// Bytes a bracket holds, for the queue's bound.
+size_t bracketBytes(const Captured& captured) {
+    size_t bytes = 0;
+    for (const hdr::RawFrame& raw : captured.bracket) bytes += raw.samples.size() * 2;
+    return bytes;
 }
 
 // Stops the rig from a thread of its own once the job must stop: the stop hook runs under the job
@@ -177,12 +163,17 @@ public:
 
 private:
     Status makeRig();
+    // The bracket of a job that gave none: the one its sweep on disk was taken with, else planned
+    // from probes at the first angle (its reasons become warnings). An error stops the job (a
+    // Stopped outcome when the job was cancelled meanwhile).
+    Status planBracket();
     Result<hdr::SweepWriter> openSweep();
     // Head to angle with the retries of the fault policy; nullopt when the job must stop
     // (the reason, if a failure, in result_).
     std::optional<double> move(double angle_deg, size_t index);
     std::optional<hdr::RawFrame> expose(double exposure_s, size_t index, double angle_deg);
-    void captureLoop(size_t first, BoundedQueue<Captured>& queue);
+    void captureLoop(size_t first, BoundedQueue<Captured>& queue);  // never throws
+    void captureFrames(size_t first, BoundedQueue<Captured>& queue);
     void processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writer);
     Status writeFrame(Captured& captured, hdr::SweepWriter& writer);
     void fitModel();
@@ -194,13 +185,20 @@ private:
         for (const auto& [name, value] : stats) fields.emplace_back(name, std::to_string(value));
         logEvent(LogLevel::Info, "sweep.camera_statistics", fields);
     }
-    void fail(const std::string& reason) {
+    // The job fails for `reason` (the first reason stays); `resumable` as sweep_runner.h says.
+    void fail(const std::string& reason, bool resumable = true) {
         std::lock_guard lock(mutex_);
         if (result_.outcome != RunOutcome::Failed || result_.reason.empty()) {
             result_.outcome = RunOutcome::Failed;
             result_.reason = reason;
+            result_.resumable = resumable;
         }
         failed_ = true;
+    }
+    // A frame could not be written: nothing after it may be (the sweep has no gaps).
+    void failWrite(const std::string& reason, bool resumable) {
+        fail(reason, resumable);
+        write_failed_ = true;
     }
 
     const v1::Job& job_;
@@ -209,12 +207,15 @@ private:
     PreparedSweep sweep_;
     std::shared_ptr<drivers::Head> head_;
     std::shared_ptr<drivers::Camera> camera_;
-    drivers::SimCamera* sim_camera_ = nullptr;  // camera_, when it is simulated
-    int64_t width_px_ = 0;                      // of the camera's frames
+    drivers::SimCamera* sim_camera_ = nullptr;                 // camera_, when it is simulated
+    const drivers::CameraCalibration* calibration_ = nullptr;  // of camera_, when the daemon has it
+    int64_t width_px_ = 0;                                     // of the camera's frames
     int64_t height_px_ = 0;
     std::mutex mutex_;
     RunResult result_;
-    std::atomic<bool> failed_{false};
+    std::atomic<bool> failed_{false};        // the capture stops
+    std::atomic<bool> write_failed_{false};  // the processing stops writing too
+    bool raw_directory_ready_ = false;
     std::atomic<uint32_t> on_disk_{0};
     size_t captures_ = 0;  // exposures attempted by this run (for injected faults)
     Clock::time_point capture_start_;
@@ -250,9 +251,20 @@ Status SweepJob::makeRig() {
                              std::to_string(caps.width_px) + " x " +
                              std::to_string(caps.height_px) + " frames are more than the " +
                              std::to_string(options_.limits.max_pixels) + " pixels a job may have");
+    if (!options_.limits.replay && !sim_camera_)
+        if (Status ok = checkMemoryBudget(
+                caps.width_px, caps.height_px, static_cast<int64_t>(sweep_.exposure_times_s.size()),
+                false, options_.limits, "camera " + camera_->identity().describe());
+            !ok)
+            return ok.error();
     width_px_ = caps.width_px;
     height_px_ = caps.height_px;
     for (const std::string& note : camera_->notes()) control_.warning("camera: " + note);
+    calibration_ = nullptr;
+    for (const drivers::CameraCalibration& c : options_.calibrations)
+        if (drivers::calibrationCameraName(c) == camera_->identity().describe()) calibration_ = &c;
+    if (Status ok = drivers::checkMergeable(caps, calibration_); !ok)
+        return ok.error().withContext("camera " + camera_->identity().describe());
     if (!sweep_.camera_uri.empty())
         control_.deviceOpened(sweep_.camera_uri, camera_->identity().model,
                               camera_->identity().serial);
@@ -260,6 +272,33 @@ Status SweepJob::makeRig() {
         control_.deviceOpened(sweep_.head_uri, head_->identity().model, head_->identity().serial);
     if (!options_.limits.replay && !sim_camera_)
         if (Status ok = camera_->setGain(c.gain()); !ok) return ok.error();
+    return Ok{};
+}
+
+Status SweepJob::planBracket() {
+    std::error_code ec;
+    if (fs::exists(fs::path(sweep_.output_dir) / hdr::kSweepManifestFile, ec)) {
+        auto listed = hdr::readSweepManifest(sweep_.output_dir);
+        if (!listed) return listed.error();
+        sweep_.exposure_times_s = listed->header.capture.exposure_times_s;
+        if (!sweep_.exposure_times_s.empty()) return Ok{};
+    }
+    const auto at = move(sweep_.angles_deg.front(), 0);
+    if (!at) {
+        if (!failed_) result_.outcome = RunOutcome::Stopped;
+        return makeError(ErrorCode::IoError, result_.reason.empty() ? "stopped" : result_.reason);
+    }
+    drivers::BracketPlanOptions options;
+    options.calibration = calibration_;
+    options.max_exposures = std::min(options.max_exposures, options_.limits.max_exposures);
+    auto plan = drivers::planBrackets(*camera_, options);
+    if (!plan) return plan.error().withContext("planning the bracket");
+    for (const std::string& reason : plan->reasons) control_.warning("bracket: " + reason);
+    if (!plan->core_unclipped)
+        control_.warning("bracket: the shortest exposure clips the light's core");
+    if (!plan->floor_reached)
+        control_.warning("bracket: the longest exposure does not reach the ghosts' noise floor");
+    sweep_.exposure_times_s = plan->exposure_times_s;
     return Ok{};
 }
 
@@ -308,20 +347,21 @@ Result<hdr::SweepWriter> SweepJob::openSweep() {
 
     hdr::SweepWriteOptions write;
     std::error_code ec;
-    write.resume = fs::exists(fs::path(sweep_.output_dir) / hdr::kSweepManifestFile, ec);
-    if (write.resume) {
-        // Files the manifest does not list are not part of the sweep: set them aside.
-        auto listed = hdr::readSweepManifest(sweep_.output_dir);
-        if (!listed) return listed.error();
-        const fs::path aside = fs::path(options_.state_dir) / "recovered" / job_.id() / utcStamp();
-        auto moved = setAsideUnlisted(*listed, aside);
-        if (!moved) return moved.error();
-        if (!moved->empty())
-            control_.warning("resuming: " + std::to_string(moved->size()) +
-                             " file(s) the sweep does not list (an interrupted write) moved to " +
-                             aside.string());
-    }
-    return hdr::SweepWriter::create(sweep_.output_dir, header, write);
+    write.resume =
+        fs::exists(fs::symlink_status(fs::path(sweep_.output_dir) / hdr::kSweepManifestFile, ec));
+    auto writer = hdr::SweepWriter::create(sweep_.output_dir, header, write);
+    if (!writer || !write.resume) return writer;
+    // The writer holds the sweep's lock and has checked its header: only now may files the sweep
+    // does not list (what an interrupted write leaves) be set aside, never deleted.
+    const std::string aside =
+        freshDirectory(fs::path(options_.state_dir) / "recovered" / job_.id(), utcStamp());
+    auto moved = writer->setAsideUnlisted(aside);
+    if (!moved) return moved.error();
+    if (!moved->empty())
+        control_.warning("resuming: " + std::to_string(moved->size()) +
+                         " file(s) the sweep does not list (an interrupted write) moved to " +
+                         aside);
+    return writer;
 }
 
 std::optional<double> SweepJob::move(double angle_deg, size_t index) {
@@ -405,7 +445,7 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
             continue;
         }
         if (fault == drivers::DeviceFault::OutOfRange) {
-            fail("camera: " + where);  // a setting the camera refuses: no resume changes that
+            fail("camera: " + where, false);  // a setting the camera refuses: no resume helps
             return std::nullopt;
         }
         std::string reason;
@@ -424,11 +464,23 @@ std::optional<hdr::RawFrame> SweepJob::expose(double exposure_s, size_t index, d
 }
 
 void SweepJob::captureLoop(size_t first, BoundedQueue<Captured>& queue) {
+    try {
+        captureFrames(first, queue);
+    } catch (const std::bad_alloc&) {
+        fail("capture: out of memory (std::bad_alloc); the frames captured before are written");
+    } catch (const std::exception& e) {
+        fail(std::string("capture: ") + e.what() + "; the frames captured before are written");
+    }
+    queue.close();
+}
+
+void SweepJob::captureFrames(size_t first, BoundedQueue<Captured>& queue) {
     const size_t total = sweep_.angles_deg.size();
     const size_t n = sweep_.exposure_times_s.size();
     double bracket_s = 0.0;
     for (const double t : sweep_.exposure_times_s) bracket_s += t + options_.limits.readout_s;
     for (size_t i = first; i < total && !failed_; ++i) {
+        if (options_.before_capture) options_.before_capture(i);
         const double target = sweep_.angles_deg[i];
         const auto at = move(target, i);
         if (!at) break;
@@ -467,7 +519,6 @@ void SweepJob::captureLoop(size_t first, BoundedQueue<Captured>& queue) {
         ++captured_this_run_;
         if (!queue.push(std::move(captured))) break;
     }
-    queue.close();
 }
 
 Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
@@ -487,21 +538,37 @@ Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
     frame.angle_deg = captured.angle_deg;
     frame.exposure_times_s = sweep_.exposure_times_s;
     for (size_t k = 0; k < captured.bracket.size(); ++k) {
-        const hdr::RawFrame& raw = captured.bracket[k];
-        const auto counts = hdr::countExposure(raw);
-        if (!counts) return counts.error().withContext("frame " + std::to_string(captured.index));
-        frame.brackets.push_back({raw.exposure_s, static_cast<uint64_t>(counts->usable),
-                                  static_cast<uint64_t>(counts->saturated)});
+        hdr::RawFrame& raw = captured.bracket[k];
+        // The raw file keeps the frame as the camera gave it; the merge takes it calibrated.
         if (c.keep_raw()) {
             std::ostringstream name;
             name << "raw/frame_" << std::setw(5) << std::setfill('0') << captured.index << "_" << k
                  << ".pgm";
-            std::error_code ec;
-            fs::create_directories(fs::path(dir) / "raw", ec);
+            if (!raw_directory_ready_) {
+                // Its name flushed into the sweep before any frame lists a file in it.
+                std::error_code ec;
+                fs::create_directory(fs::path(dir) / "raw", ec);
+                if (ec)
+                    return makeError(ErrorCode::IoError,
+                                     dir + "/raw: cannot create: " + ec.message());
+                if (Status ok = syncDirectory(dir); !ok) return ok.error();
+                raw_directory_ready_ = true;
+            }
             if (Status ok = hdr::writeRaw(dir + "/" + name.str(), raw); !ok) return ok.error();
             frame.raw_files.push_back(name.str());
         }
+        if (calibration_) {
+            auto calibrated = drivers::applyCalibration(raw, *calibration_);
+            if (!calibrated)
+                return calibrated.error().withContext("frame " + std::to_string(captured.index));
+            raw = std::move(*calibrated);
+        }
+        const auto counts = hdr::countExposure(raw);
+        if (!counts) return counts.error().withContext("frame " + std::to_string(captured.index));
+        frame.brackets.push_back({raw.exposure_s, static_cast<uint64_t>(counts->usable),
+                                  static_cast<uint64_t>(counts->saturated)});
     }
+    if (options_.before_merge) options_.before_merge(captured.index);
     auto merged = hdr::mergeBrackets(captured.bracket);
     if (!merged) return merged.error().withContext("frame " + std::to_string(captured.index));
     auto image = hdr::toImage(*merged);
@@ -527,15 +594,31 @@ void SweepJob::processLoop(BoundedQueue<Captured>& queue, hdr::SweepWriter& writ
     const size_t total = sweep_.angles_deg.size();
     size_t dropped = 0;
     while (auto captured = queue.pop()) {
-        if (failed_) continue;  // drain; the failure is already recorded
+        // A capture-side failure leaves the brackets already captured to be written; only a
+        // frame that could not be written stops the writing (no gap in the sweep).
+        if (write_failed_) continue;
         if (control_.dropUnwritten()) {
             ++dropped;  // the daemon stops at once; the frame being written before was finished
             continue;
         }
-        if (Status ok = writeFrame(*captured, writer); !ok) {
-            fail(ok.error().message + "; the " + std::to_string(writer.sweep().frames.size()) +
-                 " frame(s) written before are intact");
-            (void)head_->stop();  // the capture thread ends at its next step
+        Status ok = Ok{};
+        try {
+            ok = writeFrame(*captured, writer);
+        } catch (const std::bad_alloc&) {
+            ok = makeError(ErrorCode::Internal, "frame " + std::to_string(captured->index) +
+                                                    ": out of memory (std::bad_alloc) while " +
+                                                    "merging or writing it");
+        } catch (const std::exception& e) {
+            ok = makeError(ErrorCode::Internal,
+                           "frame " + std::to_string(captured->index) + ": " + e.what());
+        }
+        if (!ok) {
+            // A failed flush is final (the sweep writer refuses more); anything else may pass.
+            failWrite(ok.error().message + "; the " + std::to_string(writer.sweep().frames.size()) +
+                          " frame(s) written before are intact",
+                      writer.broken().empty());
+            queue.abort();        // the capture thread stops pushing at once
+            (void)head_->stop();  // and ends at its next step
             continue;
         }
         const uint32_t done = static_cast<uint32_t>(writer.sweep().frames.size());
@@ -564,7 +647,7 @@ void SweepJob::fitModel() {
     const auto start = Clock::now();
     control_.setPhase(v1::FITTING);
     auto sweep = hdr::readSweep(sweep_.output_dir);
-    if (!sweep) return fail("fit: " + sweep.error().message);
+    if (!sweep) return fail("fit: " + sweep.error().message, false);
     if (const std::string w =
             hdr::clippingWarning(hdr::clippedFrames(*sweep), sweep->frames.size());
         !w.empty())
@@ -574,7 +657,7 @@ void SweepJob::fitModel() {
     if (sweep_.lens)
         sensor = {sweep_.lens->camera().sensor_width_mm, sweep_.lens->camera().sensor_height_mm};
     auto size = fit::sweepSensorSize(*sweep, sweep_.lens ? &sensor : nullptr);
-    if (!size) return fail("fit: " + size.error().message);
+    if (!size) return fail("fit: " + size.error().message, false);
     fit::SweepFitOptions options;
     options.cancel = &control_.stopFlag();
     const auto progress = [&](const fit::SweepFitProgress& p) {
@@ -596,7 +679,7 @@ void SweepJob::fitModel() {
     auto model = fit::fitSweep(*sweep, (*size)[0], (*size)[1], options, progress, &fitted);
     if (!model) {
         if (control_.stopFlag()) return;  // stopped, not failed
-        return fail("fit: " + model.error().message);
+        return fail("fit: " + model.error().message, false);
     }
     if (sweep_.lens && sweep_.config.has_sim()) {
         model->lens.prescription_file = sweep_.config.sim().lens().name();
@@ -660,9 +743,17 @@ RunResult SweepJob::run() {
         }
         tries = -1;
     }
+    if (sweep_.exposure_times_s.empty()) {
+        if (Status ok = planBracket(); !ok) {
+            if (result_.outcome != RunOutcome::Stopped) result_.reason = ok.error().message;
+            return result_;
+        }
+    }
     auto opened = openSweep();
     if (!opened) {
         result_.reason = opened.error().message;
+        // A disk that refused may come back; another sweep in the directory stays.
+        result_.resumable = opened.error().code == ErrorCode::IoError;
         return result_;
     }
     std::optional<hdr::SweepWriter> writer(std::move(*opened));
@@ -694,14 +785,33 @@ RunResult SweepJob::run() {
 
     control_.setPhase(v1::CAPTURE);
     capture_start_ = Clock::now();
-    BoundedQueue<Captured> queue(std::max<size_t>(1, options_.queue_frames));
+    // The queue holds what the memory budget leaves once the rest of the job is counted (at least
+    // one bracket: prepareSweep and makeRig refused jobs that do not fit).
+    const JobMemory memory =
+        jobMemory(width_px_, height_px_, static_cast<int64_t>(sweep_.exposure_times_s.size()),
+                  sim_camera_ != nullptr);
+    const int64_t queue_bytes =
+        std::max(memory.bracket_bytes, options_.limits.memory_budget_bytes - memory.fixed_bytes);
+    BoundedQueue<Captured> queue(std::max<size_t>(1, options_.queue_frames),
+                                 static_cast<size_t>(queue_bytes), bracketBytes);
     std::thread processing([&] { processLoop(queue, *writer); });
     captureLoop(first_, queue);
     stopper.reset();  // the rig is left alone from here
     processing.join();
     result_.queue_high_water = queue.highWater();
+    result_.queue_high_water_bytes = queue.highWaterBytes();
     result_.capture_wall_s = secondsSince(capture_start_);
     logStatistics();
+    // Whatever the outcome, the frames written are listed in the compacted manifest; a failed
+    // compaction leaves them listed in the frame log.
+    if (writer->broken().empty())
+        if (Status finished = writer->finish(); !finished) {
+            if (!writer->broken().empty())
+                failWrite(finished.error().message, false);
+            else
+                control_.warning("sweep: " + finished.error().message +
+                                 " (the frame log still lists every frame)");
+        }
     result_.frames_on_disk = on_disk_;
     if (failed_) return result_;
     if (on_disk_ < sweep_.angles_deg.size()) {
@@ -758,14 +868,40 @@ Result<drivers::Rig> openJobRig(const PreparedSweep& sweep, const SweepLimits& l
                             sweep.head_uri.empty() ? "sim:" : sweep.head_uri, options);
 }
 
+namespace {
+
+// A job that runs out of memory (or meets another exception) outside its pipeline's threads, which
+// catch their own, fails; the daemon goes on.
+template <typename Stage>
+RunResult guarded(const char* what, Stage stage) {
+    try {
+        return stage();
+    } catch (const std::bad_alloc&) {
+        RunResult failed;
+        failed.reason = std::string(what) + ": out of memory (std::bad_alloc)";
+        failed.resumable = true;
+        return failed;
+    } catch (const std::exception& e) {
+        RunResult failed;
+        failed.reason = std::string(what) + ": " + e.what();
+        return failed;
+    }
+}
+
+}  // namespace
+
 RunResult runSweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control) {
-    SweepJob sweep(job, options, control);
-    return sweep.run();
+    return guarded("capture", [&] {
+        SweepJob sweep(job, options, control);
+        return sweep.run();
+    });
 }
 
 RunResult fitSweepJob(const v1::Job& job, const RunnerOptions& options, JobControl& control) {
-    SweepJob sweep(job, options, control);
-    return sweep.fit();
+    return guarded("fit", [&] {
+        SweepJob sweep(job, options, control);
+        return sweep.fit();
+    });
 }
 
 }  // namespace flarelab::daemon

@@ -12,7 +12,8 @@
 //                        count clipping ─► merge ─► raw files ─► EXR + manifest ─► preview
 //
 // so head moves and exposures never wait on merging or writing (only on a full queue, which
-// bounds memory: queue_frames brackets at most). When every frame is on disk and the job asks for
+// bounds memory: the queue holds what the job's memory budget leaves, SweepLimits and jobMemory
+// in daemon/sweep_config.h). When every frame is on disk and the job asks for
 // it, fitSweepJob fits the sweep into `<sweep>/model.flm` (and `model.txt`, its description); the
 // daemon runs it on a thread of its own, so the rig goes on with the next job meanwhile.
 //
@@ -30,13 +31,22 @@
 // device again; a setting the device refuses (out of range) fails the job. Too little free disk
 // space (below min_free_bytes plus a frame), or a write that fails, ends the job as failed, with
 // every frame written before it intact. Whatever was captured when a job stops (cancel, shutdown,
-// failure of a later stage) is still merged and written, unless the daemon must stop at once
-// (JobControl::dropUnwritten).
+// a capture-side failure) is still merged and written before the job ends, unless the daemon
+// must stop at once (JobControl::dropUnwritten); after a frame that could not be written nothing
+// more is written (the sweep may have no gap). Running out of memory (std::bad_alloc anywhere in
+// the job) fails the job, not the daemon.
 //
 // Stopping. A stop takes effect at once, not at the next frame: the head is stopped (again every
 // 0.1 s until the capture ends, so that a move that begins just after is stopped too) and the
 // exposure under way is aborted (Camera::abort); the bracket it belonged to is not a frame, and a
 // resumed job takes that frame again from its first exposure.
+//
+// Which failures a client may resume (RunResult::resumable): a full disk or another write error,
+// running out of memory, and a device error the driver could not classify; all of them may pass,
+// and resuming continues where the sweep on disk ends. Not resumable: a failed flush to disk
+// (fsync; the disk may have dropped data it had accepted, so the sweep needs a person's look and a
+// new job with resume_existing), a setting the device refuses, a request the rig cannot serve, a
+// sweep directory that holds another sweep, and a fit that failed on its data.
 #pragma once
 
 #include <atomic>
@@ -46,6 +56,7 @@
 #include <string>
 
 #include "daemon/sweep_config.h"
+#include "drivers/calibration.h"
 #include "drivers/rig.h"
 #include "proto/daemon.pb.h"
 
@@ -91,10 +102,19 @@ struct RunnerOptions {
     int camera_retries = 3;  // per exposure, before the job pauses
     int head_retries = 2;    // per move
     int64_t min_free_bytes = int64_t{64} << 20;
-    size_t queue_frames = 4;  // brackets between capture and processing
+    // Brackets between capture and processing at most; the memory budget (limits) bounds their
+    // bytes, which is what matters.
+    size_t queue_frames = 64;
     // Free bytes of the file system holding a path; statvfs when empty (a test seam).
     std::function<int64_t(const std::string&)> free_bytes;
     std::string software_version = "flarelabd";
+    // Calibrations of the rig's cameras (flarelabd --calibration): a job's frames are merged
+    // through the one measured on its camera; a camera whose response is not linear needs one.
+    std::vector<drivers::CameraCalibration> calibrations;
+    // Test seams: called on the capture thread before frame `index` is captured, and on the
+    // processing thread before it is merged (a test throws std::bad_alloc from them, or sleeps).
+    std::function<void(size_t index)> before_capture;
+    std::function<void(size_t index)> before_merge;
 };
 
 // Captured: every frame is on disk and the job asks for a fit, which fitSweepJob does.
@@ -103,11 +123,13 @@ enum class RunOutcome { Succeeded, Captured, Failed, Stopped };
 struct RunResult {
     RunOutcome outcome = RunOutcome::Failed;
     std::string reason;      // why it failed
+    bool resumable = false;  // a failure a client may resume (see the top of this file)
     std::string model_file;  // when fitted
     uint32_t frames_on_disk = 0;
     double capture_wall_s = 0.0;  // from the first move to the last frame on disk
     double fit_wall_s = 0.0;
-    size_t queue_high_water = 0;
+    size_t queue_high_water = 0;  // brackets
+    size_t queue_high_water_bytes = 0;
 };
 
 // The rig a prepared sweep runs on: the daemon's devices it names (sweep.camera_uri, head_uri),

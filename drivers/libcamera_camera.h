@@ -10,8 +10,8 @@
 //
 // NEVER RUN AGAINST A CAMERA. The machines flarelab is built on have no camera libcamera can
 // open; what is tested is everything up to the camera (libcamera_camera_test.cpp) and that the
-// backend lists no camera and refuses to open a missing one without crashing. docs/lab.md (or the
-// report of issue 17) says how to test it on real hardware.
+// backend lists no camera and refuses to open a missing one without crashing. docs/lab.md
+// ("libcamera cameras") says how to test it on real hardware.
 //
 // One camera, "libcamera:NAME?width=W&height=H&format=F" (libcamera_mapping.h, LibcameraCamera-
 // Options), opens as follows:

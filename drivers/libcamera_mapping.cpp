@@ -177,9 +177,10 @@ Result<LibcameraFormatChoice> chooseLibcameraFormat(std::span<const LibcameraFor
     std::vector<std::pair<const LibcameraRawFormat*, const LibcameraFormatOffer*>> readable;
     for (const LibcameraFormatOffer& offer : offers) {
         const LibcameraRawFormat* format = findLibcameraRawFormat(offer.fourcc, offer.modifier);
-        const bool sized = std::any_of(offer.sizes.begin(), offer.sizes.end(), [](const PixelSize& s) {
-            return s.width >= 1 && s.height >= 1 && s.width <= kMaxSide && s.height <= kMaxSide;
-        });
+        const bool sized =
+            std::any_of(offer.sizes.begin(), offer.sizes.end(), [](const PixelSize& s) {
+                return s.width >= 1 && s.height >= 1 && s.width <= kMaxSide && s.height <= kMaxSide;
+            });
         if (format && sized) readable.emplace_back(format, &offer);
     }
     if (readable.empty())

@@ -218,8 +218,43 @@ Status SimCameraOptions::validate() const {
     if (!finite(readout_s) || readout_s < 0.0) return badOption("readout_s must be >= 0");
     if (!finite(fixed_angle_deg)) return badOption("fixed_angle_deg must be finite");
     if (cache_angles < 1) return badOption("cache_angles must be >= 1");
+    if (response != SimResponse::Linear && response != SimResponse::Gamma &&
+        response != SimResponse::Log)
+        return badOption("response must be Linear, Gamma or Log");
+    if (!finite(response_gamma) || !(response_gamma > 0.0))
+        return badOption("response_gamma must be positive");
+    if (!finite(response_log_range) || !(response_log_range > 0.0))
+        return badOption("response_log_range must be positive");
     if (faults.time_out_captures < 0) return badOption("faults.time_out_captures must be >= 0");
     return Ok{};
+}
+
+double simResponseCurve(const SimCameraOptions& options, double u) {
+    u = std::clamp(u, 0.0, 1.0);
+    switch (options.response) {
+        case SimResponse::Linear:
+            return u;
+        case SimResponse::Gamma:
+            return std::pow(u, 1.0 / options.response_gamma);
+        case SimResponse::Log:
+            return std::log1p(options.response_log_range * u) /
+                   std::log1p(options.response_log_range);
+    }
+    return u;
+}
+
+double simResponseInverse(const SimCameraOptions& options, double v) {
+    v = std::clamp(v, 0.0, 1.0);
+    switch (options.response) {
+        case SimResponse::Linear:
+            return v;
+        case SimResponse::Gamma:
+            return std::pow(v, options.response_gamma);
+        case SimResponse::Log:
+            return std::expm1(v * std::log1p(options.response_log_range)) /
+                   options.response_log_range;
+    }
+    return v;
 }
 
 SimCamera::SimCamera(Key,
@@ -236,6 +271,7 @@ SimCamera::SimCamera(Key,
       gain_(options.gain),
       format_(options.format),
       faults_(options.faults),
+      lens_capped_(options.lens_capped),
       light_image_(std::move(light_image)) {
     FLARELAB_CHECK(options.validate().has_value());
     options_.render.width = options_.width_px;
@@ -347,6 +383,13 @@ CameraCapabilities SimCamera::capabilities() const {
     c.white_level_dn = std::ldexp(1.0, options_.bit_depth) - 1.0;
     c.read_noise_e = options_.read_noise_e;
     c.electrons_per_dn = options_.electrons_per_dn;
+    if (options_.response == SimResponse::Gamma) {
+        c.response = CameraResponse::NonLinear;
+        c.response_note = "simulated gamma curve, gamma " + fmt(options_.response_gamma);
+    } else if (options_.response == SimResponse::Log) {
+        c.response = CameraResponse::NonLinear;
+        c.response_note = "simulated logarithmic curve, range " + fmt(options_.response_log_range);
+    }
     return c;
 }
 
@@ -494,9 +537,13 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
     auto angles = angles_();
     if (!angles) return angles.error().withContext(name() + ": head angle");
     const auto [seen_deg, stamp_deg] = *angles;
-    auto plane_or = rate(seen_deg);
-    if (!plane_or) return plane_or.error();
-    const std::vector<float>& plane = **plane_or;
+    // A capped lens lets no light through: nothing to render.
+    const std::vector<float>* plane_pointer = nullptr;
+    if (!lens_capped_) {
+        auto plane_or = rate(seen_deg);
+        if (!plane_or) return plane_or.error();
+        plane_pointer = *plane_or;
+    }
 
     hdr::RawFrame frame;
     frame.width = options_.width_px;
@@ -525,6 +572,8 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
     // Beyond this many electrons a pixel clips whatever its noise.
     const double surely_white_e = 2.0 * (white + 10.0 * frame.read_noise_dn) / dn_per_e + 1e4;
     const uint64_t frame_seed = mix(options_.seed ^ mix(static_cast<uint64_t>(frame.sequence)));
+    const bool curved = options_.response != SimResponse::Linear;
+    const double black = frame.black_level_dn, range = white - frame.black_level_dn;
     const int64_t w = frame.width;
     tbb::parallel_for(int64_t{0}, frame.height, [&](int64_t y) {
         std::mt19937_64 rng(mix(frame_seed ^ static_cast<uint64_t>(y)));
@@ -533,12 +582,14 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
             const size_t i = static_cast<size_t>(y * w + x);
             double dark_e_s = options_.dark_current_e_s;
             if (!hot_e_s_.empty()) dark_e_s += hot_e_s_[i];
-            const double mean_e = (static_cast<double>(plane[i]) + dark_e_s) * t;
+            const double light_e_s = plane_pointer ? static_cast<double>((*plane_pointer)[i]) : 0.0;
+            const double mean_e = (light_e_s + dark_e_s) * t;
             double dn = white;
             if (mean_e < surely_white_e) {
                 const double e = shotNoise(mean_e, rng, normal);
                 dn = e * dn_per_e + frame.black_level_dn + frame.read_noise_dn * normal(rng);
             }
+            if (curved) dn = black + range * simResponseCurve(options_, (dn - black) / range);
             frame.samples[i] = static_cast<uint16_t>(std::clamp(std::round(dn), 0.0, white));
         }
     });
@@ -550,8 +601,8 @@ Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {
 Result<SimCameraSetup> simCameraSetup(const DeviceUri& uri,
                                       const SimCameraOptions& defaults,
                                       const std::optional<optics::Lens>& lens) {
-    if (Status ok =
-            uri.onlyParams({"lens", "width", "height", "bits", "seed", "format", "angle_deg"});
+    if (Status ok = uri.onlyParams(
+            {"lens", "width", "height", "bits", "seed", "format", "angle_deg", "response", "cap"});
         !ok)
         return ok.error();
     SimCameraOptions options = defaults;
@@ -596,6 +647,24 @@ Result<SimCameraSetup> simCameraSetup(const DeviceUri& uri,
             return makeError(ErrorCode::InvalidArgument,
                              "device uri '" + uri.text + "': format must be mono or rggb");
     }
+    if (auto it = uri.params.find("response"); it != uri.params.end()) {
+        if (it->second == "linear")
+            options.response = SimResponse::Linear;
+        else if (it->second == "gamma")
+            options.response = SimResponse::Gamma;
+        else if (it->second == "log")
+            options.response = SimResponse::Log;
+        else
+            return makeError(ErrorCode::InvalidArgument, "device uri '" + uri.text +
+                                                             "': response must be linear, gamma "
+                                                             "or log");
+    }
+    if (auto it = uri.params.find("cap"); it != uri.params.end()) {
+        if (it->second != "0" && it->second != "1")
+            return makeError(ErrorCode::InvalidArgument,
+                             "device uri '" + uri.text + "': cap must be 0 or 1");
+        options.lens_capped = it->second == "1";
+    }
     auto angle = uri.number("angle_deg", options.fixed_angle_deg);
     if (!angle) return angle.error();
     options.fixed_angle_deg = *angle;
@@ -629,6 +698,7 @@ Status addSimCameraBackend(CameraRegistry& registry,
                              std::to_string(listed.height_px) + " (uri: width=, height=)",
                          "bits: " + std::to_string(listed.bit_depth),
                          "formats: mono, rggb (uri: format=)",
+                         "response: linear (uri: response=linear|gamma|log; cap=1 caps the lens)",
                          "lens: uri parameter lens=<prescription csv>"};
             return std::vector<DeviceListing>{d};
         });

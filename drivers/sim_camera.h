@@ -45,6 +45,19 @@
 // 0..30 deg sweep at 0.2 deg (151 angles x 3 exposures) at 640 x 427 takes about 20 s on two
 // shared cores in fast mode (SimCameraTiming.DISABLED_SweepTiming measures it).
 //
+// Response. By default the converter is linear, as above. SimResponse::Gamma and ::Log stand for
+// cameras that bend their output before they hand it out (a webcam's gamma curve; a logarithmic
+// curve like that of Aravis's fake camera), so that calibration (calibration.h) is tested against
+// a curve it must recover: with u = (DN - black_level_dn) / (white - black_level_dn) the linear
+// sample above, clipped to [0, 1], the camera gives black_level_dn + (white - black_level_dn) *
+// curve(u), curve(u) = u^(1 / response_gamma) or log(1 + a u) / log(1 + a), a =
+// response_log_range, before rounding. simResponseCurve and simResponseInverse are the curve and
+// its inverse, the ground truth for those tests.
+//
+// Lens cap. lens_capped (or setLensCapped) takes the light and the background away: frames hold
+// dark current, hot pixels, read noise and the black level only, as with a capped lens on the
+// rig; nothing is rendered for them.
+//
 // Time runs on the head's SimClock (sim_clock.h): a capture takes exposure_s + readout_s of
 // rig time; real-time mode sleeps that long, fast mode does not. The frame's timestamp is the
 // start of its exposure.
@@ -70,6 +83,9 @@
 namespace flarelab::drivers {
 
 enum class MonoResponse { Green, Luminance };
+
+// The converter's response (see the top of this file).
+enum class SimResponse { Linear, Gamma, Log };
 
 // Where the light's own image lands (sensor mm, the real chief ray at the green wavelength) and
 // the power of each channel that passes the stop on the imaging path, in the scene's units;
@@ -106,7 +122,11 @@ struct SimCameraOptions {
     double quantum_scale = 5e7;          // e/s per unit of image-plane irradiance, >= 0
     std::array<float, 3> light_rgb = {1.0f, 1.0f, 1.0f};  // irradiance at the lens, >= 0
     double background_e_s = 20.0;                         // >= 0
-    double min_exposure_s = 1e-5;
+    // Down to 1 ns, wider than a real camera's range: the simulated light's core is 5e10 to 3e12
+    // e-/s on its brightest pixel, and auto-bracketing (auto_bracket.h) can then keep it
+    // unclipped on every shipped lens. A real camera's plan says when its shortest exposure
+    // still clips the core.
+    double min_exposure_s = 1e-9;
     double max_exposure_s = 60.0;
     double min_gain = 1.0;
     double max_gain = 16.0;
@@ -114,7 +134,11 @@ struct SimCameraOptions {
     double gain = 1.0;
     double readout_s = 0.03;       // >= 0, rig time per frame after the exposure
     double fixed_angle_deg = 0.0;  // the light's angle when no head is attached
-    int cache_angles = 4;          // rendered angles kept, >= 1
+    SimResponse response = SimResponse::Linear;
+    double response_gamma = 2.2;         // > 0, for SimResponse::Gamma
+    double response_log_range = 1000.0;  // a > 0, for SimResponse::Log
+    bool lens_capped = false;            // no light and no background (see the top of this file)
+    int cache_angles = 4;                // rendered angles kept, >= 1
     uint64_t seed = 1;
     render::SceneOptions render = simRenderDefaults();  // width and height are taken from above
     SimCameraFaults faults;
@@ -122,6 +146,12 @@ struct SimCameraOptions {
     // InvalidArgument naming the first field out of range.
     Status validate() const;
 };
+
+// The response curve of `options` at u in [0, 1] (u outside is clipped), and its inverse at v in
+// [0, 1]: the linear fraction of the converter's range that the camera reports as v. Identity
+// for SimResponse::Linear.
+double simResponseCurve(const SimCameraOptions& options, double u);
+double simResponseInverse(const SimCameraOptions& options, double v);
 
 class SimCamera final : public Camera {
 public:
@@ -156,6 +186,11 @@ public:
     void abort() override { aborted_ = true; }
 
     void setFaults(const SimCameraFaults& faults) { faults_ = faults; }
+    // The operator puts the lens cap on (true) or takes it off.
+    void setLensCapped(bool capped) { lens_capped_ = capped; }
+    bool lensCapped() const { return lens_capped_; }
+    // Extra dark current of every pixel (e/s), row-major; empty when there are no hot pixels.
+    const std::vector<float>& hotPixelDark_e_s() const { return hot_e_s_; }
     const SimCameraFaults& faults() const { return faults_; }
     // The sequence number the next frame gets (>= 0); its noise is drawn from it. A sweep resumed
     // at frame i of a bracket of n sets i * n, and its frames equal an uninterrupted run's.
@@ -207,6 +242,7 @@ private:
     double gain_;
     hdr::RawFormat format_;
     SimCameraFaults faults_;
+    bool lens_capped_ = false;
     std::optional<LightImage> light_image_;  // none when options.render.starburst is false
     std::vector<float> hot_e_s_;  // extra dark current per pixel; empty without hot pixels
     std::deque<std::pair<double, std::vector<float>>> cache_;
@@ -230,7 +266,8 @@ Result<SimCameraSetup> simCameraSetup(const DeviceUri& uri,
 // Adds the "sim" scheme to a registry: "sim:" opens a SimCamera bound to `head` (or with no head
 // when null) with `defaults`, its lens `lens` when given. URI parameters override: lens=<path of
 // a prescription> (loaded with the default camera description), width, height, bits, seed,
-// format=mono|rggb, angle_deg (fixed angle without a head). NotFound naming the lens parameter
+// format=mono|rggb, angle_deg (fixed angle without a head), response=linear|gamma|log (the
+// converter's curve), cap=0|1 (the lens cap). NotFound naming the lens parameter
 // when there is no lens.
 Status addSimCameraBackend(CameraRegistry& registry,
                            std::shared_ptr<SimHead> head,

@@ -203,7 +203,7 @@ struct AptSimOptions {
     bool homed = false;
     int32_t start_position = 0;
     std::string serve_tty;  // as ZaberSimOptions::serve_tty
-    bool enabled = true;  // the channel at power-up
+    bool enabled = true;    // the channel at power-up
     uint64_t seed = 1;
     StageSimFaults faults;
 };

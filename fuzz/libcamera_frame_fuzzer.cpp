@@ -72,7 +72,8 @@ void frameCase(Reader& in) {
     tracker.request(requested);
     for (int i = 0; i < LibcameraSettleTracker::kMaxFrames + 2; ++i) {
         const auto decision = tracker.judge(metadata, "fuzz");
-        if ((decision.verdict == LibcameraSettleTracker::Verdict::Refuse) != decision.error.has_value())
+        if ((decision.verdict == LibcameraSettleTracker::Verdict::Refuse) !=
+            decision.error.has_value())
             std::abort();
     }
 
@@ -82,9 +83,9 @@ void frameCase(Reader& in) {
     for (uint16_t s : *samples)
         if (s > (1 << format.bit_depth) - 1) std::abort();
     if (requested.exposure_us <= 0) requested.exposure_us = 1;
-    const auto frame = rawFrameFromLibcamera(metadata, requested,
-                                             LibcameraFormatChoice{format, {width, height}},
-                                             std::move(*samples), "fuzz camera");
+    const auto frame =
+        rawFrameFromLibcamera(metadata, requested, LibcameraFormatChoice{format, {width, height}},
+                              std::move(*samples), "fuzz camera");
     if (frame && !flarelab::hdr::validateRawFrame(*frame)) std::abort();
 }
 
@@ -120,8 +121,8 @@ void choiceCase(Reader& in) {
             for (const PixelSize& size : offer.sizes) offered = offered || size == choice->size;
     if (!offered || choice->size.width < 1 || choice->size.height < 1) std::abort();
     if (!request.format.empty() && choice->format.name != request.format) std::abort();
-    (void)acceptValidatedFormat(choice->format.fourcc, choice->format.modifier,
-                                choice->format.name, choice->size, request, "fuzz");
+    (void)acceptValidatedFormat(choice->format.fourcc, choice->format.modifier, choice->format.name,
+                                choice->size, request, "fuzz");
 }
 
 }  // namespace

@@ -47,7 +47,8 @@ bool insideDirectory(std::string_view path) {
 void requireValid(const Sweep& s) {
     require(s.directory.empty() && s.warnings.empty());
     const SweepHeader& h = s.header;
-    require(h.format_version == kSweepFormatVersion);
+    require(h.format_version >= kSweepOldestFormatVersion &&
+            h.format_version <= kSweepFormatVersion);
     const SweepCapture& c = h.capture;
     require(std::isfinite(c.from_deg) && std::isfinite(c.to_deg) && std::isfinite(c.roll_deg));
     require(c.from_deg <= c.to_deg);

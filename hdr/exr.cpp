@@ -2,8 +2,10 @@
 
 #include <Iex.h>
 #include <ImfChannelList.h>
+#include <ImfChromaticitiesAttribute.h>
 #include <ImfCompression.h>
 #include <ImfDoubleAttribute.h>
+#include <ImfFloatAttribute.h>
 #include <ImfFrameBuffer.h>
 #include <ImfHeader.h>
 #include <ImfIO.h>
@@ -21,12 +23,15 @@
 #include <charconv>
 #include <cmath>
 #include <cstring>
+#include <ctime>
 #include <filesystem>
+#include <limits>
 #include <new>
 #include <set>
 #include <sstream>
 #include <string_view>
 #include <system_error>
+#include <tuple>
 #include <utility>
 
 #include "common/file_descriptor.h"
@@ -40,8 +45,6 @@ constexpr int64_t kMaxWriteSide = int64_t{1} << 15;
 constexpr int64_t kMaxChunkBytes = int64_t{1} << 28;
 constexpr size_t kWriteBufferBytes = size_t{1} << 20;
 constexpr const char* kChannelNames[3] = {"R", "G", "B"};
-
-
 
 // ---------------------------------------------------------------------------------------------
 // Streams. OpenEXR reports stream failures by exception; these throw Iex exceptions, which the
@@ -123,7 +126,8 @@ private:
 // table from OutputFile's destructor and drops any exception there, so the caller asks error().
 class FileOStream final : public Imf::OStream {
 public:
-    FileOStream(const std::string& name, int fd) : Imf::OStream(name.c_str()), fd_(fd) {
+    FileOStream(const std::string& name, int fd)
+        : Imf::OStream(name.c_str()), fd_(fd), name_(name) {
         buffer_.reserve(kWriteBufferBytes);
     }
     void write(const char c[], int n) override {
@@ -138,6 +142,11 @@ public:
     }
     void flush() {
         if (!error_.empty()) throw Iex::IoExc(error_);
+        if (const int injected = detail::injectedFault(false, name_); injected != 0) {
+            error_ = "write failed: " + osMessage(injected);
+            buffer_.clear();
+            throw Iex::IoExc(error_);
+        }
         size_t done = 0;
         while (done < buffer_.size()) {
             const ssize_t wrote = ::pwrite(fd_, buffer_.data() + done, buffer_.size() - done,
@@ -157,6 +166,7 @@ public:
 
 private:
     int fd_;
+    std::string name_;
     uint64_t offset_ = 0;
     std::vector<char> buffer_;
     std::string error_;
@@ -426,6 +436,12 @@ Result<HeaderFacts> checkHeader(SizedIStream& in,
             << options.max_side << " pixels per side and " << options.max_pixels << " pixels";
         return unsupported(out.str());
     }
+    if ((options.expected_width_px > 0 && width != options.expected_width_px) ||
+        (options.expected_height_px > 0 && height != options.expected_height_px))
+        return parseError(
+            "the header declares a " + std::to_string(width) + "x" + std::to_string(height) +
+            " image, but " + std::to_string(options.expected_width_px) + "x" +
+            std::to_string(options.expected_height_px) + " was expected; nothing was read");
     if (channel_count > options.max_channels)
         return unsupported(std::to_string(channel_count) + " channels, more than the limit of " +
                            std::to_string(options.max_channels));
@@ -482,6 +498,45 @@ std::optional<std::vector<double>> parseTimes(std::string_view text) {
     }
 }
 
+// Whether `text` is a capDate, "YYYY:MM:DD hh:mm:ss" with each field in its range.
+bool validCapDate(std::string_view text) {
+    if (text.size() != 19) return false;
+    for (size_t i = 0; i < text.size(); ++i) {
+        const char expected = i == 4 || i == 7 || i == 13 || i == 16 ? ':' : i == 10 ? ' ' : '0';
+        if (expected == '0' ? !(text[i] >= '0' && text[i] <= '9') : text[i] != expected)
+            return false;
+    }
+    const auto field = [&](size_t at, size_t n) {
+        int v = 0;
+        for (size_t i = at; i < at + n; ++i) v = 10 * v + (text[i] - '0');
+        return v;
+    };
+    const int month = field(5, 2), day = field(8, 2), hour = field(11, 2), minute = field(14, 2),
+              second = field(17, 2);
+    return month >= 1 && month <= 12 && day >= 1 && day <= 31 && hour <= 23 && minute <= 59 &&
+           second <= 60;
+}
+
+// Why a standard attribute's number cannot be written or was not acceptable; empty when fine.
+// OpenEXR keeps them as floats, so the float must be finite (and positive where asked).
+std::string standardNumberProblem(double value, bool positive, double limit) {
+    const auto as_float = static_cast<float>(value);
+    if (!std::isfinite(value) || !std::isfinite(as_float)) return "is not a finite float";
+    if (positive && !(as_float > 0.0f)) return "is not positive";
+    if (std::abs(value) > limit) return "lies beyond " + formatDouble(limit);
+    return "";
+}
+
+constexpr double kMaxUtcOffset_s = 86400.0;
+
+std::string chromaticitiesProblem(const ExrChromaticities& c) {
+    for (const auto& xy : {c.red, c.green, c.blue, c.white})
+        for (const double v : xy)
+            if (!(std::isfinite(v) && v >= 0.0 && v <= 1.0))
+                return "holds " + formatDouble(v) + ", not a chromaticity in [0, 1]";
+    return "";
+}
+
 Status checkMetadata(const ExrMetadata& meta, const std::string& path) {
     const auto invalid = [&](const std::string& what) -> Status {
         return makeError(ErrorCode::InvalidArgument, path + ": " + what);
@@ -497,6 +552,23 @@ Status checkMetadata(const ExrMetadata& meta, const std::string& path) {
         if (!std::isfinite(t) || t <= 0.0)
             return invalid(std::string(kExrAttrExposureTimes) + " holds " + formatDouble(t) +
                            "; exposure times are finite and positive");
+    const ExrStandardAttributes& standard = meta.standard;
+    if (!standard.cap_date.empty() && !validCapDate(standard.cap_date))
+        return invalid(std::string(kExrStdCapDate) + " '" + standard.cap_date +
+                       "' is not YYYY:MM:DD hh:mm:ss");
+    const std::tuple<const char*, const std::optional<double>*, bool, double> numbers_std[] = {
+        {kExrStdUtcOffset, &standard.utc_offset_s, false, kMaxUtcOffset_s},
+        {kExrStdExpTime, &standard.exp_time_s, true, std::numeric_limits<double>::max()},
+        {kExrStdAperture, &standard.aperture, true, std::numeric_limits<double>::max()},
+        {kExrStdIsoSpeed, &standard.iso_speed, true, std::numeric_limits<double>::max()}};
+    for (const auto& [attribute, number, positive, limit] : numbers_std)
+        if (number->has_value())
+            if (const std::string why = standardNumberProblem(**number, positive, limit);
+                !why.empty())
+                return invalid(std::string(attribute) + " = " + formatDouble(**number) + " " + why);
+    if (standard.chromaticities)
+        if (const std::string why = chromaticitiesProblem(*standard.chromaticities); !why.empty())
+            return invalid(std::string(kExrStdChromaticities) + " " + why);
     for (const auto& [key, value] : meta.extra) {
         if (key.empty() || key.size() > kExrMaxExtraKeyLength ||
             key.find('\0') != std::string::npos)
@@ -524,10 +596,73 @@ void addMetadata(Imf::Header& header, const ExrMetadata& meta) {
         if (!text->empty()) header.insert(attribute, Imf::StringAttribute(*text));
     for (const auto& [key, value] : meta.extra)
         header.insert(kExrAttrExtraPrefix + key, Imf::StringAttribute(value));
+    const ExrStandardAttributes& standard = meta.standard;
+    if (!standard.cap_date.empty())
+        header.insert(kExrStdCapDate, Imf::StringAttribute(standard.cap_date));
+    const std::pair<const char*, const std::optional<double>*> numbers[] = {
+        {kExrStdUtcOffset, &standard.utc_offset_s},
+        {kExrStdExpTime, &standard.exp_time_s},
+        {kExrStdAperture, &standard.aperture},
+        {kExrStdIsoSpeed, &standard.iso_speed}};
+    for (const auto& [attribute, number] : numbers)
+        if (number->has_value())
+            header.insert(attribute, Imf::FloatAttribute(static_cast<float>(**number)));
+    if (standard.chromaticities) {
+        const ExrChromaticities& c = *standard.chromaticities;
+        const auto v = [](const std::array<double, 2>& xy) {
+            return Imath::V2f(static_cast<float>(xy[0]), static_cast<float>(xy[1]));
+        };
+        header.insert(kExrStdChromaticities, Imf::ChromaticitiesAttribute(Imf::Chromaticities(
+                                                 v(c.red), v(c.green), v(c.blue), v(c.white))));
+    }
+}
+
+// OpenEXR's standard attributes of a header (exr.h); ParseError naming the one at fault.
+Status readStandardAttributes(const Imf::Header& header,
+                              const std::string& name,
+                              ExrStandardAttributes& standard) {
+    const auto fault = [&](const std::string& attribute, const std::string& what) -> Status {
+        return makeError(ErrorCode::ParseError,
+                         name + ": header attribute '" + attribute + "' " + what);
+    };
+    if (header.find(kExrStdCapDate) != header.end()) {
+        const auto* text = header.findTypedAttribute<Imf::StringAttribute>(kExrStdCapDate);
+        if (text == nullptr) return fault(kExrStdCapDate, "is not of type string");
+        if (!validCapDate(text->value()))
+            return fault(kExrStdCapDate, "is not YYYY:MM:DD hh:mm:ss");
+        standard.cap_date = text->value();
+    }
+    const std::tuple<const char*, std::optional<double>*, bool, double> numbers[] = {
+        {kExrStdUtcOffset, &standard.utc_offset_s, false, kMaxUtcOffset_s},
+        {kExrStdExpTime, &standard.exp_time_s, true, std::numeric_limits<double>::max()},
+        {kExrStdAperture, &standard.aperture, true, std::numeric_limits<double>::max()},
+        {kExrStdIsoSpeed, &standard.iso_speed, true, std::numeric_limits<double>::max()}};
+    for (const auto& [attribute, target, positive, limit] : numbers) {
+        if (header.find(attribute) == header.end()) continue;
+        const auto* number = header.findTypedAttribute<Imf::FloatAttribute>(attribute);
+        if (number == nullptr) return fault(attribute, "is not of type float");
+        const double value = number->value();
+        if (const std::string why = standardNumberProblem(value, positive, limit); !why.empty())
+            return fault(attribute, "= " + formatDouble(value) + " " + why);
+        *target = value;
+    }
+    if (header.find(kExrStdChromaticities) != header.end()) {
+        const auto* c =
+            header.findTypedAttribute<Imf::ChromaticitiesAttribute>(kExrStdChromaticities);
+        if (c == nullptr) return fault(kExrStdChromaticities, "is not of type chromaticities");
+        const Imf::Chromaticities& v = c->value();
+        const auto xy = [](const Imath::V2f& p) { return std::array<double, 2>{p.x, p.y}; };
+        ExrChromaticities read{xy(v.red), xy(v.green), xy(v.blue), xy(v.white)};
+        if (const std::string why = chromaticitiesProblem(read); !why.empty())
+            return fault(kExrStdChromaticities, why);
+        standard.chromaticities = read;
+    }
+    return Ok{};
 }
 
 Result<ExrMetadata> readMetadata(const Imf::Header& header, const std::string& name) {
     ExrMetadata meta;
+    if (Status ok = readStandardAttributes(header, name, meta.standard); !ok) return ok.error();
     const auto fault = [&](const std::string& attribute, const std::string& what) {
         return makeError(ErrorCode::ParseError,
                          name + ": header attribute '" + attribute + "' " + what);
@@ -744,15 +879,35 @@ Status writeFile(const std::string& temporary,
     }
     if (!out.error().empty())
         return makeError(ErrorCode::IoError, "cannot write " + temporary + ": " + out.error());
-    if (::fsync(fd.get()) != 0)
+    if (const int error = syncFile(fd.get(), temporary); error != 0)
         return makeError(ErrorCode::IoError,
-                         "cannot flush " + temporary + " to disk: " + osMessage(errno));
+                         "cannot flush " + temporary + " to disk (fsync): " + osMessage(error));
     if (const int error = fd.close(); error != 0)
         return makeError(ErrorCode::IoError, "cannot close " + temporary + ": " + osMessage(error));
     return Ok{};
 }
 
 }  // namespace
+
+Result<ExrStandardAttributes> exrCaptureTime(int64_t unix_time_ns) {
+    if (unix_time_ns <= 0)
+        return makeError(
+            ErrorCode::InvalidArgument,
+            "capture time " + std::to_string(unix_time_ns) + " ns is not after the Unix epoch");
+    const auto seconds = static_cast<std::time_t>(unix_time_ns / 1000000000);
+    std::tm local{};
+    if (::localtime_r(&seconds, &local) == nullptr || local.tm_year + 1900 > 9999)
+        return makeError(
+            ErrorCode::InvalidArgument,
+            "capture time " + std::to_string(unix_time_ns) + " ns has no four-digit year");
+    std::array<char, 32> text{};
+    const size_t n = std::strftime(text.data(), text.size(), "%Y:%m:%d %H:%M:%S", &local);
+    ExrStandardAttributes standard;
+    standard.cap_date.assign(text.data(), n);
+    // tm_gmtoff is local time minus UTC; OpenEXR's utcOffset is UTC minus local time.
+    standard.utc_offset_s = -static_cast<double>(local.tm_gmtoff);
+    return standard;
+}
 
 Result<ExrWriteReport> writeExr(const std::string& path,
                                 const render::ImageRGB& image,
@@ -819,12 +974,13 @@ Result<ExrWriteReport> writeExr(const std::string& path,
         return makeError(ErrorCode::Internal, path + ": cannot build the EXR header: " + e.what());
     }
 
-    // Make the rename itself durable. It has happened, so a failure here is not reported as a
-    // failed write: the caller would take the old file to be still in place.
+    // Make the rename itself durable. It has happened: the error says so, for a caller that
+    // must know whether the frame will survive a crash (a sweep writer does).
     const std::string directory = std::filesystem::path(path).parent_path().string();
-    FileDescriptor dir(
-        ::open(directory.empty() ? "." : directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
-    if (dir.valid()) ::fsync(dir.get());
+    if (Status synced = syncDirectory(directory); !synced)
+        return makeError(ErrorCode::IoError, path + ": renamed into place, but " +
+                                                 synced.error().message +
+                                                 "; the file may not survive a crash");
     return report;
 }
 

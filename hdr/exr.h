@@ -1,6 +1,7 @@
 // ============================================================================
-//  flarelab hdr: ExrMetadata, ExrWriteOptions, ExrReadOptions, ExrImage,
-//                writeExr, readExr, readExrFromMemory
+//  flarelab hdr: ExrMetadata, ExrStandardAttributes, ExrChromaticities, ExrWriteOptions,
+//                ExrReadOptions, ExrImage, exrCaptureTime, writeExr, readExr,
+//                readExrFromMemory
 // ============================================================================
 //
 // HDR frames on disk (DESIGN.md, "Formats"): single-part scanline OpenEXR files with channels R,
@@ -31,8 +32,26 @@
 // An absent optional field, empty string or empty vector is not written. The reader refuses an
 // attribute of the wrong type, a non-finite number, a non-positive exposure time, an unknown
 // "flarelab.*" name and any version other than 1, naming the attribute.
+//
+// OpenEXR's standard attributes (ImfStandardAttributes.h), written where known so that other
+// tools read them (ExrMetadata::standard; they are OpenEXR's, not part of flarelab's version):
+//
+//   capDate         string          when the image was captured, local time, "YYYY:MM:DD hh:mm:ss"
+//   utcOffset       float           seconds: UTC == local time + utcOffset
+//   expTime         float           exposure time, s. A merged frame's values are DN per second at
+//                                   unity gain (hdr/merge.h), what a 1 s exposure would read: 1.
+//   aperture        float           the lens's f-number
+//   isoSpeed        float           ISO speed of the sensor at the frame's values' gain
+//   chromaticities  chromaticities  CIE xy of the red, green and blue primaries and white
+//
+// The numbers are floats in the file, as OpenEXR defines them: a value reads back as the float
+// nearest to what was written. The reader refuses one of the wrong type, one that is not finite,
+// an expTime, aperture or isoSpeed that is not positive, a utcOffset beyond a day, a capDate not
+// in the form above and chromaticities outside [0, 1], naming the attribute; a file without them
+// reads with them absent.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <map>
 #include <optional>
@@ -66,6 +85,42 @@ inline constexpr size_t kExrMaxExtraKeyLength = 255 - (sizeof(kExrAttrExtraPrefi
 inline constexpr double kHalfMax = 65504.0;
 inline constexpr double kHalfMinNormal = 6.103515625e-05;  // 2^-14
 
+inline constexpr char kExrStdCapDate[] = "capDate";
+inline constexpr char kExrStdUtcOffset[] = "utcOffset";
+inline constexpr char kExrStdExpTime[] = "expTime";
+inline constexpr char kExrStdAperture[] = "aperture";
+inline constexpr char kExrStdIsoSpeed[] = "isoSpeed";
+inline constexpr char kExrStdChromaticities[] = "chromaticities";
+
+// CIE 1931 xy chromaticities of an RGB image's primaries and white point.
+struct ExrChromaticities {
+    std::array<double, 2> red{};
+    std::array<double, 2> green{};
+    std::array<double, 2> blue{};
+    std::array<double, 2> white{};
+    bool operator==(const ExrChromaticities&) const = default;
+};
+
+// Rec. ITU-R BT.709 primaries with a D65 white point: linear sRGB.
+inline constexpr ExrChromaticities kRec709Chromaticities{
+    {0.64, 0.33}, {0.30, 0.60}, {0.15, 0.06}, {0.3127, 0.3290}};
+
+// OpenEXR's standard attributes (see the top of this file); each absent when not known.
+struct ExrStandardAttributes {
+    std::string cap_date;  // "YYYY:MM:DD hh:mm:ss", local time; empty: not known
+    std::optional<double> utc_offset_s;
+    std::optional<double> exp_time_s;
+    std::optional<double> aperture;  // f-number
+    std::optional<double> iso_speed;
+    std::optional<ExrChromaticities> chromaticities;
+    bool operator==(const ExrStandardAttributes&) const = default;
+};
+
+// capDate and utcOffset of a moment (ns since the Unix epoch, UTC: RawFrame::host_timestamp_ns)
+// in the host's time zone. InvalidArgument when the moment is not positive or the year does not
+// have four digits.
+Result<ExrStandardAttributes> exrCaptureTime(int64_t unix_time_ns);
+
 struct ExrMetadata {
     std::optional<double> angle_deg;
     std::optional<double> roll_deg;
@@ -77,6 +132,7 @@ struct ExrMetadata {
     std::string software_version;
     // Keys are 1 to kExrMaxExtraKeyLength characters without NUL; values are any bytes.
     std::map<std::string, std::string> extra;
+    ExrStandardAttributes standard;
     bool operator==(const ExrMetadata&) const = default;
 };
 
@@ -110,6 +166,11 @@ struct ExrReadOptions {
     int64_t max_side = int64_t{1} << 15;    // data window width and height, pixels
     int64_t max_pixels = int64_t{1} << 28;  // width * height; the image takes 12 bytes per pixel
     int max_channels = 64;                  // channels in the file, read or not
+    // The size the caller knows the image has (a sweep's frame size, hdr/sweep.h); 0 = any. A
+    // data window of another size is refused (ParseError) before the image is allocated, so a
+    // small file that declares a huge image costs nothing.
+    int64_t expected_width_px = 0;
+    int64_t expected_height_px = 0;
 };
 
 struct ExrImage {
@@ -126,10 +187,12 @@ struct ExrImage {
 // Writes `image` (at least 1x1, at most 2^15 pixels per side, every value finite) with `meta` to
 // `path` as a single-part scanline EXR with channels R, G, B and data and display window
 // [0, width - 1] x [0, height - 1]. The file is written to "<path>.tmp-<pid>" in the same
-// directory, flushed to disk and renamed onto `path`; on any failure the temporary file is
-// removed and whatever was at `path` is left as it was. Errors name the path and what failed: the
-// first non-finite pixel (x, y, channel), the first value that does not fit half when Half was
-// asked for, an invalid metadata field, or the operating system's or OpenEXR's complaint.
+// directory, flushed to disk and renamed onto `path`, and the directory flushed; on any failure
+// before the rename the temporary file is removed and whatever was at `path` is left as it was.
+// When only the directory's flush fails, the error says that the file was renamed into place.
+// Errors name the path and what failed: the first non-finite pixel (x, y, channel), the first value
+// that does not fit half when Half was asked for, an invalid metadata field, or the operating
+// system's or OpenEXR's complaint.
 Result<ExrWriteReport> writeExr(const std::string& path,
                                 const render::ImageRGB& image,
                                 const ExrMetadata& meta,

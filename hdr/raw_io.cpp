@@ -17,6 +17,8 @@
 #include <string_view>
 #include <vector>
 
+#include "common/file_descriptor.h"
+
 namespace flarelab::hdr {
 namespace {
 
@@ -121,31 +123,27 @@ Status writeRaw(const std::string& path, const RawFrame& frame) {
     }
 
     const std::string temporary = path + ".tmp-" + std::to_string(::getpid());
-    const auto io_error = [&](const std::string& what) {
-        const std::string message = path + ": " + what + ": " + std::strerror(errno);
+    const auto io_error = [&](const std::string& what, int error) {
         ::unlink(temporary.c_str());
-        return makeError(ErrorCode::IoError, message);
+        return makeError(ErrorCode::IoError, path + ": " + what + ": " + std::strerror(error));
     };
-    const int fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-    if (fd < 0)
+    FileDescriptor fd(
+        ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0644));
+    if (!fd.valid())
         return makeError(ErrorCode::IoError,
                          path + ": cannot create " + temporary + ": " + std::strerror(errno));
-    size_t written = 0;
-    while (written < bytes.size()) {
-        const ssize_t n = ::write(fd, bytes.data() + written, bytes.size() - written);
-        if (n < 0) {
-            if (errno == EINTR) continue;
-            ::close(fd);
-            return io_error("cannot write");
-        }
-        written += static_cast<size_t>(n);
-    }
-    if (::fsync(fd) != 0) {
-        ::close(fd);
-        return io_error("cannot flush to disk");
-    }
-    if (::close(fd) != 0) return io_error("cannot close");
-    if (::rename(temporary.c_str(), path.c_str()) != 0) return io_error("cannot rename into place");
+    if (const int error = writeAll(fd.get(), temporary, bytes.data(), bytes.size()); error != 0)
+        return io_error("cannot write", error);
+    if (const int error = syncFile(fd.get(), temporary); error != 0)
+        return io_error("cannot flush to disk (fsync)", error);
+    if (const int error = fd.close(); error != 0) return io_error("cannot close", error);
+    if (::rename(temporary.c_str(), path.c_str()) != 0)
+        return io_error("cannot rename into place", errno);
+    // The frame's name must survive a crash too: a sweep lists the file once this returns.
+    const std::string directory = std::filesystem::path(path).parent_path().string();
+    if (Status synced = syncDirectory(directory); !synced)
+        return makeError(ErrorCode::IoError,
+                         path + ": renamed into place, but " + synced.error().message);
     return Ok{};
 }
 
@@ -289,19 +287,24 @@ Result<RawFrame> readRawFromMemory(std::span<const uint8_t> bytes,
 }
 
 Result<RawFrame> readRaw(const std::string& path, const RawReadOptions& options) {
-    std::error_code error;
-    if (!std::filesystem::exists(path, error))
-        return makeError(ErrorCode::NotFound, path + ": no such file");
-    const auto size = std::filesystem::file_size(path, error);
-    if (error) return makeError(ErrorCode::IoError, path + ": " + error.message());
+    // Not followed if a link, never waited on if a FIFO or device: see openRegularFile.
+    auto file = openRegularFile(path);
+    if (!file) return file.error();
     // The largest file the limits allow: a header of at most a few kilobytes plus the samples.
-    if (size > static_cast<uintmax_t>(options.max_pixels) * 2 + (1 << 16))
+    if (file->size > options.max_pixels * 2 + (1 << 16))
         return makeError(ErrorCode::ParseError,
                          path + ": file is larger than any frame within the limits");
-    std::ifstream in(path, std::ios::binary);
-    std::vector<uint8_t> bytes(static_cast<size_t>(size));
-    if (!in.read(reinterpret_cast<char*>(bytes.data()), static_cast<std::streamsize>(size)))
-        return makeError(ErrorCode::IoError, path + ": cannot read");
+    std::vector<uint8_t> bytes(static_cast<size_t>(file->size));
+    size_t done = 0;
+    while (done < bytes.size()) {
+        const ssize_t got = ::read(file->fd.get(), bytes.data() + done, bytes.size() - done);
+        if (got < 0 && errno == EINTR) continue;
+        if (got < 0)
+            return makeError(ErrorCode::IoError, path + ": cannot read: " + std::strerror(errno));
+        if (got == 0) break;  // shrank while being read: the parse reports it short
+        done += static_cast<size_t>(got);
+    }
+    bytes.resize(done);
     return readRawFromMemory(bytes, path, options);
 }
 

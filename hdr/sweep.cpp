@@ -7,6 +7,7 @@
 #include <sys/file.h>
 #include <sys/stat.h>
 #include <unistd.h>
+#include <zlib.h>
 
 #include <algorithm>
 #include <array>
@@ -16,13 +17,16 @@
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <optional>
 #include <set>
 #include <system_error>
 #include <tuple>
 #include <utility>
+#include <vector>
 
 #include "common/check.h"
 #include "common/file_descriptor.h"
+#include "common/utf8.h"
 #include "proto/sweep.pb.h"
 
 namespace flarelab::hdr {
@@ -114,41 +118,6 @@ public:
         return Ok{};
     }
 
-    static bool validUtf8(std::string_view text) {
-        size_t i = 0;
-        while (i < text.size()) {
-            const auto c = static_cast<unsigned char>(text[i]);
-            int extra = 0;
-            uint32_t code = 0;
-            if (c < 0x80) {
-                ++i;
-                continue;
-            } else if ((c & 0xE0) == 0xC0) {
-                extra = 1;
-                code = c & 0x1F;
-            } else if ((c & 0xF0) == 0xE0) {
-                extra = 2;
-                code = c & 0x0F;
-            } else if ((c & 0xF8) == 0xF0) {
-                extra = 3;
-                code = c & 0x07;
-            } else {
-                return false;
-            }
-            if (text.size() - i <= static_cast<size_t>(extra)) return false;
-            for (int k = 1; k <= extra; ++k) {
-                const auto next = static_cast<unsigned char>(text[i + k]);
-                if ((next & 0xC0) != 0x80) return false;
-                code = (code << 6) | (next & 0x3F);
-            }
-            static constexpr uint32_t kSmallest[] = {0, 0x80, 0x800, 0x10000};
-            if (code < kSmallest[extra] || code > 0x10FFFF || (code >= 0xD800 && code <= 0xDFFF))
-                return false;
-            i += static_cast<size_t>(extra) + 1;
-        }
-        return true;
-    }
-
     // Why `path` is not a relative path inside the sweep directory; empty when it is.
     static std::string pathProblem(std::string_view path) {
         if (path.empty()) return "is empty";
@@ -210,9 +179,10 @@ private:
 };
 
 Status checkHeader(const SweepHeader& h, const Checker& check) {
-    if (h.format_version != kSweepFormatVersion)
+    if (h.format_version < kSweepOldestFormatVersion || h.format_version > kSweepFormatVersion)
         return check.fail("format_version", std::to_string(h.format_version) +
-                                                " is not the version this writer writes (" +
+                                                " is not a version this module knows (" +
+                                                std::to_string(kSweepOldestFormatVersion) + ".." +
                                                 std::to_string(kSweepFormatVersion) + ")");
     if (auto ok = check.text("software_version", h.software_version); !ok) return ok;
     if (!h.created_utc.empty()) {
@@ -336,6 +306,32 @@ std::vector<T> toVector(const pb::RepeatedField<T>& values) {
     return std::vector<T>(values.begin(), values.end());
 }
 
+SweepFrame frameFromProto(const flarelab::v1::Frame& f) {
+    SweepFrame frame;
+    frame.angle_deg = f.angle_deg();
+    frame.exr_file = f.exr_file();
+    frame.exposure_times_s = toVector(f.exposure_times_s());
+    frame.raw_files.assign(f.raw_files().begin(), f.raw_files().end());
+    frame.merge_method = f.merge_method();
+    for (const auto& b : f.brackets())
+        frame.brackets.push_back({b.exposure_s(), b.samples_used(), b.samples_clipped()});
+    return frame;
+}
+
+void frameToProto(const SweepFrame& frame, flarelab::v1::Frame* f) {
+    f->set_angle_deg(frame.angle_deg);
+    f->set_exr_file(frame.exr_file);
+    for (const double t : frame.exposure_times_s) f->add_exposure_times_s(t);
+    for (const std::string& raw : frame.raw_files) f->add_raw_files(raw);
+    f->set_merge_method(frame.merge_method);
+    for (const SweepBracketStats& b : frame.brackets) {
+        auto* stats = f->add_brackets();
+        stats->set_exposure_s(b.exposure_s);
+        stats->set_samples_used(b.samples_used);
+        stats->set_samples_clipped(b.samples_clipped);
+    }
+}
+
 // Unvalidated, except for what does not fit the structs' types.
 Result<Sweep> fromProto(const flarelab::v1::SweepManifest& m, const Checker& check) {
     Sweep s;
@@ -368,17 +364,7 @@ Result<Sweep> fromProto(const flarelab::v1::SweepManifest& m, const Checker& che
     h.capture.width_px = c.width_px();
     h.capture.height_px = c.height_px();
     s.frames.reserve(static_cast<size_t>(m.frames_size()));
-    for (const auto& f : m.frames()) {
-        SweepFrame frame;
-        frame.angle_deg = f.angle_deg();
-        frame.exr_file = f.exr_file();
-        frame.exposure_times_s = toVector(f.exposure_times_s());
-        frame.raw_files.assign(f.raw_files().begin(), f.raw_files().end());
-        frame.merge_method = f.merge_method();
-        for (const auto& b : f.brackets())
-            frame.brackets.push_back({b.exposure_s(), b.samples_used(), b.samples_clipped()});
-        s.frames.push_back(std::move(frame));
-    }
+    for (const auto& f : m.frames()) s.frames.push_back(frameFromProto(f));
     return s;
 }
 
@@ -411,20 +397,7 @@ flarelab::v1::SweepManifest toProto(const Sweep& s) {
     if (h.capture.gain) capture->set_gain(*h.capture.gain);
     capture->set_width_px(static_cast<uint32_t>(h.capture.width_px));
     capture->set_height_px(static_cast<uint32_t>(h.capture.height_px));
-    for (const SweepFrame& frame : s.frames) {
-        auto* f = m.add_frames();
-        f->set_angle_deg(frame.angle_deg);
-        f->set_exr_file(frame.exr_file);
-        for (const double t : frame.exposure_times_s) f->add_exposure_times_s(t);
-        for (const std::string& raw : frame.raw_files) f->add_raw_files(raw);
-        f->set_merge_method(frame.merge_method);
-        for (const SweepBracketStats& b : frame.brackets) {
-            auto* stats = f->add_brackets();
-            stats->set_exposure_s(b.exposure_s);
-            stats->set_samples_used(b.samples_used);
-            stats->set_samples_clipped(b.samples_clipped);
-        }
-    }
+    for (const SweepFrame& frame : s.frames) frameToProto(frame, m.add_frames());
     return m;
 }
 
@@ -508,6 +481,12 @@ Result<std::string> resolveFile(const std::string& directory,
                                                     ", outside the sweep directory");
     if (!fs::is_regular_file(status))
         return makeError(ErrorCode::ParseError, what + ": " + shown + " is not a regular file");
+    // Readers open sweep files without following links (a link may be swapped for anything
+    // between this check and the open); the writer never makes one.
+    if (fs::is_symlink(fs::symlink_status(path, ec)))
+        return makeError(ErrorCode::ParseError,
+                         what + ": " + shown + " is a symbolic link; sweep files must be regular " +
+                             "files in the sweep directory");
     return shown;
 }
 
@@ -555,6 +534,12 @@ std::string frameContext(const Sweep& s, size_t index) {
     return manifestPath(s.directory) + ": " + indexed("frames", index);
 }
 
+// The writer's own files: not frames, not extra.
+bool isSweepBookkeeping(std::string_view relative) {
+    return relative == kSweepManifestFile || relative == kSweepFrameLogFile ||
+           relative == kSweepLockFile;
+}
+
 // Looks through `directory` (recursively, without following links) for files the manifest does
 // not list: warnings, or for EXR files errors when `exr_is_error`.
 Result<std::vector<std::string>> findExtraFiles(const std::string& directory,
@@ -566,7 +551,7 @@ Result<std::vector<std::string>> findExtraFiles(const std::string& directory,
     for (; !ec && it != end; it.increment(ec)) {
         if (it->is_directory(ec) && !it->is_symlink(ec)) continue;
         const std::string relative = it->path().lexically_relative(directory).generic_string();
-        if (relative == kSweepManifestFile || listed.count(relative)) continue;
+        if (isSweepBookkeeping(relative) || listed.count(relative)) continue;
         if (isSweepProduct(relative)) continue;
         extra.push_back(relative);
     }
@@ -606,26 +591,40 @@ std::optional<std::string> findAnyExr(const std::string& directory) {
 // Manifest text.
 
 Result<Sweep> parseSweepManifest(std::string_view json, const std::string& name) {
-    // Look at format_version before the strict parse: a later version may add fields, and its
-    // reader should hear "unsupported version", not "unknown field".
-    pb::Struct loose;
     pb::util::JsonParseOptions parse_options;
     parse_options.ignore_unknown_fields = false;
     const pb::StringPiece text(json.data(), json.size());
-    if (auto status = pb::util::JsonStringToMessage(text, &loose, parse_options); !status.ok())
-        return makeError(ErrorCode::ParseError,
-                         name + ": not a valid JSON object: " + statusText(status));
-    const auto& fields = loose.fields();
-    auto version = fields.find("format_version");
-    if (version == fields.end()) version = fields.find("formatVersion");
-    if (version == fields.end())
+    flarelab::v1::SweepManifest manifest;
+    const auto strict = pb::util::JsonStringToMessage(text, &manifest, parse_options);
+    // The version decides which rules apply, so it is looked at first: a later version may add
+    // fields, and its reader should hear "unsupported version", not "unknown field". The strict
+    // parse comes first all the same, and the loose one (a whole JSON tree) only when it fails, so
+    // that a large manifest is not held in memory twice.
+    std::optional<pb::Value> version;
+    if (strict.ok()) {
+        pb::Value v;
+        v.set_number_value(manifest.format_version());
+        version = v;
+    } else {
+        pb::Struct loose;
+        if (auto status = pb::util::JsonStringToMessage(text, &loose, parse_options); !status.ok())
+            return makeError(ErrorCode::ParseError,
+                             name + ": not a valid JSON object: " + statusText(status));
+        const auto& fields = loose.fields();
+        auto found = fields.find("format_version");
+        if (found == fields.end()) found = fields.find("formatVersion");
+        if (found != fields.end()) version = found->second;
+    }
+    if (!version || (strict.ok() && manifest.format_version() == 0))
         return makeError(ErrorCode::ParseError, name + ": format_version: missing");
-    const pb::Value& value = version->second;
+    const pb::Value& value = *version;
     // protobuf JSON allows integers as numbers or as strings ("1").
-    const bool known = (value.kind_case() == pb::Value::kNumberValue &&
-                        value.number_value() == kSweepFormatVersion) ||
-                       (value.kind_case() == pb::Value::kStringValue &&
-                        value.string_value() == std::to_string(kSweepFormatVersion));
+    bool known = false;
+    for (int v = kSweepOldestFormatVersion; v <= kSweepFormatVersion; ++v)
+        known = known ||
+                (value.kind_case() == pb::Value::kNumberValue && value.number_value() == v) ||
+                (value.kind_case() == pb::Value::kStringValue &&
+                 value.string_value() == std::to_string(v));
     if (!known) {
         std::string shown = "a value that is not a number";
         if (value.kind_case() == pb::Value::kNumberValue)
@@ -634,12 +633,12 @@ Result<Sweep> parseSweepManifest(std::string_view json, const std::string& name)
             shown = Checker::quoted(value.string_value());
         return makeError(ErrorCode::Unsupported, name + ": format_version: " + shown +
                                                      " is not a version this reader knows (" +
-                                                     std::to_string(kSweepFormatVersion) + ")");
+                                                     std::to_string(kSweepOldestFormatVersion) +
+                                                     ".." + std::to_string(kSweepFormatVersion) +
+                                                     ")");
     }
-
-    flarelab::v1::SweepManifest manifest;
-    if (auto status = pb::util::JsonStringToMessage(text, &manifest, parse_options); !status.ok())
-        return makeError(ErrorCode::ParseError, name + ": " + describeStrictFailure(status));
+    if (!strict.ok())
+        return makeError(ErrorCode::ParseError, name + ": " + describeStrictFailure(strict));
     const Checker check(ErrorCode::ParseError, name);
     auto sweep = fromProto(manifest, check);
     if (!sweep) return sweep.error();
@@ -652,26 +651,206 @@ Result<std::string> formatSweepManifest(const Sweep& sweep) {
                                                         ? std::string("sweep manifest")
                                                         : manifestPath(sweep.directory));
     if (auto ok = checkSweep(sweep, check); !ok) return ok.error();
+    // The header indented for people, then one frame per line: a frame indented field by field
+    // takes three times the bytes, and a sweep may have 100000 of them.
     pb::util::JsonPrintOptions print_options;
     print_options.add_whitespace = true;
     print_options.always_print_primitive_fields = true;
     print_options.preserve_proto_field_names = true;
+    Sweep header_only;
+    header_only.header = sweep.header;
     std::string json;
-    if (auto status = pb::util::MessageToJsonString(toProto(sweep), &json, print_options);
+    if (auto status = pb::util::MessageToJsonString(toProto(header_only), &json, print_options);
         !status.ok())
         return makeError(ErrorCode::Internal,
                          "cannot print the sweep manifest: " + statusText(status));
+    // Strings are escaped in JSON, so the key with its empty list appears once, as the key.
+    constexpr std::string_view kEmptyFrames = "\"frames\": []";
+    const size_t at = json.find(kEmptyFrames);
+    FLARELAB_CHECK(at != std::string::npos);
+    std::string frames = "\"frames\": [";
+    print_options.add_whitespace = false;
+    for (size_t i = 0; i < sweep.frames.size(); ++i) {
+        flarelab::v1::Frame f;
+        frameToProto(sweep.frames[i], &f);
+        std::string line;
+        if (auto status = pb::util::MessageToJsonString(f, &line, print_options); !status.ok())
+            return makeError(ErrorCode::Internal,
+                             "cannot print frame " + std::to_string(i) + ": " + statusText(status));
+        frames += (i ? ",\n  " : "\n  ") + line;
+    }
+    frames += sweep.frames.empty() ? "]" : "\n ]";
+    json.replace(at, kEmptyFrames.size(), frames);
     return json;
 }
 
-Result<Sweep> readSweepManifest(const std::string& directory) {
+// ---------------------------------------------------------------------------------------------
+// The frame log.
+
+namespace {
+
+uint32_t crc32Of(std::string_view bytes) {
+    uLong crc = ::crc32(0L, Z_NULL, 0);
+    // zlib takes lengths as uInt; a record is at most kSweepMaxLogRecordBytes.
+    crc =
+        ::crc32(crc, reinterpret_cast<const Bytef*>(bytes.data()), static_cast<uInt>(bytes.size()));
+    return static_cast<uint32_t>(crc);
+}
+
+void putLittle32(std::string& out, uint32_t v) {
+    for (int i = 0; i < 4; ++i) out.push_back(static_cast<char>((v >> (8 * i)) & 0xff));
+}
+
+uint32_t getLittle32(std::string_view bytes, size_t at) {
+    uint32_t v = 0;
+    for (int i = 0; i < 4; ++i)
+        v |= static_cast<uint32_t>(static_cast<unsigned char>(bytes[at + i])) << (8 * i);
+    return v;
+}
+
+// The frames of the manifest `sweep` followed by those of `log` (rules at the top of sweep.h);
+// `name` is the log's path. A torn tail becomes a warning.
+Status applyFrameLog(Sweep& sweep, const SweepFrameLog& log, const std::string& name) {
+    const Checker check(ErrorCode::ParseError, name);
+    std::set<std::string> files;
+    for (size_t i = 0; i < sweep.frames.size(); ++i)
+        if (auto ok = checkUnique(sweep.frames[i], i, files, check); !ok) return ok;
+    for (size_t r = 0; r < log.records.size(); ++r) {
+        const auto& [index, frame] = log.records[r];
+        const size_t have = sweep.frames.size();
+        const std::string at =
+            "record " + std::to_string(r) + " (frame " + std::to_string(index) + ")";
+        if (index < have) {
+            if (!(sweep.frames[index] == frame))
+                return check.fail(
+                    at, "differs from the manifest's frames[" + std::to_string(index) + "]");
+            continue;
+        }
+        if (index > have)
+            return check.fail(
+                at, "leaves a gap: the sweep lists " + std::to_string(have) + " frames before it");
+        if (auto ok =
+                checkFrame(sweep.header, frame, have, have ? &sweep.frames.back() : nullptr, check);
+            !ok)
+            return ok;
+        if (auto ok = checkUnique(frame, have, files, check); !ok) return ok;
+        sweep.frames.push_back(frame);
+    }
+    if (log.torn_bytes > 0)
+        sweep.warnings.push_back(name + ": the last " + std::to_string(log.torn_bytes) +
+                                 " bytes (from byte " + std::to_string(log.valid_bytes) + ", " +
+                                 log.torn +
+                                 ") are a record cut short by an interrupted write; ignored");
+    return Ok{};
+}
+
+}  // namespace
+
+Result<SweepFrameLog> parseSweepFrameLog(std::string_view bytes, const std::string& name) {
+    SweepFrameLog log;
+    const std::string_view magic = kSweepFrameLogMagic;
+    if (bytes.size() < magic.size()) {
+        // A log cut short while it was created.
+        if (bytes != magic.substr(0, bytes.size()))
+            return makeError(ErrorCode::ParseError, name + ": not a flarelab frame log");
+        log.torn_bytes = static_cast<int64_t>(bytes.size());
+        if (!bytes.empty()) log.torn = "an unfinished header";
+        return log;
+    }
+    if (bytes.substr(0, magic.size()) != magic)
+        return makeError(ErrorCode::ParseError,
+                         name + ": not a flarelab frame log (it does not start with \"" +
+                             std::string(magic.substr(0, magic.size() - 1)) + "\")");
+    size_t at = magic.size();
+    const auto torn = [&](const std::string& why) {
+        log.torn_bytes = static_cast<int64_t>(bytes.size() - at);
+        log.torn = why;
+    };
+    while (at < bytes.size()) {
+        if (bytes.size() - at < 8) {
+            torn("a record header of " + std::to_string(bytes.size() - at) + " of 8 bytes");
+            break;
+        }
+        const uint32_t length = getLittle32(bytes, at);
+        const uint32_t crc = getLittle32(bytes, at + 4);
+        if (length == 0 || length > kSweepMaxLogRecordBytes) {
+            torn("a record declaring " + std::to_string(length) + " bytes, outside 1.." +
+                 std::to_string(kSweepMaxLogRecordBytes));
+            break;
+        }
+        if (length > bytes.size() - at - 8) {
+            torn("a record of " + std::to_string(length) + " bytes with " +
+                 std::to_string(bytes.size() - at - 8) + " left in the file");
+            break;
+        }
+        const std::string_view payload = bytes.substr(at + 8, length);
+        if (crc32Of(payload) != crc) {
+            torn("a record whose checksum does not match");
+            break;
+        }
+        flarelab::v1::FrameLogRecord record;
+        if (!record.ParseFromArray(payload.data(), static_cast<int>(payload.size())))
+            return makeError(ErrorCode::ParseError,
+                             name + ": the record at byte " + std::to_string(at) +
+                                 " passes its checksum but is not a frame record");
+        log.records.push_back({record.index(), frameFromProto(record.frame())});
+        at += 8 + length;
+    }
+    log.valid_bytes = static_cast<int64_t>(at);
+    return log;
+}
+
+std::string formatSweepFrameLogRecord(uint64_t index, const SweepFrame& frame) {
+    flarelab::v1::FrameLogRecord record;
+    record.set_index(index);
+    frameToProto(frame, record.mutable_frame());
+    const std::string payload = record.SerializeAsString();
+    std::string out;
+    out.reserve(payload.size() + 8);
+    putLittle32(out, static_cast<uint32_t>(payload.size()));
+    putLittle32(out, crc32Of(payload));
+    out += payload;
+    return out;
+}
+
+namespace {
+
+// The frame list of the sweep in `directory`, and what its log holds (nullopt without a log).
+struct ListedSweep {
+    Sweep sweep;
+    std::optional<SweepFrameLog> log;
+    size_t manifest_frames = 0;
+};
+
+Result<ListedSweep> readListing(const std::string& directory) {
     const std::string path = manifestPath(directory);
     auto text = readWholeFile(path, kSweepMaxManifestBytes);
     if (!text) return text.error();
     auto sweep = parseSweepManifest(*text, path);
     if (!sweep) return sweep.error();
-    sweep->directory = directory;
-    return sweep;
+    ListedSweep out;
+    out.sweep = std::move(*sweep);
+    out.sweep.directory = directory;
+    out.manifest_frames = out.sweep.frames.size();
+    // A version 1 manifest lists every frame; a log beside it is not its own (an extra file).
+    if (out.sweep.header.format_version < 2) return out;
+    const std::string log_path = (fs::path(directory) / kSweepFrameLogFile).string();
+    auto bytes = readWholeFile(log_path, kSweepMaxManifestBytes);
+    if (!bytes && bytes.error().code == ErrorCode::NotFound) return out;  // compacted
+    if (!bytes) return bytes.error();
+    auto log = parseSweepFrameLog(*bytes, log_path);
+    if (!log) return log.error();
+    if (auto ok = applyFrameLog(out.sweep, *log, log_path); !ok) return ok.error();
+    out.log = std::move(*log);
+    return out;
+}
+
+}  // namespace
+
+Result<Sweep> readSweepManifest(const std::string& directory) {
+    auto listed = readListing(directory);
+    if (!listed) return listed.error();
+    return std::move(listed->sweep);
 }
 
 Result<Sweep> readSweep(const std::string& directory, const ReadSweepOptions& options) {
@@ -697,7 +876,11 @@ Result<Sweep> readSweep(const std::string& directory, const ReadSweepOptions& op
     }
     auto warnings = findExtraFiles(directory, listed, options.extra_exr_files_are_errors);
     if (!warnings) return warnings.error();
-    sweep->warnings = std::move(*warnings);
+    if (sweep->header.format_version < 2 &&
+        fs::exists(fs::symlink_status(fs::path(directory) / kSweepFrameLogFile, ec)))
+        warnings->push_back((fs::path(directory) / kSweepFrameLogFile).string() +
+                            ": a frame log beside a version 1 manifest, which has none; ignored");
+    sweep->warnings.insert(sweep->warnings.end(), warnings->begin(), warnings->end());
     return sweep;
 }
 
@@ -710,7 +893,12 @@ Result<ExrImage> loadFrame(const Sweep& sweep, size_t index, const ExrReadOption
     auto path = resolveFile(sweep.directory, canonical_directory, sweep.frames[index].exr_file,
                             context + ".exr_file");
     if (!path) return path.error();
-    auto exr = readExr(*path, options);
+    // The manifest knows the frame's size: a header that declares another is refused before
+    // anything is allocated for it.
+    ExrReadOptions sized = options;
+    sized.expected_width_px = sweep.header.capture.width_px;
+    sized.expected_height_px = sweep.header.capture.height_px;
+    auto exr = readExr(*path, sized);
     if (!exr) return exr.error().withContext(context + ".exr_file");
     if (auto ok = checkFrameImage(sweep, index, *exr, context + ".exr_file: " + *path); !ok)
         return ok.error();
@@ -771,21 +959,194 @@ std::string clippingWarning(const ClippedFrames& clipped, size_t total_frames) {
 // ---------------------------------------------------------------------------------------------
 // SweepWriter.
 
-struct SweepWriter::DirectoryLock {
-    explicit DirectoryLock(int descriptor) : fd(descriptor) {}
-    ~DirectoryLock() { ::close(fd); }  // releases the flock
-    DirectoryLock(const DirectoryLock&) = delete;
-    DirectoryLock& operator=(const DirectoryLock&) = delete;
-    int fd;
+namespace {
+
+// Creates `directory` and its missing parents, flushing each new name into its parent.
+Status makeDirectoryDurably(const fs::path& directory) {
+    std::vector<fs::path> missing;
+    std::error_code ec;
+    for (fs::path p = directory; !p.empty() && !fs::exists(fs::symlink_status(p, ec));
+         p = p.parent_path()) {
+        missing.push_back(p);
+        if (p == p.parent_path()) break;
+    }
+    if (missing.empty()) return Ok{};
+    fs::create_directories(directory, ec);
+    if (ec)
+        return makeError(ErrorCode::IoError,
+                         directory.string() + ": cannot create: " + ec.message());
+    for (auto it = missing.rbegin(); it != missing.rend(); ++it)
+        if (Status ok = syncDirectory(it->parent_path().string()); !ok) return ok;
+    return Ok{};
+}
+
+// Why no file of `frame` may be added to a sweep that lists `files`; Ok when none.
+Status checkNewNames(const SweepFrame& frame,
+                     size_t index,
+                     const std::set<std::string>& files,
+                     const Checker& check) {
+    std::set<std::string> own;
+    const std::string at = indexed("frames", index) + ".";
+    std::vector<std::pair<std::string, const std::string*>> named{
+        {at + "exr_file", &frame.exr_file}};
+    for (size_t i = 0; i < frame.raw_files.size(); ++i)
+        named.emplace_back(at + indexed("raw_files", i), &frame.raw_files[i]);
+    for (const auto& [field, file] : named) {
+        if (isSweepBookkeeping(*file))
+            return check.fail(field, "names the sweep's own " + Checker::quoted(*file));
+        if (files.count(*file) || !own.insert(*file).second)
+            return check.fail(field, Checker::quoted(*file) + " is named twice in the manifest");
+    }
+    return Ok{};
+}
+
+// (device, inode) of `path`, following links; nullopt when it cannot be examined.
+std::optional<std::pair<dev_t, ino_t>> identity(const fs::path& path) {
+    struct stat info {};
+    if (::stat(path.c_str(), &info) != 0) return std::nullopt;
+    return std::pair{info.st_dev, info.st_ino};
+}
+
+// Moves the file `from` to `to` (which must not exist). One rename that never replaces on the
+// same file system; across file systems a copy, flushed, then the original unlinked, so that a
+// crash leaves the file in one place or both, never in neither. Both directories are flushed.
+Status moveAside(const fs::path& from, const fs::path& to) {
+    const auto fail = [&](const std::string& what, int error) -> Status {
+        return makeError(ErrorCode::IoError, from.string() + ": cannot move it aside to " +
+                                                 to.string() + ": " + what +
+                                                 (error ? ": " + osMessage(error) : ""));
+    };
+    if (::renameat2(AT_FDCWD, from.c_str(), AT_FDCWD, to.c_str(), RENAME_NOREPLACE) == 0) {
+        if (Status ok = syncDirectory(to.parent_path().string()); !ok) return ok;
+        return syncDirectory(from.parent_path().string());
+    }
+    if (errno == EEXIST) return fail("the target exists (it is not overwritten)", 0);
+    if (errno != EXDEV) return fail("rename failed", errno);
+    struct stat info {};
+    if (::lstat(from.c_str(), &info) != 0) return fail("cannot examine it", errno);
+    if (S_ISLNK(info.st_mode)) {
+        std::error_code ec;
+        const fs::path target = fs::read_symlink(from, ec);
+        if (ec) return fail("cannot read the link: " + ec.message(), 0);
+        if (::symlink(target.c_str(), to.c_str()) != 0) return fail("cannot copy the link", errno);
+    } else if (S_ISREG(info.st_mode)) {
+        FileDescriptor in(::open(from.c_str(), O_RDONLY | O_CLOEXEC | O_NOFOLLOW | O_NONBLOCK));
+        if (!in.valid()) return fail("cannot open it", errno);
+        FileDescriptor out(
+            ::open(to.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | O_NOFOLLOW, 0644));
+        if (!out.valid()) return fail("cannot create the copy", errno);
+        std::vector<char> buffer(size_t{1} << 20);
+        for (;;) {
+            const ssize_t got = ::read(in.get(), buffer.data(), buffer.size());
+            if (got < 0 && errno == EINTR) continue;
+            if (got < 0) return fail("cannot read it", errno);
+            if (got == 0) break;
+            if (const int e = writeAll(out.get(), to.string(), buffer.data(), size_t(got)); e)
+                return fail("cannot write the copy", e);
+        }
+        if (const int e = syncFile(out.get(), to.string()); e != 0)
+            return fail("cannot flush the copy to disk (fsync)", e);
+        if (const int e = out.close(); e != 0) return fail("cannot close the copy", e);
+    } else {
+        return fail(std::string("it is ") + fileTypeName(info.st_mode) +
+                        ", which cannot be copied to another file system; remove it by hand",
+                    0);
+    }
+    if (Status ok = syncDirectory(to.parent_path().string()); !ok) return ok;
+    if (::unlink(from.c_str()) != 0)
+        return fail("copied, but the original cannot be removed", errno);
+    return syncDirectory(from.parent_path().string());
+}
+
+}  // namespace
+
+struct SweepWriter::State {
+    FileDescriptor directory{-1};  // flock'ed too: writers of version 1 lock the directory itself
+    FileDescriptor lock{-1};       // sweep.lock, flock'ed
+    FileDescriptor log{-1};        // frames.log, opened to append
+    std::string log_path;
+    int64_t log_bytes = 0;        // what the log holds, all whole records
+    size_t log_records = 0;       // records since the last compaction
+    size_t compact_at = 0;        // log_records that start the next compaction
+    std::set<std::string> files;  // every file the sweep lists
+    std::string broken;           // why the writer refuses to write
+    bool finished = false;
 };
 
-SweepWriter::SweepWriter(Sweep sweep,
-                         SweepWriteOptions options,
-                         std::unique_ptr<DirectoryLock> lock)
-    : sweep_(std::move(sweep)), options_(std::move(options)), lock_(std::move(lock)) {}
+SweepWriter::SweepWriter(Sweep sweep, SweepWriteOptions options, std::unique_ptr<State> state)
+    : sweep_(std::move(sweep)), options_(std::move(options)), state_(std::move(state)) {}
 SweepWriter::SweepWriter(SweepWriter&&) noexcept = default;
 SweepWriter& SweepWriter::operator=(SweepWriter&&) noexcept = default;
 SweepWriter::~SweepWriter() = default;
+
+const std::string& SweepWriter::broken() const { return state_->broken; }
+
+Error SweepWriter::breakWith(const std::string& why) {
+    state_->broken = why;
+    return makeError(ErrorCode::IoError,
+                     why + "; the sweep writer takes no more frames (a failed flush is never " +
+                         "retried: the disk may have dropped what it failed to write)");
+}
+
+namespace {
+
+// The sweep's lock file, opened and locked. Refused without being opened when something other
+// than a regular file stands in its place.
+Result<FileDescriptor> lockSweep(int directory_fd, const std::string& directory) {
+    const std::string path = (fs::path(directory) / kSweepLockFile).string();
+    struct stat info {};
+    if (::fstatat(directory_fd, kSweepLockFile, &info, AT_SYMLINK_NOFOLLOW) == 0 &&
+        !S_ISREG(info.st_mode))
+        return makeError(ErrorCode::InvalidArgument,
+                         path + ": is " + fileTypeName(info.st_mode) +
+                             ", not the sweep's lock file; refusing to use the directory");
+    FileDescriptor fd(::openat(directory_fd, kSweepLockFile,
+                               O_RDWR | O_CREAT | O_CLOEXEC | O_NOFOLLOW | O_NONBLOCK, 0644));
+    if (!fd.valid())
+        return makeError(errno == ELOOP ? ErrorCode::InvalidArgument : ErrorCode::IoError,
+                         path + ": cannot open the sweep's lock file: " + osMessage(errno));
+    if (::fstat(fd.get(), &info) != 0 || !S_ISREG(info.st_mode))
+        return makeError(ErrorCode::InvalidArgument,
+                         path + ": not a regular file; refusing to use the directory");
+    if (::flock(fd.get(), LOCK_EX | LOCK_NB) != 0) {
+        const int error = errno;
+        return makeError(
+            error == EWOULDBLOCK ? ErrorCode::InvalidArgument : ErrorCode::IoError,
+            directory + ": " +
+                (error == EWOULDBLOCK ? std::string("another sweep writer is using it")
+                                      : "cannot lock " + path + ": " + osMessage(error)));
+    }
+    return fd;
+}
+
+// An empty frame log in `directory` (created or cut back to its magic), flushed with its name.
+Status resetFrameLog(int directory_fd, const std::string& directory, FileDescriptor& log) {
+    const std::string path = (fs::path(directory) / kSweepFrameLogFile).string();
+    if (!log.valid()) {
+        struct stat info {};
+        if (::fstatat(directory_fd, kSweepFrameLogFile, &info, AT_SYMLINK_NOFOLLOW) == 0 &&
+            !S_ISREG(info.st_mode))
+            return makeError(ErrorCode::InvalidArgument,
+                             path + ": is " + fileTypeName(info.st_mode) +
+                                 ", not a frame log; refusing to use it");
+        log = FileDescriptor(
+            ::openat(directory_fd, kSweepFrameLogFile,
+                     O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC | O_NOFOLLOW | O_NONBLOCK, 0644));
+        if (!log.valid())
+            return makeError(ErrorCode::IoError, path + ": cannot open: " + osMessage(errno));
+    }
+    if (::ftruncate(log.get(), 0) != 0)
+        return makeError(ErrorCode::IoError, path + ": cannot truncate: " + osMessage(errno));
+    const std::string_view magic = kSweepFrameLogMagic;
+    if (const int e = writeAll(log.get(), path, magic.data(), magic.size()); e != 0)
+        return makeError(ErrorCode::IoError, path + ": cannot write: " + osMessage(e));
+    if (const int e = syncFile(log.get(), path); e != 0)
+        return makeError(ErrorCode::IoError,
+                         path + ": cannot flush to disk (fsync): " + osMessage(e));
+    return syncDirectory(directory);
+}
+
+}  // namespace
 
 Result<SweepWriter> SweepWriter::create(const std::string& directory,
                                         SweepHeader header,
@@ -793,19 +1154,17 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
     const std::string manifest = manifestPath(directory);
     if (header.created_utc.empty())
         header.created_utc = pb::util::TimeUtil::ToString(pb::util::TimeUtil::GetCurrentTime());
-    Sweep sweep;
-    sweep.directory = directory;
-    sweep.header = header;
+    header.format_version = kSweepFormatVersion;
     if (auto ok = checkHeader(header, Checker(ErrorCode::InvalidArgument, manifest)); !ok)
         return ok.error();
 
-    std::error_code ec;
-    fs::create_directories(directory, ec);
-    if (ec) return makeError(ErrorCode::IoError, directory + ": cannot create: " + ec.message());
-    const int fd = ::open(directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-    if (fd < 0)
+    if (Status made = makeDirectoryDurably(directory); !made) return made.error();
+    auto state = std::make_unique<State>();
+    state->directory =
+        FileDescriptor(::open(directory.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC));
+    if (!state->directory.valid())
         return makeError(ErrorCode::IoError, directory + ": cannot open: " + osMessage(errno));
-    auto lock = std::make_unique<DirectoryLock>(fd);
+    const int fd = state->directory.get();
     if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
         const int error = errno;
         return makeError(error == EWOULDBLOCK ? ErrorCode::InvalidArgument : ErrorCode::IoError,
@@ -813,12 +1172,20 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
                              (error == EWOULDBLOCK ? std::string("another sweep writer is using it")
                                                    : "cannot lock: " + osMessage(error)));
     }
+    auto lock = lockSweep(fd, directory);
+    if (!lock) return lock.error();
+    state->lock = std::move(*lock);
+    state->log_path = (fs::path(directory) / kSweepFrameLogFile).string();
+    state->compact_at = std::max<size_t>(1, options.compact_after_frames);
 
-    const bool has_manifest = fs::exists(fs::symlink_status(manifest, ec));
+    struct stat info {};
+    const bool has_manifest = ::fstatat(fd, kSweepManifestFile, &info, AT_SYMLINK_NOFOLLOW) == 0;
     if (has_manifest && options.resume) {
-        auto existing = readSweepManifest(directory);
+        // Under the lock: nobody else writes here now. The header decides whether this is the
+        // same sweep before anything is touched.
+        auto existing = readListing(directory);
         if (!existing) return existing.error();
-        const SweepHeader& old = existing->header;
+        const SweepHeader& old = existing->sweep.header;
         const std::pair<const char*, bool> same[] = {{"lens", old.lens == header.lens},
                                                      {"camera", old.camera == header.camera},
                                                      {"capture", old.capture == header.capture}};
@@ -827,8 +1194,26 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
                 return makeError(ErrorCode::InvalidArgument,
                                  manifest + ": " + part +
                                      ": differs from the new sweep's; cannot resume this sweep");
-        existing->warnings.clear();
-        return SweepWriter(std::move(*existing), std::move(options), std::move(lock));
+        Sweep sweep = std::move(existing->sweep);
+        sweep.warnings.clear();
+        for (const SweepFrame& f : sweep.frames) {
+            state->files.insert(f.exr_file);
+            state->files.insert(f.raw_files.begin(), f.raw_files.end());
+        }
+        // Compacted once now: a version 1 manifest becomes version 2 before any log exists, and
+        // a record a crash tore at the end of the log is cut off before anything follows it.
+        const bool clean =
+            old.format_version == kSweepFormatVersion &&
+            (!existing->log || (existing->log->records.empty() && existing->log->torn_bytes == 0));
+        SweepWriter writer(std::move(sweep), std::move(options), std::move(state));
+        writer.sweep_.header.format_version = kSweepFormatVersion;
+        if (!clean) {
+            if (Status ok = writer.compact(false); !ok) return ok.error();
+        } else if (Status ok = resetFrameLog(fd, directory, writer.state_->log); !ok) {
+            return ok.error();
+        }
+        writer.state_->log_bytes = static_cast<int64_t>(kSweepFrameLogMagic.size());
+        return writer;
     }
     if (has_manifest)
         return makeError(ErrorCode::InvalidArgument,
@@ -838,16 +1223,62 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
         return makeError(ErrorCode::InvalidArgument,
                          *exr + ": an EXR file without a sweep manifest; refusing to mix a new " +
                              "sweep with it");
+    Sweep sweep;
+    sweep.directory = directory;
+    sweep.header = header;
     auto json = formatSweepManifest(sweep);
     if (!json) return json.error();
     if (auto ok = replaceFile(directory, fd, kSweepManifestFile, *json, {}); !ok) return ok.error();
-    return SweepWriter(std::move(sweep), std::move(options), std::move(lock));
+    if (Status ok = resetFrameLog(fd, directory, state->log); !ok) return ok.error();
+    state->log_bytes = static_cast<int64_t>(kSweepFrameLogMagic.size());
+    return SweepWriter(std::move(sweep), std::move(options), std::move(state));
 }
 
-Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image, SweepFrame frame) {
+// Rewrites the manifest with every frame, then empties the frame log (or removes it): the order
+// keeps every frame listed at every instant (records the manifest already holds are skipped by
+// readers). A failed flush breaks the writer; a failed write (a full disk) leaves the log as it
+// was, and the next compaction is tried when the log has doubled.
+Status SweepWriter::compact(bool remove_log) {
+    State& st = *state_;
+    const std::string& directory = sweep_.directory;
+    auto json = formatSweepManifest(sweep_);
+    if (!json) return json.error();
+    const uint64_t failed_flushes = syncFailureCount();
+    Status replaced = replaceFile(directory, st.directory.get(), kSweepManifestFile, *json,
+                                  options_.before_manifest_replaced);
+    if (!replaced) {
+        if (syncFailureCount() != failed_flushes) return breakWith(replaced.error().message);
+        st.compact_at = std::max<size_t>(st.compact_at, 2 * st.log_records);
+        return replaced;
+    }
+    if (remove_log) {
+        st.log = FileDescriptor(-1);
+        if (::unlink(st.log_path.c_str()) != 0 && errno != ENOENT)
+            return breakWith(st.log_path +
+                             ": cannot remove the compacted log: " + osMessage(errno));
+        if (Status ok = syncDirectory(directory); !ok) return breakWith(ok.error().message);
+    } else if (Status ok = resetFrameLog(st.directory.get(), directory, st.log); !ok) {
+        return breakWith(ok.error().message);
+    }
+    st.log_bytes = static_cast<int64_t>(kSweepFrameLogMagic.size());
+    st.log_records = 0;
+    st.compact_at = std::max<size_t>(1, options_.compact_after_frames);
+    return Ok{};
+}
+
+Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image,
+                                         SweepFrame frame,
+                                         const ExrStandardAttributes& standard) {
+    State& st = *state_;
     const std::string& directory = sweep_.directory;
     const std::string manifest = manifestPath(directory);
     const size_t index = sweep_.frames.size();
+    if (!st.broken.empty())
+        return makeError(ErrorCode::IoError,
+                         directory + ": the sweep writer is closed: " + st.broken);
+    if (st.finished)
+        return makeError(ErrorCode::InvalidArgument,
+                         directory + ": the sweep is finished; resume it to add frames");
     if (frame.exr_file.empty()) frame.exr_file = sweepFrameFileName(index, frame.angle_deg);
 
     const Checker check(ErrorCode::InvalidArgument, manifest);
@@ -855,10 +1286,7 @@ Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image, SweepFra
             checkFrame(sweep_.header, frame, index, index ? &sweep_.frames.back() : nullptr, check);
         !ok)
         return ok.error();
-    std::set<std::string> files;
-    for (size_t i = 0; i < index; ++i)
-        if (auto ok = checkUnique(sweep_.frames[i], i, files, check); !ok) return ok.error();
-    if (auto ok = checkUnique(frame, index, files, check); !ok) return ok.error();
+    if (auto ok = checkNewNames(frame, index, st.files, check); !ok) return ok.error();
     const SweepCapture& capture = sweep_.header.capture;
     if (image.width != capture.width_px || image.height != capture.height_px)
         return check.fail(indexed("frames", index),
@@ -881,7 +1309,7 @@ Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image, SweepFra
     if (::lstat(path.c_str(), &info) == 0)
         return makeError(ErrorCode::InvalidArgument,
                          context + ".exr_file: " + path +
-                             " already exists; refusing to overwrite it (remove it by hand if it " +
+                             " already exists; refusing to overwrite it (move it aside if it " +
                              "is the unlisted frame of an interrupted write)");
     // A folder of exr_file may be a link; the frame must still land inside the sweep, and no
     // folder is made outside it.
@@ -891,9 +1319,11 @@ Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image, SweepFra
     if (ec || (!inside.empty() && *inside.begin() == ".."))
         return makeError(ErrorCode::InvalidArgument,
                          context + ".exr_file: " + path + " lies outside the sweep directory");
-    fs::create_directories(parent, ec);
-    if (ec)
-        return makeError(ErrorCode::IoError, parent.string() + ": cannot create: " + ec.message());
+    const uint64_t failed_flushes = syncFailureCount();
+    if (Status made = makeDirectoryDurably(parent); !made) {
+        if (syncFailureCount() != failed_flushes) return breakWith(made.error().message);
+        return made.error();
+    }
 
     ExrMetadata meta;
     meta.angle_deg = frame.angle_deg;
@@ -904,22 +1334,108 @@ Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image, SweepFra
     meta.lens = sweep_.header.lens.description;
     meta.merge_method = frame.merge_method;
     meta.software_version = sweep_.header.software_version;
-    if (auto written = writeExr(path, image, meta, options_.exr); !written)
+    meta.standard = standard;
+    if (!meta.standard.aperture && sweep_.header.lens.f_number)
+        meta.standard.aperture = *sweep_.header.lens.f_number;
+    if (!meta.standard.exp_time_s) meta.standard.exp_time_s = 1.0;
+    if (auto written = writeExr(path, image, meta, options_.exr); !written) {
+        // A failed flush is final; a failed write (a full disk) left nothing behind.
+        if (syncFailureCount() != failed_flushes)
+            return breakWith(context + ": " + written.error().message);
         return written.error().withContext(context);
+    }
     if (options_.after_frame_written) options_.after_frame_written();
 
-    Sweep next = sweep_;
-    next.frames.push_back(frame);
-    auto json = formatSweepManifest(next);
-    Status replaced = json ? replaceFile(directory, lock_->fd, kSweepManifestFile, *json,
-                                         options_.before_manifest_replaced)
-                           : Status(json.error());
-    if (!replaced) {
+    // The EXR and its name are on disk: now the record that lists it.
+    const std::string record = formatSweepFrameLogRecord(index, frame);
+    if (const int e = writeAll(st.log.get(), st.log_path, record.data(), record.size()); e != 0) {
+        // Part of the record may have reached the file: cut it off, or nothing may follow it.
+        if (::ftruncate(st.log.get(), st.log_bytes) != 0)
+            return breakWith(st.log_path + ": cannot append frame " + std::to_string(index) + " (" +
+                             osMessage(e) +
+                             ") nor cut the partial record off: " + osMessage(errno));
         ::unlink(path.c_str());  // ours, and not listed: the sweep stays as it was
-        return replaced.error();
+        return makeError(ErrorCode::IoError,
+                         st.log_path + ": cannot append frame " + std::to_string(index) + ": " +
+                             osMessage(e) + "; the frame is not listed and its EXR was removed");
     }
+    if (const int e = syncFile(st.log.get(), st.log_path); e != 0)
+        return breakWith(st.log_path + ": cannot flush frame " + std::to_string(index) +
+                         " to disk (fsync): " + osMessage(e) +
+                         "; whether it is listed after a crash is unknown");
+    st.log_bytes += static_cast<int64_t>(record.size());
+    ++st.log_records;
+    st.files.insert(frame.exr_file);
+    st.files.insert(frame.raw_files.begin(), frame.raw_files.end());
     sweep_.frames.push_back(frame);
+
+    // Compacted when the log is as long as the manifest: each compaction writes at most twice
+    // what the log did since the last one, so bytes written stay linear in the frames.
+    const size_t in_manifest = sweep_.frames.size() - st.log_records;
+    if (st.log_records >= std::max(st.compact_at, in_manifest))
+        if (Status ok = compact(false); !ok && !st.broken.empty())
+            return makeError(ErrorCode::IoError,
+                             context + ": the frame is written and listed in the frame log, " +
+                                 "but compacting the manifest failed: " + ok.error().message);
     return frame;
+}
+
+Status SweepWriter::finish() {
+    State& st = *state_;
+    if (!st.broken.empty())
+        return makeError(ErrorCode::IoError,
+                         sweep_.directory + ": the sweep writer is closed: " + st.broken);
+    if (st.finished) return Ok{};
+    if (st.log_records > 0) {
+        if (Status ok = compact(true); !ok) return ok;
+    } else {
+        // The manifest lists every frame already (an empty log follows a compaction).
+        st.log = FileDescriptor(-1);
+        if (::unlink(st.log_path.c_str()) != 0 && errno != ENOENT)
+            return breakWith(st.log_path + ": cannot remove the empty log: " + osMessage(errno));
+        if (Status ok = syncDirectory(sweep_.directory); !ok) return breakWith(ok.error().message);
+    }
+    st.finished = true;
+    return Ok{};
+}
+
+Result<std::vector<std::string>> SweepWriter::setAsideUnlisted(const std::string& to) {
+    State& st = *state_;
+    const std::string& directory = sweep_.directory;
+    if (!st.broken.empty())
+        return makeError(ErrorCode::IoError,
+                         directory + ": the sweep writer is closed: " + st.broken);
+    // `to` may not lie inside the sweep: a path string can hide that (links, "//", bind mounts),
+    // the identity of each folder on the way up cannot.
+    const auto self = identity(directory);
+    if (!self) return makeError(ErrorCode::IoError, directory + ": cannot examine it");
+    std::error_code ec;
+    for (fs::path p = fs::absolute(to, ec); !p.empty(); p = p.parent_path()) {
+        if (identity(p) == self)
+            return makeError(ErrorCode::InvalidArgument, to + ": lies inside the sweep directory " +
+                                                             directory +
+                                                             "; files are set aside outside it");
+        if (p == p.parent_path()) break;
+    }
+    std::vector<std::string> extra;
+    for (fs::recursive_directory_iterator it(directory, ec), end; !ec && it != end;
+         it.increment(ec)) {
+        if (it->is_directory(ec) && !it->is_symlink(ec)) continue;
+        const std::string relative = it->path().lexically_relative(directory).generic_string();
+        if (isSweepBookkeeping(relative) || st.files.count(relative) || isSweepProduct(relative))
+            continue;
+        extra.push_back(relative);
+    }
+    if (ec) return makeError(ErrorCode::IoError, directory + ": cannot list: " + ec.message());
+    std::sort(extra.begin(), extra.end());
+    std::vector<std::string> moved;
+    for (const std::string& relative : extra) {
+        const fs::path target = fs::path(to) / relative;
+        if (Status made = makeDirectoryDurably(target.parent_path()); !made) return made.error();
+        if (Status ok = moveAside(fs::path(directory) / relative, target); !ok) return ok.error();
+        moved.push_back(relative);
+    }
+    return moved;
 }
 
 }  // namespace flarelab::hdr

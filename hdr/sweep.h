@@ -2,7 +2,8 @@
 //  flarelab hdr: SweepLens, SweepCamera, SweepCapture, SweepHeader, SweepBracketStats,
 //                SweepFrame, Sweep, ReadSweepOptions, SweepWriteOptions, SweepWriter,
 //                parseSweepManifest, formatSweepManifest, readSweepManifest, readSweep,
-//                loadFrame, sweepFrameFileName
+//                loadFrame, sweepFrameFileName, SweepFrameLog, parseSweepFrameLog,
+//                formatSweepFrameLogRecord
 // ============================================================================
 //
 // Sweeps on disk (DESIGN.md, "Formats"): a directory holding `manifest.json` and one HDR frame
@@ -10,9 +11,29 @@
 // from. The manifest is the message flarelab.v1.SweepManifest (proto/sweep.proto) in the protobuf
 // JSON mapping; this module turns it into the plain structs below and back, and validates it.
 //
-// Rules of format version 1. A manifest breaking any of them is refused with an Error naming the
-// manifest file and the field ("frames[3].angle_deg"):
-//   - format_version is 1 (another version: Unsupported). Fields the reader does not know are
+// Format versions. Version 1 lists every frame in manifest.json, which its writer rewrote whole
+// after every frame: bytes written grew with the square of the frame count (a sweep of 10000
+// frames wrote some 26 GB; README, "The daemon: measured"). Version 2, which SweepWriter writes,
+// has the same manifest fields and adds an append-only frame log beside it, `frames.log`: a frame
+// is listed by appending one record to the log; the manifest is rewritten with every frame
+// ("compacted") only when the log has grown as long as the manifest, on resume, and when the
+// writer finishes, after which the log is removed. Bytes written thus stay within a small
+// multiple of the final manifest. The frames of a version 2 sweep are the manifest's, followed by
+// the log's records. Both versions are read; version 1 sweeps are upgraded when resumed.
+//
+// The frame log: the 21 bytes "flarelab frame log 1\n", then records, each a 4-byte little-endian
+// payload length (1..kSweepMaxLogRecordBytes), the payload's CRC-32 (4 bytes, little-endian) and
+// the payload, a flarelab.v1.FrameLogRecord (the frame's index and its manifest entry) in the
+// protobuf binary encoding. A record that is cut short, fails its checksum or declares an
+// impossible length ends the log: it is what a crash in the middle of an append leaves, it is
+// ignored (Sweep::warnings says so, naming the byte offset) and the next writer cuts it off. A
+// record whose index lies below the manifest's frame count must equal that frame (a crash between
+// compaction and the log's truncation leaves such records); one beyond the next index is a gap,
+// refused.
+//
+// Rules of the format (both versions). A manifest breaking any of them is refused with an Error
+// naming the manifest file and the field ("frames[3].angle_deg"):
+//   - format_version is 1 or 2 (another version: Unsupported). Fields the reader does not know are
 //     refused (ParseError), not skipped: a writer that adds a field raises the version, so a
 //     misspelt field cannot silently lose data. Field names may be written as in the .proto
 //     ("angle_deg", as the writer does) or in lowerCamelCase ("angleDeg"), as protobuf JSON allows.
@@ -29,15 +50,21 @@
 // readSweep further checks every file (see there). Besides its frames a sweep directory may hold
 // its products, which are not part of the manifest and not looked at: the folder `previews/`
 // (PNG previews of the frames) and the fitted model `model.flm` with its description
-// `model.txt` (isSweepProduct). Other extra files in the directory that the
-// manifest does not list are warnings (Sweep::warnings), not errors, unless
-// ReadSweepOptions::extra_exr_files_are_errors: an interrupted writer leaves exactly such a file
-// (its last frame, written but not yet listed), and the sweep up to it is still good.
+// `model.txt` (isSweepProduct), and the writer's lock file `sweep.lock`. Other extra files in
+// the directory that the manifest does not list are warnings (Sweep::warnings), not errors,
+// unless ReadSweepOptions::extra_exr_files_are_errors: an interrupted writer leaves exactly such
+// a file (its last frame, written but not yet listed), and the sweep up to it is still good.
 //
-// SweepWriter keeps the manifest true at every instant: it writes a frame's EXR first (atomic,
-// hdr/exr.h), then replaces manifest.json by writing a temporary file, flushing it to disk and
-// renaming it over the old one. A crash leaves either the old manifest, which lists every frame
-// but the last, or the new one; never a torn one.
+// Every file of a sweep is opened without following a symbolic link and without waiting (a FIFO
+// or a device in place of a manifest, log or frame is refused, never read), and its size is
+// checked against a limit before it is read; a frame's EXR must declare the manifest's frame size
+// before its pixels are allocated.
+//
+// SweepWriter keeps the sweep true at every instant and on disk in the right order: a frame's
+// EXR (and its raw files, written by the caller) is flushed and its name flushed into its
+// directory before the record that lists it is appended and flushed; a new directory's name is
+// flushed into its parent. Every fsync is checked, and a failed one closes the writer for good
+// (PostgreSQL's lesson, common/durable_io.h): the frames listed before it stay listed.
 #pragma once
 
 #include <cstdint>
@@ -54,9 +81,16 @@
 
 namespace flarelab::hdr {
 
-inline constexpr int kSweepFormatVersion = 1;
+inline constexpr int kSweepFormatVersion = 2;        // what SweepWriter writes
+inline constexpr int kSweepOldestFormatVersion = 1;  // the oldest version still read
 inline constexpr char kSweepManifestFile[] = "manifest.json";
-inline constexpr int64_t kSweepMaxManifestBytes = int64_t{64} << 20;
+inline constexpr char kSweepFrameLogFile[] = "frames.log";
+inline constexpr char kSweepLockFile[] = "sweep.lock";
+// Largest manifest.json, and largest frames.log, read. A compacted manifest takes some 300 bytes
+// per frame of a 3-exposure bracket and under 1.6 KB for 16 exposures with raw files kept, so the
+// daemon's largest sweep (100000 frames) stays well within it.
+inline constexpr int64_t kSweepMaxManifestBytes = int64_t{512} << 20;
+inline constexpr int64_t kSweepMaxLogRecordBytes = int64_t{1} << 20;
 inline constexpr int64_t kSweepMaxSide = int64_t{1} << 15;  // frame width and height, pixels
 // How far a frame's angle may lie outside [from_deg, to_deg]: the writer computes angles as
 // from_deg + i * step_deg, which may round past to_deg.
@@ -125,8 +159,8 @@ struct Sweep {
     std::string directory;  // as given to the reader or writer; empty for parseSweepManifest
     SweepHeader header;
     std::vector<SweepFrame> frames;  // angles strictly increasing
-    // What readSweep found odd but not wrong (files the manifest does not list), one line each,
-    // naming the file. Not part of the manifest.
+    // What the reader found odd but not wrong (files the manifest does not list, a torn record at
+    // the end of the frame log), one line each, naming the file. Not part of the manifest.
     std::vector<std::string> warnings;
     bool operator==(const Sweep&) const = default;
 };
@@ -148,10 +182,33 @@ Result<Sweep> parseSweepManifest(std::string_view json, const std::string& name 
 // naming the field, when `sweep` breaks a rule, so whatever this returns parses back to `sweep`.
 Result<std::string> formatSweepManifest(const Sweep& sweep);
 
-// Reads and validates `directory`/manifest.json alone: cheap, for listing a sweep. NotFound when
-// there is no manifest, IoError when it cannot be read or exceeds kSweepMaxManifestBytes, else
-// as parseSweepManifest. Frame files are not looked at and `warnings` stays empty.
+// Reads and validates the sweep's frame list: `directory`/manifest.json and, for version 2, its
+// frames.log: cheap, for listing a sweep. NotFound when there is no manifest, IoError when it or
+// the log cannot be read, is not a regular file or exceeds kSweepMaxManifestBytes, else as
+// parseSweepManifest and parseSweepFrameLog. Frame files are not looked at; `warnings` names a
+// torn record at the end of the log, if any.
 Result<Sweep> readSweepManifest(const std::string& directory);
+
+// A frame log (see the top of this file), parsed.
+struct SweepFrameLog {
+    struct Record {
+        uint64_t index = 0;
+        SweepFrame frame;
+    };
+    std::vector<Record> records;  // in file order
+    int64_t valid_bytes = 0;      // the magic and the whole records
+    // What follows them (a record cut short by a crash): ignored, and why; 0 and empty if none.
+    int64_t torn_bytes = 0;
+    std::string torn;
+};
+inline constexpr std::string_view kSweepFrameLogMagic = "flarelab frame log 1\n";
+// Parses the bytes of a frame log; `name` stands for the file in messages. An empty text is an
+// empty log. ParseError for another file (wrong magic) or a whole record whose payload is not a
+// FrameLogRecord; a bad record at the end is torn, not an error. Frames are not validated here
+// (readSweepManifest does that against the manifest).
+Result<SweepFrameLog> parseSweepFrameLog(std::string_view bytes, const std::string& name);
+// One record of a frame log, as SweepWriter appends it.
+std::string formatSweepFrameLogRecord(uint64_t index, const SweepFrame& frame);
 
 // Reads and validates a whole sweep: the manifest as readSweepManifest, then every file it lists
 // (one frame in memory at a time). Refused, with the manifest field and the file named:
@@ -170,7 +227,8 @@ Result<Sweep> readSweepManifest(const std::string& directory);
 Result<Sweep> readSweep(const std::string& directory, const ReadSweepOptions& options = {});
 
 // Reads frame `index` (< sweep.frames.size(), else a bug) of a sweep from readSweep or
-// readSweepManifest and checks it against the manifest as readSweep does.
+// readSweepManifest and checks it against the manifest as readSweep does. An EXR whose header
+// declares another size than the capture's is refused before its pixels are allocated.
 Result<ExrImage> loadFrame(const Sweep& sweep, size_t index, const ExrReadOptions& options = {});
 
 // Whether `relative` (a '/'-separated path inside a sweep directory) is one of the sweep's
@@ -208,21 +266,27 @@ struct SweepWriteOptions {
     // equal the new header's (its software_version and created_utc are kept). Without it a
     // directory that holds a manifest or any EXR file is refused.
     bool resume = false;
-    // Test seams, to simulate a crash: called after a frame's EXR is in place and before the
-    // manifest is touched, and after the new manifest is on disk under its temporary name and
-    // before it is renamed over the old one.
+    // The frame log is compacted into the manifest once it holds this many records and as many as
+    // the manifest lists (so that compactions grow geometrically and bytes stay linear).
+    size_t compact_after_frames = 256;
+    // Test seams, to simulate a crash: called after a frame's EXR is in place and before its
+    // record is appended to the frame log, and after a new manifest is on disk under its
+    // temporary name and before it is renamed over the old one (a compaction).
     std::function<void()> after_frame_written;
     std::function<void()> before_manifest_replaced;
 };
 
 // Writes a sweep frame by frame. One writer per directory: the writer holds an exclusive lock
-// (flock) on the directory, and a second writer is refused.
+// (flock) on the directory and on its lock file `sweep.lock`, and a second writer is refused.
 class SweepWriter {
 public:
-    // Creates `directory` (and its parents) if needed, checks `header` against the rules and
-    // writes a manifest with no frames (or, with options.resume, reads the existing one).
-    // InvalidArgument naming the field for a bad header, or when the directory already holds a
-    // sweep or EXR files (without resume) or another writer; IoError when the system refuses.
+    // Creates `directory` (and its parents, each flushed into its parent) if needed, checks
+    // `header` against the rules and writes a manifest with no frames (or, with options.resume,
+    // takes the lock, reads the existing sweep, checks its header and compacts it: a version 1
+    // sweep becomes version 2, a torn record at the end of the log is cut off). InvalidArgument
+    // naming the field for a bad header, or when the directory already holds a sweep or EXR files
+    // (without resume), another writer, or a lock file that is not a regular file; IoError when
+    // the system refuses.
     static Result<SweepWriter> create(const std::string& directory,
                                       SweepHeader header,
                                       SweepWriteOptions options = {});
@@ -231,27 +295,52 @@ public:
     SweepWriter& operator=(SweepWriter&&) noexcept;
     ~SweepWriter();
 
-    // Writes `image` as the next frame and lists it in the manifest. `frame.exr_file` empty means
-    // sweepFrameFileName(frames so far, angle); its raw_files must already be on disk. Refused,
-    // with nothing changed on disk: a frame that breaks a rule (an angle not above the last one,
-    // an image not capture.width_px x capture.height_px, ...), a raw file that is missing, and an
-    // exr_file that already exists, whatever it holds (a frame is never silently overwritten;
-    // after a crash, the unlisted frame the crash left must be removed by hand). When the
-    // manifest cannot be replaced, the new EXR is removed again and the sweep stays as it was.
-    // (The existence check and the write are not one atomic step: the directory lock keeps other
-    // SweepWriters out, not other programs.) Returns the frame as listed.
-    Result<SweepFrame> addFrame(const render::ImageRGB& image, SweepFrame frame);
+    // Writes `image` as the next frame and lists it. `frame.exr_file` empty means
+    // sweepFrameFileName(frames so far, angle); its raw_files must already be on disk, flushed.
+    // Refused, with nothing changed on disk: a frame that breaks a rule (an angle not above the
+    // last one, an image not capture.width_px x capture.height_px, ...), a raw file that is
+    // missing or not a regular file, and an exr_file that already exists, whatever it holds (a
+    // frame is never silently overwritten; after a crash, the unlisted frame the crash left must
+    // be moved away: setAsideUnlisted). When the frame cannot be written or listed (a full disk),
+    // the new EXR is removed again and the sweep stays as it was; when a flush to disk fails, the
+    // writer is broken (broken() says why) and refuses every further frame. Returns the frame as
+    // listed.
+    //
+    // The EXR carries OpenEXR's standard attributes `standard` (hdr/exr.h: capDate and utcOffset
+    // where the caller knows when the bracket was taken, exrCaptureTime), and where it leaves
+    // them unset, aperture (lens.f_number, when known) and expTime 1 s (a merged frame holds DN
+    // per second at unity gain: what a 1 s exposure would read).
+    Result<SweepFrame> addFrame(const render::ImageRGB& image,
+                                SweepFrame frame,
+                                const ExrStandardAttributes& standard = {});
 
-    // The sweep as written so far (the manifest on disk says the same).
+    // Compacts the frame log into the manifest and removes the log: the finished sweep is its
+    // manifest and frames. The writer takes no frames after it. IoError when it cannot (the log
+    // then still lists the frames), and for a broken writer.
+    Status finish();
+
+    // Moves every file under the directory that the sweep does not list (and that is not its
+    // manifest, log, lock file or one of its products) to the directory `to`, keeping relative
+    // paths: what an interrupted writer leaves (the frame it wrote but did not list, temporary
+    // files). Across file systems a file is copied, flushed and then unlinked; nothing in `to` is
+    // ever overwritten, and `to` may not lie inside the sweep (compared by device and inode, not
+    // by path). Returns the relative paths moved. Call it on a resumed sweep before addFrame.
+    Result<std::vector<std::string>> setAsideUnlisted(const std::string& to);
+
+    // The sweep as written so far (the manifest and the frame log on disk say the same).
     const Sweep& sweep() const { return sweep_; }
+    // Why the writer refuses to write (a flush to disk failed); empty while it works.
+    const std::string& broken() const;
 
 private:
-    struct DirectoryLock;
-    SweepWriter(Sweep sweep, SweepWriteOptions options, std::unique_ptr<DirectoryLock> lock);
+    struct State;
+    SweepWriter(Sweep sweep, SweepWriteOptions options, std::unique_ptr<State> state);
+    Status compact(bool remove_log);
+    Error breakWith(const std::string& why);
 
     Sweep sweep_;
     SweepWriteOptions options_;
-    std::unique_ptr<DirectoryLock> lock_;
+    std::unique_ptr<State> state_;
 };
 
 }  // namespace flarelab::hdr

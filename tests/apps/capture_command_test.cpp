@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <filesystem>
 
 #include "hdr/sweep.h"
@@ -34,7 +35,7 @@ std::vector<std::string> small(const std::string& dir) {
 TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
     const std::string dir = freshDir("sweep");
     auto args = small(dir);
-    args.push_back("--keep-raw");
+    args.insert(args.end(), {"--keep-raw", "--brackets", "0.25,1,4"});
     CommandRun run = capture(args);
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_NE(run.out.find("3 frames"), std::string::npos) << run.out;
@@ -47,11 +48,11 @@ TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
     // Asked again for a longer range with --resume, only the new frames are taken.
     args = small(dir);
     args[7] = "0.8";
-    args.push_back("--keep-raw");
+    args.insert(args.end(), {"--keep-raw", "--brackets", "0.25,1,4"});
     run = capture(args);
     EXPECT_EQ(run.code, 1) << "a new range is a different sweep";
     args = small(dir);
-    args.push_back("--keep-raw");
+    args.insert(args.end(), {"--keep-raw", "--brackets", "0.25,1,4"});
     args.push_back("--resume");
     run = capture(args);
     ASSERT_EQ(run.code, 0) << run.err;
@@ -59,11 +60,13 @@ TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
 }
 
 TEST(Capture, RecordsEachExposuresClippingAndWarnsOfASaturatedSweep) {
-    // The double Gauss's ghosts are far brighter than the lensbaby's: with the default brackets
-    // its whole frame saturates every exposure; with 1/64 of them it does not.
+    // The double Gauss's ghosts are far brighter than the lensbaby's: with the brackets of the
+    // lensbaby (0.25 / 1 / 4 s) its whole frame saturates every exposure; with 1/64 of them it
+    // does not.
     const std::string dir = freshDir("clipped");
     auto args = small(dir);
     args[3] = flarelab::testing::lensPath("double-gauss-tronnier-50mm.csv");
+    args.insert(args.end(), {"--brackets", "0.25,1,4"});
     CommandRun run = capture(args);
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_NE(run.err.find("warning: 3 of 3 frames have more than 1% of their samples saturated"),
@@ -88,6 +91,33 @@ TEST(Capture, RecordsEachExposuresClippingAndWarnsOfASaturatedSweep) {
     run = capture(args);
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_EQ(run.err.find("warning"), std::string::npos) << run.err;
+}
+
+TEST(Capture, PlansTheBracketWhenNoneIsGivenAndKeepsItsOwnOnResume) {
+    // The double Gauss saturates 0.25 / 1 / 4 s; the planned bracket keeps the light's core
+    // unclipped in its shortest exposure and reaches the ghosts' floor in its longest.
+    const std::string dir = freshDir("auto");
+    auto args = small(dir);
+    args[3] = flarelab::testing::lensPath("double-gauss-tronnier-50mm.csv");
+    args[7] = "0.2";
+    CommandRun run = capture(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_NE(run.err.find("flarelab: bracket: "), std::string::npos) << run.err;
+    EXPECT_EQ(run.err.find("warning"), std::string::npos) << run.err;
+    auto sweep = hdr::readSweep(dir);
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    const std::vector<double> planned = sweep->header.capture.exposure_times_s;
+    ASSERT_GE(planned.size(), 2u);
+    EXPECT_TRUE(std::is_sorted(planned.begin(), planned.end()));
+    // The shortest exposure of the first frame clips nothing.
+    EXPECT_EQ(sweep->frames[0].brackets[0].samples_clipped, 0u);
+    // Resumed, the sweep keeps the bracket it was taken with instead of planning another.
+    args[7] = "0.2";
+    args.push_back("--resume");
+    run = capture(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_EQ(run.err.find("flarelab: bracket: "), std::string::npos) << run.err;
+    EXPECT_NE(run.out.find("2 already there"), std::string::npos) << run.out;
 }
 
 TEST(Capture, TakesItsDevicesByUri) {

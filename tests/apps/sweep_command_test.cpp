@@ -1,10 +1,15 @@
 #include "apps/sweep_command.h"
 
+#include <fcntl.h>
 #include <gtest/gtest.h>
+#include <sys/stat.h>
+#include <sys/sysmacros.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <future>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -101,7 +106,7 @@ TEST(SweepInfo, JsonHasFramesAnglesLensCameraAndBrackets) {
     EXPECT_EQ(json["brackets"]["exposure_times_s"], (std::vector<double>{0.001, 0.1}));
     EXPECT_EQ(json["brackets"]["gain"], 1.5);
     EXPECT_EQ(json["capture"]["width_px"], 8);
-    EXPECT_EQ(json["format_version"], 1);
+    EXPECT_EQ(json["format_version"], hdr::kSweepFormatVersion);
     EXPECT_EQ(json["checked"], true);
     EXPECT_TRUE(json["warnings"].empty());
 }
@@ -129,6 +134,61 @@ TEST(SweepInfo, ExtraFilesAreWarningsUnlessStrict) {
     run = sweep({"info", s.path(), "--strict"});
     EXPECT_EQ(run.code, 1);
     EXPECT_TRUE(contains(run.err, "stray.exr")) << run.err;
+}
+
+TEST(SweepInfo, ReadsVersionOneSweepsAndVersionTwoOnesWithTheirLog) {
+    const CommandRun old =
+        sweep({"info", std::string(FLARELAB_SOURCE_DIR) + "/tests/data/sweeps/nikon-hdr", "--check",
+               "--json"});
+    ASSERT_EQ(old.code, 0) << old.err;
+    EXPECT_EQ(nlohmann::json::parse(old.out)["format_version"], 1);
+    SmallSweep s;  // its writer was not finished: the frames are in frames.log
+    ASSERT_TRUE(fs::exists(fs::path(s.path()) / hdr::kSweepFrameLogFile));
+    const CommandRun run = sweep({"info", s.path(), "--check", "--json"});
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_EQ(nlohmann::json::parse(run.out)["frames"], 3);
+}
+
+TEST(SweepInfo, AFifoALinkOrADeviceInPlaceOfAFileIsRefusedWithoutBlocking) {
+    SmallSweep s;
+    const fs::path dir = s.path();
+    const std::vector<std::pair<std::string, std::string>> files = {
+        {hdr::kSweepManifestFile, "info"},
+        {hdr::kSweepFrameLogFile, "info"},
+        {fs::path(s.file(1)).filename().string(), "--check"}};
+    for (const auto& [name, mode] : files) {
+        const std::string path = (dir / name).string();
+        const std::string kept = path + ".kept";
+        std::vector<std::function<void()>> hostile = {
+            [&] { ASSERT_EQ(::mkfifo(path.c_str(), 0644), 0); },
+            [&] { fs::create_symlink(kept, path); }};
+        if (mode == "info")  // a manifest or log larger than any sweep's (sparse)
+            hostile.push_back([&] {
+                fs::copy_file(kept, path);
+                ASSERT_EQ(::truncate(path.c_str(), hdr::kSweepMaxManifestBytes + 1), 0);
+            });
+        if (::geteuid() == 0)
+            hostile.push_back(
+                [&] { ASSERT_EQ(::mknod(path.c_str(), S_IFCHR | 0644, makedev(1, 5)), 0); });
+        for (size_t h = 0; h < hostile.size(); ++h) {
+            SCOPED_TRACE(name + ", case " + std::to_string(h));
+            fs::rename(path, kept);
+            hostile[h]();
+            std::vector<std::string> args = {"info", s.path()};
+            if (mode == "--check") args.push_back("--check");
+            auto running = std::async(std::launch::async, [&] { return sweep(args); });
+            if (running.wait_for(std::chrono::seconds(20)) != std::future_status::ready) {
+                ADD_FAILURE() << "sweep info blocked";
+                ::close(::open(path.c_str(), O_WRONLY | O_NONBLOCK));
+            }
+            const CommandRun run = running.get();
+            EXPECT_EQ(run.code, 1);
+            EXPECT_TRUE(contains(run.err, name)) << run.err;
+            fs::remove(path);
+            fs::rename(kept, path);
+        }
+    }
+    EXPECT_EQ(sweep({"info", s.path(), "--check"}).code, 0);
 }
 
 TEST(SweepInfo, NoSweepIsAClearError) {

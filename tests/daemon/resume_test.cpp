@@ -82,6 +82,49 @@ TEST(Resume, AStoppedDaemonInterruptsItsJobAndTheNextOneFinishesItIdentically) {
     expectSameSweep(output, reference.output_dir());
 }
 
+TEST(Resume, APlannedBracketIsKeptOnResumeAndTheSweepEqualsAnUninterruptedOne) {
+    TempDir dir;
+    Daemon daemon(dir.path);
+    auto stub = daemon.stub();
+    v1::SweepConfig c = simConfig("whole", 0.0, 1.0, 0.2, true);
+    c.clear_exposure_times_s();  // planned at the first angle
+    v1::Job whole;
+    ASSERT_TRUE(startSweep(*stub, c, &whole).ok());
+    const v1::Job done = waitFor(*stub, whole.id(), ended);
+    ASSERT_EQ(done.state(), v1::SUCCEEDED) << done.reason();
+    bool planned = false;
+    for (const auto& w : done.warnings()) planned |= w.rfind("bracket: ", 0) == 0;
+    EXPECT_TRUE(planned) << "the plan's reasons reach the job's warnings";
+    auto sweep = hdr::readSweepManifest(done.output_dir());
+    ASSERT_TRUE(sweep);
+    const std::vector<double> bracket = sweep->header.capture.exposure_times_s;
+    ASSERT_GE(bracket.size(), 2u);
+
+    // The same sweep cut after 2 frames, as a crash leaves it, then resumed by a job that gives no
+    // bracket: it takes the sweep's own, and the frames it adds equal the uninterrupted ones (the
+    // probes do not shift the camera's frame sequence).
+    const std::string cut = daemon.output_root + "/cut";
+    fs::create_directories(cut);
+    hdr::Sweep partial = *sweep;
+    partial.frames.resize(2);
+    for (const hdr::SweepFrame& f : partial.frames)
+        fs::copy_file(done.output_dir() + "/" + f.exr_file, cut + "/" + f.exr_file);
+    auto text = hdr::formatSweepManifest(partial);
+    ASSERT_TRUE(text);
+    std::ofstream(cut + "/" + hdr::kSweepManifestFile) << *text;
+    c.set_output_dir("cut");
+    c.set_resume_existing(true);
+    v1::Job resumed;
+    ASSERT_TRUE(startSweep(*stub, c, &resumed).ok());
+    const v1::Job finished = waitFor(*stub, resumed.id(), ended);
+    ASSERT_EQ(finished.state(), v1::SUCCEEDED) << finished.reason();
+    for (const auto& w : finished.warnings()) EXPECT_NE(w.rfind("bracket: ", 0), 0u) << w;
+    auto again = hdr::readSweepManifest(cut);
+    ASSERT_TRUE(again);
+    EXPECT_EQ(again->header.capture.exposure_times_s, bracket);
+    expectSameSweep(cut, done.output_dir());
+}
+
 TEST(Resume, ADaemonStoppedDuringAFitFitsAgainAtItsNextStart) {
     TempDir dir;
     std::string job_id, output;

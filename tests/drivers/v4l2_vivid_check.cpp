@@ -20,8 +20,8 @@
 //   v4l2_vivid_check [--dev-dir /dev] [--width 320] [--height 180] [--fps 30]
 //   v4l2_vivid_check --lab "v4l2:/dev/video0?format=Y16&gain_unity=16"
 //
-// --lab runs the checks for a real camera (docs/lab-v4l2.md): frames, timestamps, and with an
-// exposure control the first frame after a change against the third, and linearity over
+// --lab runs the checks for a real camera (docs/lab.md, "V4L2 cameras"): frames, timestamps, and
+// with an exposure control the first frame after a change against the third, and linearity over
 // exposures t, 2t, 4t of a steady scene.
 //
 // Prints one line per check ("PASS ..." / "FAIL ...") and a summary; exits 0 only when every

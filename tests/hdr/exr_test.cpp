@@ -1,5 +1,8 @@
 #include "hdr/exr.h"
 
+#include <ImfHeader.h>
+#include <ImfInputFile.h>
+#include <ImfStandardAttributes.h>
 #include <gtest/gtest.h>
 #include <sys/resource.h>
 #include <unistd.h>
@@ -349,6 +352,78 @@ TEST(WriteExr, MetadataRoundTrips) {
     EXPECT_EQ(empty->meta, ExrMetadata{});
 }
 
+// Every standard attribute set, each value a float exactly.
+ExrStandardAttributes standardAttributes() {
+    ExrStandardAttributes standard;
+    standard.cap_date = "2026:11:29 08:04:02";
+    standard.utc_offset_s = -3600.0;
+    standard.exp_time_s = 1.0;
+    standard.aperture = 11.0;
+    standard.iso_speed = 100.0;
+    standard.chromaticities = ExrChromaticities{{0.640000045f, 0.330000013f},
+                                                {0.300000012f, 0.600000024f},
+                                                {0.150000006f, 0.0599999987f},
+                                                {0.312700003f, 0.328999996f}};
+    return standard;
+}
+
+TEST(WriteExr, OpenExrStandardAttributesRoundTripAndOpenExrReadsThem) {
+    TempDir dir;
+    ExrMetadata meta = fullMetadata();
+    meta.standard = standardAttributes();
+    const std::string path = dir.file("standard.exr");
+    ASSERT_TRUE(writeExr(path, smoothImage(4, 4, 6), meta));
+    const auto read = readExr(path);
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->meta, meta);
+
+    // OpenEXR's own accessors (what other tools call) see them.
+    Imf::InputFile file(path.c_str());
+    const Imf::Header& header = file.header();
+    ASSERT_TRUE(Imf::hasCapDate(header) && Imf::hasUtcOffset(header) && Imf::hasExpTime(header) &&
+                Imf::hasAperture(header) && Imf::hasIsoSpeed(header) &&
+                Imf::hasChromaticities(header));
+    EXPECT_EQ(Imf::capDate(header), "2026:11:29 08:04:02");
+    EXPECT_EQ(Imf::utcOffset(header), -3600.0f);
+    EXPECT_EQ(Imf::expTime(header), 1.0f);
+    EXPECT_EQ(Imf::aperture(header), 11.0f);
+    EXPECT_EQ(Imf::isoSpeed(header), 100.0f);
+    EXPECT_EQ(Imf::chromaticities(header).white, Imath::V2f(0.3127f, 0.329f));
+
+    // A value that is not a float exactly reads back as the nearest float.
+    meta.standard = {};
+    meta.standard.aperture = 5.6;
+    ASSERT_TRUE(writeExr(path, smoothImage(4, 4, 6), meta));
+    const auto rounded = readExr(path);
+    ASSERT_TRUE(rounded);
+    EXPECT_EQ(*rounded->meta.standard.aperture, static_cast<double>(5.6f));
+    EXPECT_FALSE(rounded->meta.standard.exp_time_s);
+    EXPECT_TRUE(rounded->meta.standard.cap_date.empty());
+}
+
+TEST(WriteExr, RefusesStandardAttributesOpenExrCannotHold) {
+    TempDir dir;
+    const std::vector<std::pair<std::function<void(ExrStandardAttributes&)>, std::string>> cases = {
+        {[](ExrStandardAttributes& s) { s.cap_date = "2026-11-29 08:04:02"; }, "capDate"},
+        {[](ExrStandardAttributes& s) { s.cap_date = "2026:13:29 08:04:02"; }, "capDate"},
+        {[](ExrStandardAttributes& s) { s.exp_time_s = 0.0; }, "expTime"},
+        {[](ExrStandardAttributes& s) { s.exp_time_s = 1e-50; }, "expTime"},
+        {[](ExrStandardAttributes& s) { s.aperture = 1e40; }, "aperture"},
+        {[](ExrStandardAttributes& s) { s.iso_speed = std::nan(""); }, "isoSpeed"},
+        {[](ExrStandardAttributes& s) { s.utc_offset_s = 1e6; }, "utcOffset"},
+        {[](ExrStandardAttributes& s) { s.chromaticities->red[0] = 1.5; }, "chromaticities"}};
+    for (const auto& [edit, attribute] : cases) {
+        ExrMetadata meta;
+        meta.standard = standardAttributes();
+        edit(meta.standard);
+        const auto written = writeExr(dir.file("bad.exr"), smoothImage(2, 2, 1), meta);
+        ASSERT_FALSE(written) << attribute;
+        EXPECT_EQ(written.error().code, ErrorCode::InvalidArgument);
+        EXPECT_TRUE(contains(written.error().message, attribute)) << written.error().message;
+    }
+    EXPECT_TRUE(dir.entries().empty());
+}
+
 TEST(WriteExr, EveryCompressionRoundTrips) {
     TempDir dir;
     const render::ImageRGB image = smoothImage(64, 40, 7);
@@ -653,6 +728,75 @@ TEST(ReadExr, FlarelabAttributesAreChecked) {
         {version, {kExrAttrExposureTimes, "string", "0.25 1e-3 4"}, {"other", "string", "x"}}));
     ASSERT_TRUE(good) << good.error().message;
     EXPECT_EQ(good->meta.exposure_times_s, (std::vector<double>{0.25, 1e-3, 4.0}));
+}
+
+TEST(ReadExr, OpenExrStandardAttributesAreChecked) {
+    const auto chromaticities = [](float v) {
+        std::string bytes;
+        for (int i = 0; i < 8; ++i) bytes += le32(floatBits(v));
+        return bytes;
+    };
+    struct Case {
+        RawAttribute attribute;
+        std::string expected;
+    };
+    const Case cases[] = {
+        {{"capDate", "int", le32(3)}, "'capDate' is not of type string"},
+        {{"capDate", "string", "yesterday"}, "'capDate' is not YYYY:MM:DD hh:mm:ss"},
+        {{"expTime", "double", leDouble(1.0)}, "'expTime' is not of type float"},
+        {{"expTime", "float", le32(floatBits(-1.0f))}, "'expTime' = -1 is not positive"},
+        {{"aperture", "float", le32(floatBits(std::numeric_limits<float>::infinity()))},
+         "'aperture'"},
+        {{"isoSpeed", "float", le32(floatBits(0.0f))}, "'isoSpeed' = 0 is not positive"},
+        {{"utcOffset", "float", le32(floatBits(1e7f))}, "'utcOffset'"},
+        {{"chromaticities", "chromaticities", chromaticities(2.0f)}, "'chromaticities' holds 2"},
+        {{"chromaticities", "string", "sRGB"}, "'chromaticities' is not of type chromaticities"},
+    };
+    for (const Case& c : cases) {
+        const auto read = readBytesAsExr(rgbFloatExr({c.attribute}), "std.exr");
+        ASSERT_FALSE(read) << c.expected;
+        EXPECT_EQ(read.error().code, ErrorCode::ParseError);
+        EXPECT_TRUE(contains(read.error().message, "std.exr: header attribute " + c.expected))
+            << read.error().message;
+    }
+    // Another program's file with standard attributes and no flarelab ones reads with them.
+    const auto good =
+        readBytesAsExr(rgbFloatExr({{"capDate", "string", "2003:01:02 03:04:05"},
+                                    {"aperture", "float", le32(floatBits(4.0f))},
+                                    {"chromaticities", "chromaticities", chromaticities(0.25f)}}));
+    ASSERT_TRUE(good) << good.error().message;
+    EXPECT_EQ(good->meta.standard.cap_date, "2003:01:02 03:04:05");
+    EXPECT_EQ(good->meta.standard.aperture, 4.0);
+    EXPECT_EQ(good->meta.standard.chromaticities->green[1], 0.25);
+    ExrMetadata only_standard;
+    only_standard.standard = good->meta.standard;
+    EXPECT_EQ(good->meta, only_standard);
+}
+
+TEST(ExrCaptureTime, GivesLocalTimeAndTheOffsetBackToUtc) {
+    const char* old_tz = std::getenv("TZ");
+    const std::string saved = old_tz ? old_tz : "";
+    // 2026-11-28 07:04:02 UTC.
+    const int64_t moment_ns = int64_t{1795849442} * 1000000000 + 123;
+    ::setenv("TZ", "UTC0", 1);
+    ::tzset();
+    auto utc = exrCaptureTime(moment_ns);
+    // Two hours east of Greenwich: local time 09:04:02, UTC == local - 7200 s.
+    ::setenv("TZ", "EET-2", 1);
+    ::tzset();
+    auto east = exrCaptureTime(moment_ns);
+    if (old_tz)
+        ::setenv("TZ", saved.c_str(), 1);
+    else
+        ::unsetenv("TZ");
+    ::tzset();
+    ASSERT_TRUE(utc && east);
+    EXPECT_EQ(utc->cap_date, "2026:11:28 07:04:02");
+    EXPECT_EQ(utc->utc_offset_s, 0.0);
+    EXPECT_EQ(east->cap_date, "2026:11:28 09:04:02");
+    EXPECT_EQ(east->utc_offset_s, -7200.0);
+    EXPECT_FALSE(exrCaptureTime(0));
+    EXPECT_FALSE(exrCaptureTime(-5));
 }
 
 TEST(ReadExr, MalformedHeadersAreParseErrors) {
