@@ -14,7 +14,8 @@ packages=(
     libprotobuf-dev protobuf-compiler libgrpc++-dev protobuf-compiler-grpc
     python3 python3-grpcio python3-protobuf python3-grpc-tools
     # devices
-    libaravis-dev libcamera-dev libusb-1.0-0-dev libv4l-dev
+    # (V4L2 needs only the kernel headers; the serial stages need no libusb: drivers/serial_port.h)
+    libaravis-dev libcamera-dev
     # Aravis's fake GigE Vision camera (tests/aravis) and arv-tool-0.8 (docs: the lab procedure)
     aravis-tools aravis-tools-cli
     # the V4L2 test in a VM (scripts/vivid_test.sh): qemu, a static busybox for its initramfs,
