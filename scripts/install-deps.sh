@@ -14,7 +14,8 @@ packages=(
     libprotobuf-dev protobuf-compiler libgrpc++-dev protobuf-compiler-grpc
     python3 python3-grpcio python3-protobuf python3-grpc-tools
     # devices
-    libaravis-dev libcamera-dev libusb-1.0-0-dev libv4l-dev
+    # (V4L2 needs only the kernel headers; the serial stages need no libusb: drivers/serial_port.h)
+    libaravis-dev libcamera-dev
     # flarelabd as a service: sd_notify (Type=notify, the watchdog); systemd-analyze, sysusers
     # and tmpfiles check the unit and its files in the tests
     libsystemd-dev systemd

@@ -16,7 +16,8 @@
 # the test binary runs with the host's libraries; results come back through a second, writable
 # 9p share.
 #
-# Exits 0 only when every check passed. Prints what each part took. Never hangs: qemu runs under
+# Exits 0 only when every check passed, 77 when Debian's kernel package cannot be downloaded
+# (nothing was tested), 1 on any failure. Prints what each part took. Never hangs: qemu runs under
 # `timeout` (VIVID_TIMEOUT_S, default 900 s).
 #
 # Environment:
@@ -78,8 +79,18 @@ mkdir -p "$cache/debs"
 image=$(ls "$cache"/debs/linux-image-[0-9]*-amd64_*.deb 2>/dev/null | sort -V | tail -n 1 || true)
 if [[ -z $image ]]; then
     echo "vivid_test: fetching Debian's kernel package into $cache/debs"
-    (cd "$cache/debs" && apt-get download -q linux-image-amd64 >/dev/null 2>&1) ||
-        fail "apt-get download linux-image-amd64 failed (network? try apt-get update)"
+    if ! (cd "$cache/debs" && apt-get download -q linux-image-amd64 >/dev/null 2>&1); then
+        # A machine whose packages were all installed may have no package lists (Debian's
+        # container images delete them): fetch them once, then try again.
+        sudo=""
+        [[ $(id -u) -eq 0 ]] || sudo="sudo -n"
+        $sudo apt-get update -qq >/dev/null 2>&1 || true
+        if ! (cd "$cache/debs" && apt-get download -q linux-image-amd64 >/dev/null 2>&1); then
+            echo "vivid_test: cannot download Debian's kernel package (linux-image-amd64): no" \
+                "network or no package lists; nothing was tested" >&2
+            exit 77
+        fi
+    fi
     meta=$(ls "$cache"/debs/linux-image-amd64_*.deb | sort -V | tail -n 1)
     real=$(dpkg-deb -f "$meta" Depends | tr ',' '\n' | grep -o 'linux-image-[0-9][^ ]*-amd64' | head -n 1)
     [[ -n $real ]] || fail "$meta names no linux-image-N-amd64"
