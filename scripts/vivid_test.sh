@@ -131,6 +131,15 @@ cp "$moddir"/modules.{order,builtin} "$run/root/lib/modules/$version/" 2>/dev/nu
 "$busybox" depmod -b "$run/root" "$version"
 have_flarelab=0
 [[ -x $build/apps/flarelab && -x $build/apps/flarelab-stage-sim ]] && have_flarelab=1
+# The VM gives the chroot a /tmp of its own; the repository and the build directory stay
+# visible there when they lie under the host's /tmp (a clean clone in /tmp, as CI may make).
+under_tmp=""
+for p in "$repo" "$build"; do
+    if [[ $p == /tmp/* ]]; then
+        rel=${p#/tmp/}
+        under_tmp="$under_tmp ${rel%%/*}"
+    fi
+done
 cat >"$run/root/init" <<EOF
 #!/bin/busybox sh
 /bin/busybox --install -s /bin
@@ -178,7 +187,10 @@ mark gadget
 
 # Into the host's file system, read-only, with this VM's /dev, /proc, /sys.
 for d in dev proc sys; do mount --bind /\$d /mnt/host/\$d; done
+mkdir -p /hosttmp
+mount --bind /mnt/host/tmp /hosttmp
 mount -t tmpfs tmp /mnt/host/tmp
+for p in $under_tmp; do mkdir -p /mnt/host/tmp/\$p && mount --bind /hosttmp/\$p /mnt/host/tmp/\$p; done
 mkdir -p /mnt/host/tmp/out
 mount --bind /out /mnt/host/tmp/out
 host() { chroot /mnt/host /usr/bin/env -i PATH=/usr/bin:/bin HOME=/tmp "\$@"; }
