@@ -16,9 +16,9 @@
 # the test binary runs with the host's libraries; results come back through a second, writable
 # 9p share.
 #
-# Exits 0 only when every check passed, 77 when Debian's kernel package cannot be downloaded
-# (nothing was tested), 1 on any failure. Prints what each part took. Never hangs: qemu runs under
-# `timeout` (VIVID_TIMEOUT_S, default 900 s).
+# Exits 0 only when every check passed; 77 when Debian's kernel package cannot be downloaded or
+# the VM never gets as far as the check (nothing was tested); 1 on any failure. Prints what each
+# part took. Never hangs: qemu runs under `timeout` (VIVID_TIMEOUT_S, default 900 s).
 #
 # Environment:
 #   VIVID_ACCEL       auto (default: kvm when /dev/kvm is usable and the CPU offers vmx or svm,
@@ -297,6 +297,13 @@ echo "    total                          $(since "$t_total") s"
 echo "    console log: $run/console.log"
 
 rc=$(cat "$run/out/check.rc" 2>/dev/null || echo none)
+if [[ $rc == none ]] && ! grep -aq "VIVID-TIME check-start" "$run/console.log" 2>/dev/null; then
+    # The VM never got as far as flarelab's code (qemu could not start, the guest could not boot
+    # or mount the host's files): this machine cannot run the test, which says nothing of V4L2.
+    echo "vivid_test: the VM did not get as far as the check (qemu exit $qemu_rc); nothing was" \
+        "tested; see $run/console.log" >&2
+    exit 77
+fi
 if [[ $qemu_rc -ne 0 ]]; then
     echo "vivid_test: FAILED: qemu exited $qemu_rc (124: it ran past ${limit} s); see $run/console.log" >&2
     exit 1
