@@ -91,9 +91,10 @@ TEST(Stop, ASigtermDuringA30SecondExposureStopsTheDaemonAtOnceAndTheJobIsResumed
 TEST(Stop, ASecondStopDropsTheCapturedFramesNotYetWrittenAndTheResumedJobTakesThemAgain) {
     TempDir dir;
     ManagerOptions slow;
-    // A slow disk: every frame's write waits 0.5 s, so that captured frames wait in the queue.
+    // A slow disk: every frame's write waits 2 s, so that captured frames wait in the queue (in a
+    // ThreadSanitizer build too, where the simulated camera renders several times slower).
     slow.runner.free_bytes = [](const std::string&) {
-        std::this_thread::sleep_for(std::chrono::milliseconds(500));
+        std::this_thread::sleep_for(std::chrono::milliseconds(2000));
         return int64_t{1} << 40;
     };
     std::string id, output;
