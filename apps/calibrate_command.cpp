@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "apps/capture_command.h"
 #include "drivers/calibration.h"
 #include "drivers/calibration_measure.h"
 #include "drivers/rig.h"
@@ -36,28 +37,14 @@ std::string num(double x, int digits = 4) {
 }
 
 Result<std::vector<double>> parseExposures(const std::string& text) {
-    std::vector<double> times;
-    std::stringstream in(text);
-    std::string part;
-    while (std::getline(in, part, ',')) {
-        size_t used = 0;
-        double t = 0.0;
-        try {
-            t = std::stod(part, &used);
-        } catch (const std::exception&) {
-            used = 0;
-        }
-        if (used == 0 || used != part.size() || !(t > 0.0) || !std::isfinite(t))
-            return makeError(
-                ErrorCode::InvalidArgument,
-                "--exposures: '" + part + "' is not a positive exposure time in seconds");
-        times.push_back(t);
-    }
+    auto parsed = parseExposureTimes(text, "--exposures");
+    if (!parsed) return parsed.error();
+    const std::vector<double>& times = *parsed;
     if (times.size() < 3)
         return makeError(ErrorCode::InvalidArgument,
                          "--exposures: give at least 3 exposure times (a series from dim to "
                          "clipped)");
-    return times;
+    return parsed;
 }
 
 const char* formatName(hdr::RawFormat format) {

@@ -342,7 +342,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
 
 }  // namespace
 
-Result<std::vector<double>> parseBrackets(const std::string& text) {
+Result<std::vector<double>> parseExposureTimes(const std::string& text, const std::string& flag) {
     std::vector<double> times;
     std::stringstream in(text);
     std::string part;
@@ -355,12 +355,17 @@ Result<std::vector<double>> parseBrackets(const std::string& text) {
             used = 0;
         }
         if (used == 0 || used != part.size() || !(t > 0.0) || !std::isfinite(t))
-            return makeError(
-                ErrorCode::InvalidArgument,
-                "--brackets: '" + part + "' is not a positive exposure time in seconds");
+            return makeError(ErrorCode::InvalidArgument,
+                             flag + ": '" + part + "' is not a positive exposure time in seconds");
         times.push_back(t);
     }
-    if (times.empty())
+    return times;
+}
+
+Result<std::vector<double>> parseBrackets(const std::string& text) {
+    auto times = parseExposureTimes(text, "--brackets");
+    if (!times) return times.error();
+    if (times->empty())
         return makeError(ErrorCode::InvalidArgument, "--brackets: give at least one exposure time");
     return times;
 }
