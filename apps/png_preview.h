@@ -4,14 +4,14 @@
 #include <ostream>
 #include <string>
 
-#include "render/image.h"
+#include "common/image.h"
 #include "render/preview.h"
 
 namespace flarelab::apps {
 
 // Writes `image` to `png_path` at `exposure_stops` when a path is given; false (with the error on
 // `err`) when writing fails.
-inline bool writePngPreview(const render::ImageRGB& image,
+inline bool writePngPreview(const ImageRGB& image,
                             const std::string& png_path,
                             double exposure_stops,
                             std::ostream& err) {

@@ -44,7 +44,7 @@ std::vector<render::Light> lightsFor(int count) {
 }
 
 struct Run {
-    render::ImageRGB image;
+    ImageRGB image;
     render::SceneStats stats;
     double total_ms = std::numeric_limits<double>::infinity();
 };
@@ -70,7 +70,7 @@ Result<Run> timed(const optics::Lens& lens,
     return best;
 }
 
-double psnrOr(const render::ImageRGB& test, const render::ImageRGB& reference) {
+double psnrOr(const ImageRGB& test, const ImageRGB& reference) {
     const auto value = render::psnr(test, reference);
     return value ? *value : std::nan("");
 }

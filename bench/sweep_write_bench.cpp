@@ -84,7 +84,7 @@ int run(const std::string& root, int64_t frames, int brackets) {
     std::error_code ec;
     fs::remove_all(dir, ec);
     const hdr::SweepHeader h = header(frames + 1, brackets);
-    render::ImageRGB image(1, 1);
+    ImageRGB image(1, 1);
     image.pixels = {1.0f, 2.0f, 3.0f};
 
     const int64_t bytes_before = bytesWritten();

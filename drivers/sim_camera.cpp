@@ -133,8 +133,8 @@ namespace {
 // onto the four pixel centres around it. Unlike sampling the pattern at pixel centres
 // (render::addStarburst), this keeps the energy when a pattern pixel is much smaller than an
 // image pixel.
-void splatStarburst(render::ImageRGB& image,
-                    const render::ImageRGB& pattern,
+void splatStarburst(ImageRGB& image,
+                    const ImageRGB& pattern,
                     double cx,
                     double cy,
                     double sx,

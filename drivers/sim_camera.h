@@ -212,7 +212,7 @@ private:
 public:
     // The light's starburst, rendered once, and the image pixels one pattern pixel spans.
     struct LightImage {
-        render::ImageRGB pattern;
+        ImageRGB pattern;
         double scale_x = 0.0;
         double scale_y = 0.0;
     };

@@ -25,7 +25,7 @@ Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
             auto rate = camera->meanRate_e_s(angle_deg);
             if (!rate) return rate.error();
             fit::TruthFrame t;
-            t.image = render::ImageRGB(width, height);
+            t.image = ImageRGB(width, height);
             for (size_t i = 0; i < rate->size(); ++i)
                 for (int c = 0; c < 3; ++c)
                     t.image.pixels[3 * i + static_cast<size_t>(c)] =

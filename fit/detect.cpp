@@ -67,7 +67,7 @@ double quantile(std::vector<float>& values, double q) {
 //      the values within +-h of it;
 //   3. the noise from the values below that level only (1.4826 times their median distance to
 //      it), which no ghost reaches.
-RobustLevel robustLevel(const render::ImageRGB& image, int channel) {
+RobustLevel robustLevel(const ImageRGB& image, int channel) {
     const int64_t n = image.width * image.height;
     const int64_t stride = std::max<int64_t>(1, (n + kBackgroundSamples - 1) / kBackgroundSamples);
     std::vector<float> values;
@@ -479,7 +479,7 @@ std::vector<Circle> detectCircles(const cv::Mat& smoothed,  // CV_32F signal, sm
 
 Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& options) {
     if (auto valid = validateOptions(options); !valid) return valid.error();
-    const render::ImageRGB& image = frame.image;
+    const ImageRGB& image = frame.image;
     if (image.empty()) return makeError(ErrorCode::InvalidArgument, "detect: the image is empty");
     if (image.pixels.size() != static_cast<size_t>(image.width * image.height * 3))
         return makeError(ErrorCode::InvalidArgument,

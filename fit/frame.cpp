@@ -27,7 +27,7 @@ Result<std::array<double, 2>> sweepSensorSize(const hdr::Sweep& sweep,
                          "unknown; give it (--sensor-mm WxH)");
 }
 
-Result<FitFrame> frameFromImage(render::ImageRGB image,
+Result<FitFrame> frameFromImage(ImageRGB image,
                                 double angle_deg,
                                 double sensor_width_mm,
                                 double sensor_height_mm) {

@@ -18,12 +18,12 @@
 #include "hdr/sweep.h"
 #include "render/ghost_quads.h"
 #include "render/ghost_shape.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::fit {
 
 struct FitFrame {
-    render::ImageRGB image;  // linear, finite, >= 0 (loadFitFrame checks)
+    ImageRGB image;  // linear, finite, >= 0 (loadFitFrame checks)
     double angle_deg = 0.0;  // the head angle the frame was captured at
     render::SensorToImage mapping;
     int channels = 3;  // 1 when R = G = B everywhere: fitted in channel 0 only
@@ -38,7 +38,7 @@ Result<std::array<double, 2>> sweepSensorSize(const hdr::Sweep& sweep,
 // A frame from an image: the mapping puts the optical axis at the image centre and spreads the
 // sensor over the image (render::SensorToImage). InvalidArgument for an empty image, a
 // non-finite or negative value (named by pixel and channel), or a sensor size <= 0.
-Result<FitFrame> frameFromImage(render::ImageRGB image,
+Result<FitFrame> frameFromImage(ImageRGB image,
                                 double angle_deg,
                                 double sensor_width_mm,
                                 double sensor_height_mm);

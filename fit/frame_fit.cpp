@@ -883,13 +883,13 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
     return report;
 }
 
-render::ImageRGB drawFrameModel(const FitFrame& frame,
+ImageRGB drawFrameModel(const FitFrame& frame,
                                 const FrameDetection& detection,
                                 const std::vector<GhostState>& ghosts,
                                 const render::FastDistanceOptions& distance) {
     ModelRenderOptions options;
     options.distance = distance;
-    render::ImageRGB image =
+    ImageRGB image =
         renderGhostStates(ghosts, frame.mapping, frame.image.width, frame.image.height, options);
     for (size_t i = 0; i < image.pixels.size(); i += 3)
         for (int c = 0; c < 3; ++c)

@@ -144,7 +144,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
 
 // The frame's model: the ghosts drawn as pixel means (through the tile engine) plus the
 // background, in the frame's unit, with the frame's channel count.
-render::ImageRGB drawFrameModel(const FitFrame& frame,
+ImageRGB drawFrameModel(const FitFrame& frame,
                                 const FrameDetection& detection,
                                 const std::vector<GhostState>& ghosts,
                                 const render::FastDistanceOptions& distance = {});

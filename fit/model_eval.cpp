@@ -202,7 +202,7 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
     return out;
 }
 
-render::ImageRGB renderGhostStates(std::span<const GhostState> ghosts,
+ImageRGB renderGhostStates(std::span<const GhostState> ghosts,
                                    const render::SensorToImage& mapping,
                                    int64_t width,
                                    int64_t height,
@@ -210,13 +210,13 @@ render::ImageRGB renderGhostStates(std::span<const GhostState> ghosts,
     return renderRotatedGhostStates(ghosts, 0.0, mapping, width, height, options);
 }
 
-render::ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
+ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
                                           double rotation_deg,
                                           const render::SensorToImage& mapping,
                                           int64_t width,
                                           int64_t height,
                                           const ModelRenderOptions& options) {
-    render::ImageRGB image(width, height);
+    ImageRGB image(width, height);
     std::vector<render::GhostPrimitive> primitives;
     primitives.reserve(ghosts.size());
     const double angle = rotation_deg * std::numbers::pi / 180.0;
@@ -237,7 +237,7 @@ render::ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
     return image;
 }
 
-Result<render::ImageRGB> renderModel(const FlareModel& model,
+Result<ImageRGB> renderModel(const FlareModel& model,
                                      double angle_deg,
                                      double roll_deg,
                                      int64_t width,

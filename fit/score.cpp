@@ -87,8 +87,8 @@ Result<std::pair<std::vector<double>, std::vector<double>>> scoreAngles(
     return std::make_pair(spread(captured, options.fit_angles), held);
 }
 
-Result<AngleScore> compareImages(const render::ImageRGB& model,
-                                 const render::ImageRGB& truth,
+Result<AngleScore> compareImages(const ImageRGB& model,
+                                 const ImageRGB& truth,
                                  std::optional<Eigen::Vector2d> light_px,
                                  double light_mask_px) {
     if (model.width != truth.width || model.height != truth.height)

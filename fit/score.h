@@ -23,12 +23,12 @@
 #include "common/result.h"
 #include "fit/model_eval.h"
 #include "fit/model_file.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::fit {
 
 struct TruthFrame {
-    render::ImageRGB image;                   // ghosts only, the model's frame unit
+    ImageRGB image;                   // ghosts only, the model's frame unit
     std::optional<Eigen::Vector2d> light_px;  // where the light's own image is, if in view
 };
 using TruthSource = std::function<Result<TruthFrame>(double angle_deg)>;
@@ -72,8 +72,8 @@ Result<std::pair<std::vector<double>, std::vector<double>>> scoreAngles(
 // Relative L2 and PSNR of `model` against `truth` (same size) outside a disc; InvalidArgument for
 // mismatched sizes. A truth that is zero everywhere scores rel_l2 = 0 when the model is zero too
 // and 1 otherwise (nothing to predict, so anything drawn is all error).
-Result<AngleScore> compareImages(const render::ImageRGB& model,
-                                 const render::ImageRGB& truth,
+Result<AngleScore> compareImages(const ImageRGB& model,
+                                 const ImageRGB& truth,
                                  std::optional<Eigen::Vector2d> light_px,
                                  double light_mask_px);
 

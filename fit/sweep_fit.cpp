@@ -635,7 +635,7 @@ Status checkSweepFitOptions(const SweepFitOptions& options) {
         return status.error().withContext("sweep fit");
     // The detection options, on a tiny black frame (detectGhosts refuses only options).
     FitFrame probe;
-    probe.image = render::ImageRGB(8, 8);
+    probe.image = ImageRGB(8, 8);
     probe.mapping.px_per_mm_x = probe.mapping.px_per_mm_y = 1.0;
     probe.mapping.centre_x_px = probe.mapping.centre_y_px = 4.0;
     probe.channels = 1;

@@ -35,7 +35,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
         require(read.error().message.rfind(std::string(kSource) + ": ", 0) == 0);
         return 0;
     }
-    const render::ImageRGB& image = read->image;
+    const ImageRGB& image = read->image;
     require(image.width >= 1 && image.height >= 1);
     require(image.width <= options.max_side && image.height <= options.max_side);
     require(image.width * image.height <= options.max_pixels);

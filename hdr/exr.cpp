@@ -778,8 +778,8 @@ Result<ExrImage> decode(SizedIStream& in, const std::string& name, const ExrRead
         result.meta = std::move(*meta);
         result.origin_x = facts->data_window.min.x;
         result.origin_y = facts->data_window.min.y;
-        result.image = render::ImageRGB(facts->width, facts->height);
-        render::ImageRGB& image = result.image;
+        result.image = ImageRGB(facts->width, facts->height);
+        ImageRGB& image = result.image;
         Imf::FrameBuffer frame;
         const size_t x_stride = 3 * sizeof(float);
         for (int c = 0; c < source_count; ++c)
@@ -841,7 +841,7 @@ std::string halfMisfit(float value, double half_min_abs) {
 }
 
 Status writeFile(const std::string& temporary,
-                 const render::ImageRGB& image,
+                 const ImageRGB& image,
                  const Imf::Header& header) {
     FileDescriptor fd(
         ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0666));
@@ -910,7 +910,7 @@ Result<ExrStandardAttributes> exrCaptureTime(int64_t unix_time_ns) {
 }
 
 Result<ExrWriteReport> writeExr(const std::string& path,
-                                const render::ImageRGB& image,
+                                const ImageRGB& image,
                                 const ExrMetadata& meta,
                                 const ExrWriteOptions& options) {
     const auto invalid = [&](const std::string& what) {

@@ -60,7 +60,7 @@
 #include <vector>
 
 #include "common/result.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::hdr {
 
@@ -176,7 +176,7 @@ struct ExrReadOptions {
 struct ExrImage {
     // The file's data window, with the data window's top-left pixel at (0, 0). A channel Y alone
     // is copied to R, G and B; channel A and others are ignored.
-    render::ImageRGB image;
+    ImageRGB image;
     ExrMetadata meta;
     // Where the data window starts in the file's pixel space (OpenEXR lets it start anywhere,
     // also at negative coordinates); pixel (x, y) of `image` is (origin_x + x, origin_y + y) there.
@@ -194,7 +194,7 @@ struct ExrImage {
 // that does not fit half when Half was asked for, an invalid metadata field, or the operating
 // system's or OpenEXR's complaint.
 Result<ExrWriteReport> writeExr(const std::string& path,
-                                const render::ImageRGB& image,
+                                const ImageRGB& image,
                                 const ExrMetadata& meta,
                                 const ExrWriteOptions& options = {});
 

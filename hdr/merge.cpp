@@ -581,7 +581,7 @@ Result<ExposureCounts> countExposure(const RawFrame& frame, const MergeOptions& 
     return c;
 }
 
-Result<render::ImageRGB> toImage(const MergedFrame& frame) {
+Result<ImageRGB> toImage(const MergedFrame& frame) {
     if (frame.width < 0 || frame.height < 0)
         return makeError(ErrorCode::InvalidArgument, "toImage: width x height is " +
                                                          std::to_string(frame.width) + " x " +
@@ -601,7 +601,7 @@ Result<render::ImageRGB> toImage(const MergedFrame& frame) {
                                  std::to_string(i / w) + " is " + describe(v) +
                                  " (must be finite and >= 0)");
     }
-    render::ImageRGB image(w, h);
+    ImageRGB image(w, h);
     const float* src = frame.radiance.data();
     if (frame.format == RawFormat::Mono) {
         for (int64_t i = 0; i < w * h; ++i)

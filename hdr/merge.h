@@ -57,7 +57,7 @@
 
 #include "common/result.h"
 #include "hdr/raw_frame.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::hdr {
 
@@ -144,6 +144,6 @@ Result<ExposureCounts> countExposure(const RawFrame& frame, const MergeOptions& 
 // (only in images 1 pixel wide or high) is 0. Errors (InvalidArgument): a frame with width or
 // height < 0, whose radiance size is not width * height, or with a non-finite or negative value
 // (named by x and y).
-Result<render::ImageRGB> toImage(const MergedFrame& frame);
+Result<ImageRGB> toImage(const MergedFrame& frame);
 
 }  // namespace flarelab::hdr

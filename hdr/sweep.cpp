@@ -1266,7 +1266,7 @@ Status SweepWriter::compact(bool remove_log) {
     return Ok{};
 }
 
-Result<SweepFrame> SweepWriter::addFrame(const render::ImageRGB& image,
+Result<SweepFrame> SweepWriter::addFrame(const ImageRGB& image,
                                          SweepFrame frame,
                                          const ExrStandardAttributes& standard) {
     State& st = *state_;

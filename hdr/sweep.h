@@ -77,7 +77,7 @@
 
 #include "common/result.h"
 #include "hdr/exr.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::hdr {
 
@@ -310,7 +310,7 @@ public:
     // where the caller knows when the bracket was taken, exrCaptureTime), and where it leaves
     // them unset, aperture (lens.f_number, when known) and expTime 1 s (a merged frame holds DN
     // per second at unity gain: what a 1 s exposure would read).
-    Result<SweepFrame> addFrame(const render::ImageRGB& image,
+    Result<SweepFrame> addFrame(const ImageRGB& image,
                                 SweepFrame frame,
                                 const ExrStandardAttributes& standard = {});
 

@@ -29,7 +29,7 @@
 #include "optics/aperture.h"
 #include "optics/prescription.h"
 #include "optics/ray_grid.h"
-#include "render/image.h"
+#include "common/image.h"
 #include "render/quad.h"
 
 namespace flarelab::render {

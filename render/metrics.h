@@ -9,7 +9,7 @@
 #pragma once
 
 #include "common/result.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::render {
 

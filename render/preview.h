@@ -19,7 +19,7 @@
 #include <vector>
 
 #include "common/result.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::render {
 

@@ -29,7 +29,7 @@
 #include "optics/ghosts.h"
 #include "optics/lens.h"
 #include "render/ghost_quads.h"
-#include "render/image.h"
+#include "common/image.h"
 #include "render/starburst.h"
 #include "render/tiles.h"
 

@@ -27,7 +27,7 @@
 #include "common/result.h"
 #include "common/units.h"
 #include "optics/aperture.h"
-#include "render/image.h"
+#include "common/image.h"
 
 namespace flarelab::render {
 

@@ -28,7 +28,7 @@
 #include "common/result.h"
 #include "optics/aperture.h"
 #include "render/ghost_quads.h"
-#include "render/image.h"
+#include "common/image.h"
 #include "render/model_ghost.h"
 
 namespace flarelab::render {

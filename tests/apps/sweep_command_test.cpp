@@ -57,7 +57,7 @@ public:
         auto writer = hdr::SweepWriter::create(dir_.string(), header);
         EXPECT_TRUE(writer) << writer.error().message;
         for (int i = 0; i < 3; ++i) {
-            render::ImageRGB image(8, 6);
+            ImageRGB image(8, 6);
             for (size_t k = 0; k < image.pixels.size(); ++k) image.pixels[k] = 0.5f * (k + i);
             hdr::SweepFrame frame;
             frame.angle_deg = 0.2 * i;

@@ -22,7 +22,7 @@ struct Disc {
 };
 
 // A synthetic frame: background + Gaussian noise (fixed seed) + discs + a bright Gaussian light.
-render::ImageRGB syntheticImage(int64_t width,
+ImageRGB syntheticImage(int64_t width,
                                 int64_t height,
                                 const std::vector<Disc>& discs,
                                 double light_x,
@@ -31,7 +31,7 @@ render::ImageRGB syntheticImage(int64_t width,
                                 double background = 10.0,
                                 double noise = 1.0,
                                 unsigned seed = 7) {
-    render::ImageRGB image(width, height);
+    ImageRGB image(width, height);
     std::mt19937 rng(seed);
     std::normal_distribution<double> gauss(0.0, noise);
     for (int64_t y = 0; y < height; ++y) {
@@ -55,7 +55,7 @@ render::ImageRGB syntheticImage(int64_t width,
     return image;
 }
 
-FitFrame makeFrame(render::ImageRGB image, double angle_deg = 1.0) {
+FitFrame makeFrame(ImageRGB image, double angle_deg = 1.0) {
     auto frame = frameFromImage(std::move(image), angle_deg, 36.0, 24.0);
     EXPECT_TRUE(frame.has_value());
     return std::move(frame).value();
@@ -102,7 +102,7 @@ void expectMatches(const GhostCandidate& g, const Disc& d) {
 }
 
 TEST(DetectGhosts, BlackFrameGivesNoLightAndNoCandidates) {
-    const FitFrame frame = makeFrame(render::ImageRGB(64, 48));
+    const FitFrame frame = makeFrame(ImageRGB(64, 48));
     auto d = detectGhosts(frame);
     ASSERT_TRUE(d.has_value()) << d.error().message;
     EXPECT_FALSE(d->light.found);
@@ -123,7 +123,7 @@ TEST(DetectGhosts, PureNoiseGivesNoCandidates) {
 }
 
 TEST(DetectGhosts, SaturatedFrameGivesNoCandidates) {
-    render::ImageRGB image(80, 60);
+    ImageRGB image(80, 60);
     std::fill(image.pixels.begin(), image.pixels.end(), 3.0e38f);
     auto d = detectGhosts(makeFrame(std::move(image)));
     ASSERT_TRUE(d.has_value());
@@ -206,7 +206,7 @@ TEST(DetectGhosts, ImageFillingGhostAroundTheLight) {
 }
 
 TEST(DetectGhosts, OneByOneImage) {
-    render::ImageRGB image(1, 1);
+    ImageRGB image(1, 1);
     image.pixels = {5.0f, 5.0f, 5.0f};
     auto d = detectGhosts(makeFrame(std::move(image)));
     ASSERT_TRUE(d.has_value());
@@ -216,7 +216,7 @@ TEST(DetectGhosts, OneByOneImage) {
 }
 
 TEST(DetectGhosts, OptionsOutOfRangeAreInvalidArguments) {
-    const FitFrame frame = makeFrame(render::ImageRGB(8, 8));
+    const FitFrame frame = makeFrame(ImageRGB(8, 8));
     const auto check = [&](DetectOptions o, const char* field) {
         auto d = detectGhosts(frame, o);
         ASSERT_FALSE(d.has_value()) << field;
@@ -301,7 +301,7 @@ TEST(DetectGhosts, SimulatedHeliarFrame) {
     ASSERT_TRUE(d.has_value());
     expectFinite(*d);
     // The brightest pixel (channel sum).
-    const render::ImageRGB& image = frame->image;
+    const ImageRGB& image = frame->image;
     int64_t best = 0;
     for (int64_t i = 1; i < image.width * image.height; ++i)
         if (image.pixels[i * 3] + image.pixels[i * 3 + 1] + image.pixels[i * 3 + 2] >
@@ -368,7 +368,7 @@ TEST(DetectGhosts, ConcentricDiscsAreSeparateCircles) {
 }
 
 TEST(DetectGhosts, CircleOptionsOutOfRange) {
-    const FitFrame frame = makeFrame(render::ImageRGB(8, 8));
+    const FitFrame frame = makeFrame(ImageRGB(8, 8));
     DetectOptions o;
     o.max_circles = -1;
     EXPECT_FALSE(detectGhosts(frame, o).has_value());

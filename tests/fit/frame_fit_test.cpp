@@ -37,7 +37,7 @@ FitFrame makeFrame(const std::vector<GhostState>& ghosts,
     m.px_per_mm_y = static_cast<double>(height) / kSensorH;
     m.centre_x_px = 0.5 * static_cast<double>(width);
     m.centre_y_px = 0.5 * static_cast<double>(height);
-    render::ImageRGB image = renderGhostStates(ghosts, m, width, height);
+    ImageRGB image = renderGhostStates(ghosts, m, width, height);
     std::mt19937 rng(seed);
     std::normal_distribution<double> gauss(0.0, noise);
     for (size_t i = 0; i < image.pixels.size(); i += 3) {

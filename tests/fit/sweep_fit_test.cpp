@@ -70,14 +70,14 @@ render::SensorToImage testMapping() {
 // The frame at `angle`: the present ghosts, the background, seeded noise equal in R, G and B (a
 // monochrome frame, fitted in one channel) and, unless `light` is off, the light's small
 // saturated spot at the left edge.
-render::ImageRGB drawFrame(const std::vector<TrueGhost>& truth,
+ImageRGB drawFrame(const std::vector<TrueGhost>& truth,
                            double angle,
                            uint64_t seed,
                            bool light = true) {
     std::vector<GhostState> states;
     for (const auto& g : truth)
         if (present(g, angle)) states.push_back(trueState(g, angle));
-    render::ImageRGB image = renderGhostStates(states, testMapping(), kWidth, kHeight);
+    ImageRGB image = renderGhostStates(states, testMapping(), kWidth, kHeight);
     std::mt19937_64 rng(seed);
     std::normal_distribution<double> noise(0.0, kNoise);
     const Eigen::Vector2d light_px = testMapping().toPixels(-16.0 + 0.2 * angle, 0.0);
@@ -331,7 +331,7 @@ TEST(SweepFit, NoGhostsGiveNoTracks) {
     FrameSource black;
     black.angles_deg = {0.0, 1.0};
     black.load = [](size_t i) {
-        return frameFromImage(render::ImageRGB(kWidth, kHeight), static_cast<double>(i), kSensorW,
+        return frameFromImage(ImageRGB(kWidth, kHeight), static_cast<double>(i), kSensorW,
                               kSensorH);
     };
     auto result = fitSweepFrames(black, options);
@@ -517,7 +517,7 @@ double modelError(const FlareModel& model, double angle) {
     std::vector<GhostState> states;
     for (const auto& g : kTwoGhosts)
         if (present(g, angle)) states.push_back(trueState(g, angle));
-    const render::ImageRGB truth = renderGhostStates(states, testMapping(), kWidth, kHeight);
+    const ImageRGB truth = renderGhostStates(states, testMapping(), kWidth, kHeight);
     auto score = compareImages(*image, truth, std::nullopt, 0.0);
     EXPECT_TRUE(score) << score.error().message;
     return score ? score->rel_l2 : 1e9;
@@ -629,7 +629,7 @@ TEST(ShadingRefit, OffEmptyAndFailingInput) {
     EXPECT_EQ(nothing->ghosts, 0);
     FrameSource black = c.source;
     black.load = [&](size_t i) {
-        render::ImageRGB image(kWidth, kHeight);
+        ImageRGB image(kWidth, kHeight);
         return frameFromImage(image, c.angles[i], kSensorW, kSensorH);
     };
     auto dark = refitShading(model, black, {0.0, 0.0, 0.0}, options.detect, options.frame.cost,

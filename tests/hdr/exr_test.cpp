@@ -76,10 +76,10 @@ bool contains(const std::string& text, const std::string& part) {
 }
 
 // A smooth image with a little seeded noise: compresses like a real frame.
-render::ImageRGB smoothImage(int64_t width, int64_t height, uint64_t seed) {
+ImageRGB smoothImage(int64_t width, int64_t height, uint64_t seed) {
     std::mt19937_64 rng(seed);
     std::uniform_real_distribution<float> noise(0.0f, 0.01f);
-    render::ImageRGB image(width, height);
+    ImageRGB image(width, height);
     for (int64_t y = 0; y < height; ++y)
         for (int64_t x = 0; x < width; ++x)
             for (int c = 0; c < 3; ++c)
@@ -87,7 +87,7 @@ render::ImageRGB smoothImage(int64_t width, int64_t height, uint64_t seed) {
     return image;
 }
 
-bool bitwiseEqual(const render::ImageRGB& a, const render::ImageRGB& b) {
+bool bitwiseEqual(const ImageRGB& a, const ImageRGB& b) {
     return a.width == b.width && a.height == b.height && a.pixels.size() == b.pixels.size() &&
            std::memcmp(a.pixels.data(), b.pixels.data(), a.pixels.size() * sizeof(float)) == 0;
 }
@@ -228,7 +228,7 @@ TEST(WriteExr, FloatRoundTripIsBitwiseIdentical) {
     std::mt19937_64 rng(1);
     std::uniform_real_distribution<double> exponent(-44.0, 38.0);
     std::bernoulli_distribution negative(0.3);
-    render::ImageRGB image(37, 23);
+    ImageRGB image(37, 23);
     for (float& v : image.pixels) {
         v = static_cast<float>(std::pow(10.0, exponent(rng)));
         if (negative(rng)) v = -v;
@@ -255,7 +255,7 @@ TEST(WriteExr, HalfRoundTripIsWithinHalfPrecision) {
     std::mt19937_64 rng(2);
     std::uniform_real_distribution<double> log2_value(-14.0, std::log2(kHalfMax));
     std::bernoulli_distribution negative(0.3);
-    render::ImageRGB image(31, 17);
+    ImageRGB image(31, 17);
     for (float& v : image.pixels) {
         v = static_cast<float>(std::exp2(log2_value(rng)));
         if (negative(rng)) v = -v;
@@ -286,7 +286,7 @@ TEST(WriteExr, HalfRoundTripIsWithinHalfPrecision) {
 
 TEST(WriteExr, HalfRefusesAValueBeyondHalfRange) {
     TempDir dir;
-    render::ImageRGB image = smoothImage(5, 4, 3);
+    ImageRGB image = smoothImage(5, 4, 3);
     image.at(2, 1)[1] = 70000.0f;
     ExrWriteOptions options;
     options.pixel_type = ExrPixelType::Half;
@@ -302,7 +302,7 @@ TEST(WriteExr, HalfRefusesAValueBeyondHalfRange) {
 
 TEST(WriteExr, HalfWhereFitsFallsBackToFloatAndSaysWhy) {
     TempDir dir;
-    render::ImageRGB image = smoothImage(5, 4, 4);
+    ImageRGB image = smoothImage(5, 4, 4);
     image.at(2, 1)[1] = 70000.0f;
     ExrWriteOptions options;
     options.pixel_type = ExrPixelType::HalfWhereFits;
@@ -318,7 +318,7 @@ TEST(WriteExr, HalfWhereFitsFallsBackToFloatAndSaysWhy) {
 
 TEST(WriteExr, TinyValuesKeepFloatUnlessPrecisionLossIsAccepted) {
     TempDir dir;
-    render::ImageRGB image = smoothImage(3, 3, 5);
+    ImageRGB image = smoothImage(3, 3, 5);
     image.at(1, 2)[2] = 1e-6f;
     ExrWriteOptions options;
     options.pixel_type = ExrPixelType::HalfWhereFits;
@@ -426,7 +426,7 @@ TEST(WriteExr, RefusesStandardAttributesOpenExrCannotHold) {
 
 TEST(WriteExr, EveryCompressionRoundTrips) {
     TempDir dir;
-    const render::ImageRGB image = smoothImage(64, 40, 7);
+    const ImageRGB image = smoothImage(64, 40, 7);
     for (const ExrCompression compression :
          {ExrCompression::None, ExrCompression::Zip, ExrCompression::Piz}) {
         for (const ExrPixelType type : {ExrPixelType::Float, ExrPixelType::Half}) {
@@ -451,7 +451,7 @@ TEST(WriteExr, EveryCompressionRoundTrips) {
 
 TEST(WriteExr, OnePixelRoundTrips) {
     TempDir dir;
-    render::ImageRGB image(1, 1);
+    ImageRGB image(1, 1);
     image.pixels = {1.0f, 2.0f, 3.0f};
     ASSERT_TRUE(writeExr(dir.file("one.exr"), image, {}));
     const auto read = readExr(dir.file("one.exr"));
@@ -461,7 +461,7 @@ TEST(WriteExr, OnePixelRoundTrips) {
 
 TEST(WriteExr, LargeImageRoundTrips) {
     TempDir dir;
-    const render::ImageRGB image = smoothImage(2000, 1000, 8);
+    const ImageRGB image = smoothImage(2000, 1000, 8);
     ASSERT_TRUE(writeExr(dir.file("large.exr"), image, fullMetadata()));
     const auto read = readExr(dir.file("large.exr"));
     ASSERT_TRUE(read) << read.error().message;
@@ -476,7 +476,7 @@ TEST(WriteExr, RefusesNonFinitePixelsAndKeepsTheOldFile) {
     for (const float bad :
          {std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity(),
           -std::numeric_limits<float>::infinity()}) {
-        render::ImageRGB image = smoothImage(6, 5, 10);
+        ImageRGB image = smoothImage(6, 5, 10);
         image.at(4, 3)[2] = bad;
         image.at(5, 4)[0] = bad;  // later in the image; the first one is named
         const auto report = writeExr(path, image, {});
@@ -493,13 +493,13 @@ TEST(WriteExr, RefusesNonFinitePixelsAndKeepsTheOldFile) {
 TEST(WriteExr, RefusesInvalidImagesAndMetadata) {
     TempDir dir;
     const std::string path = dir.file("x.exr");
-    EXPECT_FALSE(writeExr(path, render::ImageRGB(0, 5), {}));
-    EXPECT_FALSE(writeExr(path, render::ImageRGB(int64_t{1} << 16, 1), {}));
-    render::ImageRGB short_pixels(2, 2);
+    EXPECT_FALSE(writeExr(path, ImageRGB(0, 5), {}));
+    EXPECT_FALSE(writeExr(path, ImageRGB(int64_t{1} << 16, 1), {}));
+    ImageRGB short_pixels(2, 2);
     short_pixels.pixels.pop_back();
     EXPECT_FALSE(writeExr(path, short_pixels, {}));
 
-    const render::ImageRGB image = smoothImage(2, 2, 11);
+    const ImageRGB image = smoothImage(2, 2, 11);
     ExrMetadata meta;
     meta.angle_deg = std::numeric_limits<double>::quiet_NaN();
     auto report = writeExr(path, image, meta);
@@ -546,7 +546,7 @@ TEST(WriteExr, WriteFailingMidwayKeepsTheOldFile) {
     // raises is ignored, so write() reports EFBIG as a full disk reports ENOSPC.
     std::mt19937_64 rng(14);
     std::uniform_real_distribution<float> noise(0.0f, 1.0f);
-    render::ImageRGB image(64, 64);
+    ImageRGB image(64, 64);
     for (float& v : image.pixels) v = noise(rng);
     ExrWriteOptions options;
     options.compression = ExrCompression::None;

@@ -77,10 +77,10 @@ SweepHeader header(double to_deg = 100.0) {
     return h;
 }
 
-render::ImageRGB image(uint64_t seed, int64_t width = 4, int64_t height = 3) {
+ImageRGB image(uint64_t seed, int64_t width = 4, int64_t height = 3) {
     std::mt19937_64 rng(seed);
     std::uniform_real_distribution<float> value(0.0f, 10.0f);
-    render::ImageRGB out(width, height);
+    ImageRGB out(width, height);
     for (float& v : out.pixels) v = value(rng);
     return out;
 }
@@ -462,7 +462,7 @@ TEST(HostileFiles, OversizedDeclarationsAreRefusedBeforeAnythingIsAllocated) {
     writeFrames(dir.path(), 2);
     // A frame whose header declares far more than the manifest's 4 x 3 pixels.
     const std::string frame_path = dir.file(sweepFrameFileName(1, 0.1));
-    render::ImageRGB large(1024, 1024);
+    ImageRGB large(1024, 1024);
     ExrMetadata meta;
     meta.angle_deg = 0.1;
     ASSERT_TRUE(writeExr(frame_path, large, meta));

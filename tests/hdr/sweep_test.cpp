@@ -80,10 +80,10 @@ SweepHeader smallHeader() {
 }
 
 // Seeded pixels in [0, 100).
-render::ImageRGB testImage(uint64_t seed, int64_t width = kWidth, int64_t height = kHeight) {
+ImageRGB testImage(uint64_t seed, int64_t width = kWidth, int64_t height = kHeight) {
     std::mt19937_64 rng(seed);
     std::uniform_real_distribution<float> value(0.0f, 100.0f);
-    render::ImageRGB image(width, height);
+    ImageRGB image(width, height);
     for (float& v : image.pixels) v = value(rng);
     return image;
 }
@@ -140,7 +140,7 @@ TEST(SweepWriter, RoundTripsASmallSweepWithRawBrackets) {
     auto writer = SweepWriter::create(dir.path(), header);
     ASSERT_TRUE(writer) << writer.error().message;
     fs::create_directories(dir.file("raw"));
-    std::vector<render::ImageRGB> images;
+    std::vector<ImageRGB> images;
     for (int i = 0; i < 4; ++i) {
         SweepFrame frame = frameAt(header, i);
         for (int b = 0; b < 3; ++b) {
@@ -449,7 +449,7 @@ TEST(ReadSweep, NanPixelOnDiskIsRefused) {
     options.exr.compression = ExrCompression::None;  // pixels stored as plain float32
     auto writer = SweepWriter::create(dir.path(), header, options);
     ASSERT_TRUE(writer);
-    render::ImageRGB image = testImage(3);
+    ImageRGB image = testImage(3);
     constexpr float kSentinel = 12345.678f;
     image.at(2, 3)[1] = kSentinel;
     ASSERT_TRUE(writer->addFrame(testImage(2), frameAt(header, 0)));

@@ -1,5 +1,5 @@
 // ============================================================================
-//  flarelab render: ImageRGB
+//  flarelab common: ImageRGB
 // ============================================================================
 //
 // The value type every renderer writes and every writer reads: linear relative radiance, float32,
@@ -13,7 +13,7 @@
 
 #include "common/check.h"
 
-namespace flarelab::render {
+namespace flarelab {
 
 struct ImageRGB {
     int64_t width = 0;
@@ -36,4 +36,4 @@ struct ImageRGB {
     bool empty() const { return width == 0 || height == 0; }
 };
 
-}  // namespace flarelab::render
+}  // namespace flarelab
