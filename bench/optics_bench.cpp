@@ -17,7 +17,9 @@
 // that neither misses a surface nor is totally reflected does all intersectionsPerRay()
 // intersections, and the item count is what was done (the `completed` counter says how many did).
 // BM_TraceGhostPathGeometry/<lens> is the same ghost without Fresnel terms, which isolates their
-// cost.
+// cost. BM_TraceGhostPathRow{Double,Float}{Sse2,}/<lens> trace the same ghost's rays through
+// RowTracer, a row of 64 at a time: double or float lanes, SSE2 or (where the processor has it)
+// AVX2; the ratio to BM_TraceGhostPathBatched is the row tracer's gain.
 #include <benchmark/benchmark.h>
 
 #include <Eigen/Core>
@@ -40,6 +42,7 @@
 #include "optics/lens.h"
 #include "optics/paraxial.h"
 #include "optics/prescription.h"
+#include "optics/row_tracer.h"
 #include "optics/tracer.h"
 
 namespace flarelab::bench {
@@ -357,6 +360,44 @@ void BM_TraceGhostPathBatched(benchmark::State& state, const std::string& file) 
     tracePathBatched(state, *c, c->ghost, kUnclipped);
 }
 
+// The same rays through RowTracer (row_tracer.h), a row of kGridSide at a time, as the ray grid
+// traces them: the structure-of-arrays kernel in float or double, AVX2 or SSE2.
+void traceRows(benchmark::State& state, const LensCase& c, const RowTracer::Options& options) {
+    const RowTracer tracer(c.lens, c.ghost, kWavelength_nm, options);
+    const size_t rows = c.rays.size() / kGridSide;
+    std::vector<std::vector<double>> xs(rows), ys(rows);
+    for (size_t r = 0; r < rows; ++r)
+        for (int i = 0; i < kGridSide; ++i) {
+            xs[r].push_back(c.rays[r * kGridSide + i].position.x());
+            ys[r].push_back(c.rays[r * kGridSide + i].position.y());
+        }
+    const double z = c.rays.front().position.z();
+    const Eigen::Vector3d direction = c.rays.front().direction;
+    TracedRow out;
+    for (auto _ : state) {
+        for (size_t r = 0; r < rows; ++r) {
+            tracer.trace(xs[r], ys[r], z, direction, out);
+            benchmark::DoNotOptimize(out.x_mm.data());
+        }
+    }
+    const PathTracer exact(c.lens, c.ghost, kWavelength_nm);
+    const int64_t rays = static_cast<int64_t>(rows * kGridSide);
+    state.SetItemsProcessed(state.iterations() * rays * exact.intersectionsPerRay());
+    state.counters["rays_per_s"] = benchmark::Counter(
+        static_cast<double>(state.iterations() * rays), benchmark::Counter::kIsRate);
+    state.counters["avx2"] = tracer.usesAvx2() ? 1 : 0;
+}
+
+template <RowTracer::Precision kPrecision, bool kAvx2>
+void BM_TraceGhostPathRow(benchmark::State& state, const std::string& file) {
+    const LensCase* c = lensCase(file);
+    if (!c) return state.SkipWithError("lens unusable, see stderr");
+    RowTracer::Options options;
+    options.precision = kPrecision;
+    options.allow_avx2 = kAvx2;
+    traceRows(state, *c, options);
+}
+
 std::vector<std::filesystem::path> shippedLenses() {
     std::vector<std::filesystem::path> files;
     const std::filesystem::path dir = std::filesystem::path(FLARELAB_SOURCE_DIR) / "data/lenses";
@@ -382,6 +423,11 @@ void registerBenchmarks() {
     add("BM_TraceGhostPath", BM_TraceGhostPath);
     add("BM_TraceGhostPathGeometry", BM_TraceGhostPathGeometry);
     add("BM_TraceGhostPathBatched", BM_TraceGhostPathBatched);
+    add("BM_TraceGhostPathRowDoubleSse2",
+        BM_TraceGhostPathRow<RowTracer::Precision::Double, false>);
+    add("BM_TraceGhostPathRowFloatSse2", BM_TraceGhostPathRow<RowTracer::Precision::Float, false>);
+    add("BM_TraceGhostPathRowDouble", BM_TraceGhostPathRow<RowTracer::Precision::Double, true>);
+    add("BM_TraceGhostPathRowFloat", BM_TraceGhostPathRow<RowTracer::Precision::Float, true>);
 }
 
 }  // namespace

@@ -6,6 +6,7 @@
 
 #include "common/units.h"
 #include "optics/paraxial.h"
+#include "optics/row_tracer.h"
 #include "optics/tracer.h"
 
 namespace flarelab::optics {
@@ -121,39 +122,143 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
     grid.entry_centre_mm = square.centre;
     grid.entry_half_width_mm = square.half_width;
 
-    // One trace per ray: clear apertures are not clipped but recorded, so a cut ray keeps the
-    // geometry it would have had in a wider lens and carries no light.
-    const PathTracer tracer(
-        lens, path, wavelength_nm,
-        TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = options.fresnel});
-    const auto finite = [](const GridSample& s) {
-        return std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
-               std::isfinite(s.stop_u) && std::isfinite(s.stop_v) && std::isfinite(s.throughput);
-    };
+    // Clear apertures are not clipped but recorded, so a cut ray keeps the geometry it would have
+    // had in a wider lens and carries no light.
     grid.samples.assign(static_cast<size_t>(n) * static_cast<size_t>(n), GridSample{});
-    // A row at a time through traceBatch: the same results as ray by ray, several times faster.
-    std::vector<Ray> rays(static_cast<size_t>(n));
-    std::vector<std::optional<TracedRay>> traced(static_cast<size_t>(n));
+    const auto store = [&](GridSample& s, double x, double y, double throughput, double u, double v,
+                           bool cut_by_aperture) {
+        const bool cut = options.clip_apertures && cut_by_aperture;
+        s.sensor_x_mm = static_cast<float>(x);
+        s.sensor_y_mm = static_cast<float>(y);
+        s.throughput = cut ? 0.0f : static_cast<float>(throughput);
+        s.stop_u = static_cast<float>(u);
+        s.stop_v = static_cast<float>(v);
+        s.has_position = std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
+                         std::isfinite(s.stop_u) && std::isfinite(s.stop_v) &&
+                         std::isfinite(s.throughput);
+        s.valid = !cut && s.has_position;
+        if (!s.has_position) s = GridSample{};
+    };
+    if (options.tracer == GridTracer::Exact) {
+        // Ray by ray in double, a row at a time through traceBatch (the same bits as trace()).
+        const PathTracer tracer(
+            lens, path, wavelength_nm,
+            TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = options.fresnel});
+        std::vector<Ray> rays(static_cast<size_t>(n));
+        std::vector<std::optional<TracedRay>> traced(static_cast<size_t>(n));
+        for (int iy = 0; iy < n; ++iy) {
+            for (int ix = 0; ix < n; ++ix)
+                rays[ix] =
+                    rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
+            tracer.traceBatch(rays, traced);
+            for (int ix = 0; ix < n; ++ix) {
+                if (!traced[ix]) continue;  // missed a surface or totally reflected: no geometry
+                const TracedRay& t = *traced[ix];
+                store(grid.samples[static_cast<size_t>(iy) * n + ix], t.ray.position.x(),
+                      t.ray.position.y(), t.ray.throughput, t.stop_u, t.stop_v, t.cut);
+            }
+        }
+        return grid;
+    }
+    RowTracer::Options row_options;
+    row_options.precision = options.tracer == GridTracer::RowDouble ? RowTracer::Precision::Double
+                                                                    : RowTracer::Precision::Float;
+    row_options.fresnel = options.fresnel;
+    RowTracer tracer(lens, path, wavelength_nm, row_options);
+    // Every ray of the grid starts on the launch plane, direction times the same distance behind
+    // its entry point.
+    const double back = (grid.plane.entry_z_mm - grid.plane.launch_z_mm) / direction.z();
+    const double launch_z = grid.plane.entry_z_mm - back * direction.z();
+    std::vector<double> xs(static_cast<size_t>(n)), ys(static_cast<size_t>(n));
+    if (!(options.float_tolerance_mm >= 0.0))
+        return invalid("float tolerance must be a non-negative length");
+    if (options.tracer == GridTracer::Auto && n <= 32) {
+        // A probe would cost as much as tracing the grid in double.
+        tracer.setPrecision(RowTracer::Precision::Double);
+    } else if (options.tracer == GridTracer::Auto) {
+        // The probe: a sub-grid over the whole square, about 2 sqrt(n) rays a side (every ray
+        // of a grid up to 4 x 4 ... 16 x 16; 1.6 % of a 256 x 256 grid).
+        const int stride = std::max(1, static_cast<int>(std::lround(std::sqrt(n / 4.0))));
+        std::vector<double> px, py;
+        for (int iy = 0; iy < n; iy += stride)
+            for (int ix = 0; ix < n; ix += stride) {
+                const Eigen::Vector2d e = grid.entryPoint(ix, iy);
+                px.push_back(e.x() - back * direction.x());
+                py.push_back(e.y() - back * direction.y());
+            }
+        tracer.choosePrecision(px, py, launch_z, direction, options.float_tolerance_mm);
+    }
+    TracedRow row;
     for (int iy = 0; iy < n; ++iy) {
-        for (int ix = 0; ix < n; ++ix)
-            rays[ix] =
-                rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
-        tracer.traceBatch(rays, traced);
         for (int ix = 0; ix < n; ++ix) {
-            if (!traced[ix]) continue;  // missed a surface or totally reflected: no geometry at all
-            const bool cut = options.clip_apertures && traced[ix]->cut;
-            GridSample& s = grid.samples[static_cast<size_t>(iy) * n + ix];
-            s.sensor_x_mm = static_cast<float>(traced[ix]->ray.position.x());
-            s.sensor_y_mm = static_cast<float>(traced[ix]->ray.position.y());
-            s.throughput = cut ? 0.0f : static_cast<float>(traced[ix]->ray.throughput);
-            s.stop_u = static_cast<float>(traced[ix]->stop_u);
-            s.stop_v = static_cast<float>(traced[ix]->stop_v);
-            s.has_position = finite(s);
-            s.valid = !cut && s.has_position;
-            if (!s.has_position) s = GridSample{};
+            const Eigen::Vector2d e = grid.entryPoint(ix, iy);
+            xs[ix] = e.x() - back * direction.x();
+            ys[ix] = e.y() - back * direction.y();
+        }
+        tracer.trace(xs, ys, launch_z, direction, row);
+        for (int ix = 0; ix < n; ++ix) {
+            if (row.status[ix] == 0) continue;
+            store(grid.samples[static_cast<size_t>(iy) * n + ix], row.x_mm[ix], row.y_mm[ix],
+                  row.throughput[ix], row.stop_u[ix], row.stop_v[ix], row.status[ix] == 2);
         }
     }
     return grid;
+}
+
+Result<GridAgreement> compareWithExactGrid(const Lens& lens,
+                                           const GhostPath& path,
+                                           double theta_rad,
+                                           double phi_rad,
+                                           double wavelength_nm,
+                                           int n,
+                                           const RayGridOptions& options) {
+    auto tested = traceRayGrid(lens, path, theta_rad, phi_rad, wavelength_nm, n, options);
+    if (!tested) return tested.error();
+    RayGridOptions reference_options = options;
+    reference_options.tracer = GridTracer::Exact;
+    reference_options.square = tested->square();
+    auto reference =
+        traceRayGrid(lens, path, theta_rad, phi_rad, wavelength_nm, n, reference_options);
+    if (!reference) return reference.error();
+    GridAgreement a;
+    double largest = 0.0, power_tested = 0.0, power_reference = 0.0;
+    for (const GridSample& s : reference->samples)
+        if (s.valid) largest = std::max(largest, static_cast<double>(s.throughput));
+    for (size_t i = 0; i < tested->samples.size(); ++i) {
+        const GridSample& t = tested->samples[i];
+        const GridSample& r = reference->samples[i];
+        if (t.valid) power_tested += t.throughput;
+        if (r.valid) power_reference += r.throughput;
+        if (t.valid != r.valid) {
+            ++a.validity_differs;
+            continue;
+        }
+        if (!r.valid) continue;
+        ++a.samples;
+        a.max_position_error_mm =
+            std::max(a.max_position_error_mm, std::hypot(double{t.sensor_x_mm} - r.sensor_x_mm,
+                                                         double{t.sensor_y_mm} - r.sensor_y_mm));
+        a.max_stop_error = std::max(
+            a.max_stop_error, std::hypot(double{t.stop_u} - r.stop_u, double{t.stop_v} - r.stop_v));
+        if (r.throughput >= 1e-3 * largest && r.throughput > 0.0f)
+            a.max_throughput_rel_error =
+                std::max(a.max_throughput_rel_error,
+                         std::abs(double{t.throughput} - r.throughput) / r.throughput);
+    }
+    float lo_x = 0.0f, hi_x = 0.0f, lo_y = 0.0f, hi_y = 0.0f;
+    bool any = false;
+    for (const GridSample& r : reference->samples) {
+        if (!r.valid) continue;
+        lo_x = any ? std::min(lo_x, r.sensor_x_mm) : r.sensor_x_mm;
+        hi_x = any ? std::max(hi_x, r.sensor_x_mm) : r.sensor_x_mm;
+        lo_y = any ? std::min(lo_y, r.sensor_y_mm) : r.sensor_y_mm;
+        hi_y = any ? std::max(hi_y, r.sensor_y_mm) : r.sensor_y_mm;
+        any = true;
+    }
+    a.max_stop_shift_mm = a.max_stop_error * 0.5 * std::max(hi_x - lo_x, hi_y - lo_y);
+    a.power_rel_error =
+        power_reference > 0.0 ? std::abs(power_tested - power_reference) / power_reference : 0.0;
+    return a;
 }
 
 }  // namespace flarelab::optics

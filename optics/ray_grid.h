@@ -65,9 +65,19 @@ struct RayGrid {
     EntrySquare square() const { return {entry_centre_mm, entry_half_width_mm}; }
 };
 
+// Which tracer fills the grid: the row tracer (row_tracer.h) in float where a probe (a sub-grid of
+// about 2 sqrt(n) rays a side) shows float within float_tolerance_mm of double, else in double
+// (Auto, the default; grids up to 32 x 32 are traced in double without a probe); the row tracer in
+// float or double regardless; or PathTracer ray by ray in double (the reference the others are
+// measured against).
+enum class GridTracer { Auto, RowFloat, RowDouble, Exact };
+
 struct RayGridOptions {
     double margin = 0.1;  // the square's half-width beyond the aimed pupil, as a fraction
     bool fresnel = true;
+    GridTracer tracer = GridTracer::Auto;
+    // 1e-4 mm is 0.005 px of a 1920-pixel-wide image of a 36 mm sensor (0.02 px at 8K).
+    double float_tolerance_mm = 1e-4;
     bool clip_apertures = true;
     // The square to cover, taken from an earlier grid of the same light, path and wavelength
     // (RayGrid::square()) instead of aiming the path's beam again; it must have a positive,
@@ -85,5 +95,25 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
                              double wavelength_nm,
                              int n,
                              const RayGridOptions& options = {});
+
+// How far a grid traced with `options` lands from the reference grid (GridTracer::Exact) over the
+// same entry square. Samples whose validity differs (a ray grazing a surface or a clear aperture's
+// rim, where rounding decides) are counted, not compared.
+struct GridAgreement {
+    int64_t samples = 0;  // valid in both
+    int64_t validity_differs = 0;
+    double max_position_error_mm = 0.0;
+    double max_stop_error = 0.0;            // in stop semi-apertures
+    double max_stop_shift_mm = 0.0;  // that times the footprint's half-size: the stop edge's shift
+    double max_throughput_rel_error = 0.0;  // over samples carrying >= 1e-3 of the largest
+    double power_rel_error = 0.0;           // of the sum of throughput over valid samples
+};
+Result<GridAgreement> compareWithExactGrid(const Lens& lens,
+                                           const GhostPath& path,
+                                           double theta_rad,
+                                           double phi_rad,
+                                           double wavelength_nm,
+                                           int n,
+                                           const RayGridOptions& options);
 
 }  // namespace flarelab::optics

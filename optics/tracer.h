@@ -89,6 +89,7 @@ public:
     const GhostPath& path() const { return path_; }
 
 private:
+    friend class RowTracer;  // row_tracer.h traces the same steps, a row of rays at a time
     enum class StepKind { Refract, Reflect, Stop, Image };
     struct Step {
         StepKind kind = StepKind::Refract;

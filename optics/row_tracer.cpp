@@ -1,0 +1,504 @@
+#include "optics/row_tracer.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <mutex>
+
+#include "common/check.h"
+#include "common/units.h"
+#include "optics/fresnel.h"
+#include "optics/tracer.h"
+
+namespace flarelab::optics {
+
+// ---- Fresnel polynomial --------------------------------------------------------------------
+
+double FresnelPolynomial::operator()(double cos_i) const {
+    const double x = (2.0 * cos_i - 1.0 - lo) / (1.0 - lo);
+    double b1 = 0.0, b2 = 0.0;
+    for (size_t k = coefficients.size() - 1; k >= 1; --k) {
+        const double b0 = 2.0 * x * b1 - b2 + coefficients[k];
+        b2 = b1;
+        b1 = b0;
+    }
+    return x * b1 - b2 + coefficients[0];
+}
+
+namespace {
+
+// Chebyshev interpolation of f on [lo, 1] at degree d (nodes of the first kind).
+std::vector<double> chebyshevFit(const auto& f, double lo, int degree) {
+    const int m = degree + 1;
+    std::vector<double> values(m);
+    for (int j = 0; j < m; ++j) {
+        const double x = std::cos(kPi * (j + 0.5) / m);
+        values[j] = f(0.5 * (1.0 + lo) + 0.5 * (1.0 - lo) * x);
+    }
+    std::vector<double> c(m);
+    for (int k = 0; k < m; ++k) {
+        double sum = 0.0;
+        for (int j = 0; j < m; ++j) sum += values[j] * std::cos(kPi * k * (j + 0.5) / m);
+        c[k] = (k == 0 ? 1.0 : 2.0) * sum / m;
+    }
+    return c;
+}
+
+}  // namespace
+
+FresnelPolynomial fitCoatedReflectance(double n1,
+                                       double n_coat,
+                                       double d_coat_nm,
+                                       double n2,
+                                       double wavelength_nm,
+                                       double relative_tolerance) {
+    const auto exact = [&](double c) {
+        return fresnelCoated(n1, n_coat, d_coat_nm, n2, c, wavelength_nm).reflectance;
+    };
+    // The formula has kinks where the wave stops propagating in the layer or in the far medium
+    // (sin = n/n1); above the larger of those cosines it is smooth.
+    double kink = 0.0;
+    for (const double n : {n_coat, n2})
+        if (n1 > n) kink = std::max(kink, std::sqrt(std::max(0.0, 1.0 - (n / n1) * (n / n1))));
+    constexpr int kCheck = 1024;
+    std::vector<double> exact_values(kCheck + 1);
+    for (double lo = kink; lo < 0.999; lo += 0.1 * (1.0 - lo)) {
+        // A ghost's power is a product of reflectances: the error that matters is relative to
+        // the smallest R on the range (an AR coating between two glasses reflects 1e-5).
+        double smallest = 1.0;
+        for (int i = 0; i <= kCheck; ++i) {
+            exact_values[i] = exact(lo + (1.0 - lo) * i / kCheck);
+            smallest = std::min(smallest, exact_values[i]);
+        }
+        const double tolerance = std::max(1e-13, relative_tolerance * smallest);
+        for (int degree = 6; degree <= 36; degree += 6) {
+            FresnelPolynomial p;
+            p.lo = lo;
+            p.coefficients = chebyshevFit(exact, lo, degree);
+            double worst = 0.0;
+            for (int i = 0; i <= kCheck && worst <= tolerance; ++i)
+                worst =
+                    std::max(worst, std::abs(p(lo + (1.0 - lo) * i / kCheck) - exact_values[i]));
+            if (worst > tolerance) continue;
+            p.max_abs_error = worst;
+            p.max_rel_error = worst / std::max(smallest, 1e-300);
+            return p;
+        }
+    }
+    // Not even near normal incidence: no polynomial, the exact formula everywhere.
+    FresnelPolynomial none;
+    none.lo = 2.0;
+    none.coefficients = {0.0};
+    return none;
+}
+
+namespace {
+
+// Fits are shared: every path of a lens crosses the same coated surfaces, in one direction or
+// the other, at the same three wavelengths.
+struct FitKey {
+    double n1, n_coat, d_coat_nm, n2, wavelength_nm, tolerance;
+    auto operator<=>(const FitKey&) const = default;
+};
+
+FresnelPolynomial cachedFit(const FitKey& key) {
+    static std::mutex mutex;
+    static std::map<FitKey, FresnelPolynomial> fits;
+    {
+        const std::lock_guard<std::mutex> lock(mutex);
+        const auto it = fits.find(key);
+        if (it != fits.end()) return it->second;
+    }
+    FresnelPolynomial fit = fitCoatedReflectance(key.n1, key.n_coat, key.d_coat_nm, key.n2,
+                                                 key.wavelength_nm, key.tolerance);
+    const std::lock_guard<std::mutex> lock(mutex);
+    if (fits.size() > 4096) fits.clear();  // a long-running process tracing many lenses
+    return fits.emplace(key, std::move(fit)).first->second;
+}
+
+}  // namespace
+
+void TracedRow::resize(size_t n) {
+    for (auto* v : {&x_mm, &y_mm, &throughput, &stop_u, &stop_v, &aperture_ratio}) v->resize(n);
+    status.resize(n);
+}
+
+// ---- the lane kernel -----------------------------------------------------------------------
+
+namespace {
+
+// The running state of a row, one array per quantity (structure of arrays).
+template <typename T>
+struct Lanes {
+    std::vector<T> px, py, pz, dx, dy, dz, throughput, alive, cut, ratio2, stop_u, stop_v, cos_i;
+    std::vector<double> b1, b2, factor;  // the coated reflectance is summed in double
+    explicit Lanes(size_t n)
+        : px(n),
+          py(n),
+          pz(n),
+          dx(n),
+          dy(n),
+          dz(n),
+          throughput(n, T(1)),
+          alive(n, T(1)),
+          cut(n, T(0)),
+          ratio2(n, T(0)),
+          stop_u(n, T(0)),
+          stop_v(n, T(0)),
+          cos_i(n, T(0)),
+          b1(n),
+          b2(n),
+          factor(n) {}
+};
+
+struct KernelInput {
+    const RowTracer::Step* steps;
+    size_t step_count;
+    const FresnelPolynomial* coatings;
+    bool fresnel;
+    double inv_stop_semi_aperture;
+    double wavelength_nm;
+};
+
+// Every step as loops over the lanes with no branch that depends on a lane: dead lanes compute on
+// and are masked by `alive`, so each loop vectorizes.
+template <typename T>
+[[gnu::always_inline]] inline void traceLanes(const KernelInput& in, size_t n, Lanes<T>& w) {
+    T* __restrict px = w.px.data();
+    T* __restrict py = w.py.data();
+    T* __restrict pz = w.pz.data();
+    T* __restrict dx = w.dx.data();
+    T* __restrict dy = w.dy.data();
+    T* __restrict dz = w.dz.data();
+    T* __restrict thr = w.throughput.data();
+    T* __restrict alive = w.alive.data();
+    T* __restrict cut = w.cut.data();
+    T* __restrict ratio2 = w.ratio2.data();
+    T* __restrict cosi = w.cos_i.data();
+    double* __restrict b1 = w.b1.data();
+    double* __restrict b2 = w.b2.data();
+    double* __restrict factor = w.factor.data();
+    for (size_t k = 0; k < in.step_count; ++k) {
+        const RowTracer::Step& s = in.steps[k];
+        const T shift = static_cast<T>(s.shift_mm);
+        const T c = static_cast<T>(s.curvature);
+        // Intersect and move; z is kept relative to this step's vertex.
+        if (s.curvature == 0.0) {
+#pragma GCC ivdep
+            for (size_t i = 0; i < n; ++i) {
+                const T z = pz[i] - shift;
+                const T t = -z / dz[i];
+                const bool ok = (dz[i] != T(0)) & (t >= T(0));
+                const T tt = ok ? t : T(0);
+                alive[i] = ok ? alive[i] : T(0);
+                px[i] += tt * dx[i];
+                py[i] += tt * dy[i];
+                pz[i] = z + tt * dz[i];
+            }
+        } else {
+            const T inv_c = T(1) / c;
+#pragma GCC ivdep
+            for (size_t i = 0; i < n; ++i) {
+                const T z = pz[i] - shift;
+                const T b = c * (px[i] * dx[i] + py[i] * dy[i] + z * dz[i]) - dz[i];
+                const T kq = c * (px[i] * px[i] + py[i] * py[i] + z * z) - T(2) * z;
+                const T disc = b * b - c * kq;
+                const T root = std::sqrt(disc >= T(0) ? disc : T(0));
+                const T q = -(b + (b >= T(0) ? root : -root));
+                const T t1 = kq / q;
+                const T t2 = q * inv_c;
+                const bool ok1 = (t1 >= T(0)) & (c * (z + t1 * dz[i]) < T(1));
+                const bool ok2 = (t2 >= T(0)) & (c * (z + t2 * dz[i]) < T(1));
+                const T t = ok1 ? (ok2 ? std::min(t1, t2) : t1) : t2;
+                const bool ok = (disc >= T(0)) & (q != T(0)) & (ok1 | ok2);
+                const T tt = ok ? t : T(0);
+                alive[i] = ok ? alive[i] : T(0);
+                px[i] += tt * dx[i];
+                py[i] += tt * dy[i];
+                pz[i] = z + tt * dz[i];
+            }
+        }
+        if (s.kind == RowTracer::Step::Image) break;
+        if (s.kind == RowTracer::Step::Stop) {
+            if (s.first_stop_crossing) {
+                const T inv = static_cast<T>(in.inv_stop_semi_aperture);
+#pragma GCC ivdep
+                for (size_t i = 0; i < n; ++i) {
+                    w.stop_u[i] = px[i] * inv;
+                    w.stop_v[i] = py[i] * inv;
+                }
+            }
+            continue;
+        }
+        // Clear aperture (recorded, not clipped), then the bend.
+        const T semi2 = static_cast<T>(s.semi_aperture2);
+        const T inv_semi2 = static_cast<T>(s.inv_semi_aperture2);
+        const T eta = static_cast<T>(s.eta);
+        const T eta2 = eta * eta;
+        const bool reflect = s.kind == RowTracer::Step::Reflect;
+        const bool refract = !reflect && !s.same_medium;
+#pragma GCC ivdep
+        for (size_t i = 0; i < n; ++i) {
+            const T r2 = px[i] * px[i] + py[i] * py[i];
+            ratio2[i] = std::max(ratio2[i], r2 * inv_semi2);
+            cut[i] = r2 > semi2 ? T(1) : cut[i];
+            T nx = c * px[i], ny = c * py[i], nz = c * pz[i] - T(1);
+            const T inv_len = T(1) / std::sqrt(nx * nx + ny * ny + nz * nz);
+            const T nd = (nx * dx[i] + ny * dy[i] + nz * dz[i]) * inv_len;
+            const T sign = nd > T(0) ? -inv_len : inv_len;  // face the incoming light
+            nx *= sign;
+            ny *= sign;
+            nz *= sign;
+            const T ci = std::min(T(1), nd > T(0) ? nd : -nd);
+            cosi[i] = ci;
+            if (reflect) {
+                const T f = T(2) * ci;
+                dx[i] += f * nx;
+                dy[i] += f * ny;
+                dz[i] += f * nz;
+            } else if (refract) {
+                const T kk = T(1) - eta2 * (T(1) - ci * ci);
+                const bool ok = kk >= T(0);
+                const T f = eta * ci - std::sqrt(ok ? kk : T(0));
+                alive[i] = ok ? alive[i] : T(0);
+                dx[i] = eta * dx[i] + f * nx;
+                dy[i] = eta * dy[i] + f * ny;
+                dz[i] = eta * dz[i] + f * nz;
+            }
+        }
+        if (!in.fresnel) continue;
+        if (!s.coated) {
+            // fresnelUncoated, lane-wise; T = 1 - R (no absorption).
+            const T n1 = static_cast<T>(s.n1), n2 = static_cast<T>(s.n2);
+#pragma GCC ivdep
+            for (size_t i = 0; i < n; ++i) {
+                const T ci = cosi[i];
+                const T st = eta * std::sqrt(std::max(T(0), T(1) - ci * ci));
+                const bool total = (st >= T(1)) | (ci == T(0));
+                const T ct = std::sqrt(std::max(T(0), T(1) - st * st));
+                const T rs = (n1 * ci - n2 * ct) / (n1 * ci + n2 * ct);
+                const T rp = (n1 * ct - n2 * ci) / (n1 * ct + n2 * ci);
+                const T r = total ? T(1) : T(0.5) * (rs * rs + rp * rp);
+                thr[i] *= reflect ? r : T(1) - r;
+            }
+            continue;
+        }
+        // The coated reflectance: the Chebyshev sum in double whatever T is. A ghost's power is
+        // a product of reflectances as small as 1e-5, which float's sum would lose.
+        const FresnelPolynomial& poly = in.coatings[s.coating];
+        const size_t degree = poly.coefficients.size() - 1;
+        const T lo = static_cast<T>(poly.lo);
+        const double scale = 2.0 / (1.0 - poly.lo);
+        const double offset = (1.0 + poly.lo) / (1.0 - poly.lo);
+#pragma GCC ivdep
+        for (size_t i = 0; i < n; ++i) {
+            b1[i] = 0.0;
+            b2[i] = 0.0;
+        }
+        for (size_t j = degree; j >= 1; --j) {
+            const double a = poly.coefficients[j];
+#pragma GCC ivdep
+            for (size_t i = 0; i < n; ++i) {
+                const double x = static_cast<double>(cosi[i]) * scale - offset;
+                const double b0 = 2.0 * x * b1[i] - b2[i] + a;
+                b2[i] = b1[i];
+                b1[i] = b0;
+            }
+        }
+        const double a0 = poly.coefficients[0];
+#pragma GCC ivdep
+        for (size_t i = 0; i < n; ++i) {
+            const double x = static_cast<double>(cosi[i]) * scale - offset;
+            const double r = x * b1[i] - b2[i] + a0;
+            factor[i] = reflect ? r : 1.0 - r;
+        }
+#pragma GCC ivdep
+        for (size_t i = 0; i < n; ++i) thr[i] *= cosi[i] >= lo ? static_cast<T>(factor[i]) : T(1);
+        // Lanes below the fitted range (near internal reflection, rare): the exact formula, one
+        // by one.
+        for (size_t i = 0; i < n; ++i) {
+            if (cosi[i] >= lo || alive[i] == T(0)) continue;
+            const FresnelResult f = fresnelCoated(s.n1, s.coat_index, s.coat_thickness_nm, s.n2,
+                                                  static_cast<double>(cosi[i]), in.wavelength_nm);
+            thr[i] *= static_cast<T>(reflect ? f.reflectance : f.transmittance);
+        }
+    }
+}
+
+template <typename T>
+using Kernel = void (*)(const KernelInput&, size_t, Lanes<T>&);
+
+template <typename T>
+void traceLanesSse2(const KernelInput& in, size_t n, Lanes<T>& w) {
+    traceLanes<T>(in, n, w);
+}
+
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+#define FLARELAB_ROW_TRACER_AVX2 1
+template <typename T>
+[[gnu::target("avx2")]] void traceLanesAvx2(const KernelInput& in, size_t n, Lanes<T>& w) {
+    traceLanes<T>(in, n, w);
+}
+#endif
+
+bool processorHasAvx2() {
+#ifdef FLARELAB_ROW_TRACER_AVX2
+    static const bool has = [] {
+        __builtin_cpu_init();
+        return __builtin_cpu_supports("avx2") != 0;
+    }();
+    return has;
+#else
+    return false;
+#endif
+}
+
+template <typename T>
+Kernel<T> kernelFor(bool avx2) {
+#ifdef FLARELAB_ROW_TRACER_AVX2
+    if (avx2) return &traceLanesAvx2<T>;
+#else
+    (void)avx2;
+#endif
+    return &traceLanesSse2<T>;
+}
+
+template <typename T>
+void runRow(const KernelInput& in,
+            bool avx2,
+            std::span<const double> x,
+            std::span<const double> y,
+            double z_rel,
+            const Eigen::Vector3d& direction,
+            TracedRow& out) {
+    const size_t n = x.size();
+    Lanes<T> w(n);
+    for (size_t i = 0; i < n; ++i) {
+        w.px[i] = static_cast<T>(x[i]);
+        w.py[i] = static_cast<T>(y[i]);
+        w.pz[i] = static_cast<T>(z_rel);
+        w.dx[i] = static_cast<T>(direction.x());
+        w.dy[i] = static_cast<T>(direction.y());
+        w.dz[i] = static_cast<T>(direction.z());
+    }
+    kernelFor<T>(avx2)(in, n, w);
+    out.resize(n);
+    for (size_t i = 0; i < n; ++i) {
+        out.x_mm[i] = static_cast<double>(w.px[i]);
+        out.y_mm[i] = static_cast<double>(w.py[i]);
+        out.throughput[i] = static_cast<double>(w.throughput[i]);
+        out.stop_u[i] = static_cast<double>(w.stop_u[i]);
+        out.stop_v[i] = static_cast<double>(w.stop_v[i]);
+        out.aperture_ratio[i] = std::sqrt(static_cast<double>(w.ratio2[i]));
+        const bool finite = std::isfinite(out.x_mm[i]) && std::isfinite(out.y_mm[i]) &&
+                            std::isfinite(out.throughput[i]) && std::isfinite(out.stop_u[i]) &&
+                            std::isfinite(out.stop_v[i]);
+        out.status[i] = w.alive[i] == T(0) || !finite ? 0 : (w.cut[i] != T(0) ? 2 : 1);
+    }
+}
+
+}  // namespace
+
+RowTracer::RowTracer(const Lens& lens,
+                     const GhostPath& path,
+                     double wavelength_nm,
+                     const Options& options)
+    : wavelength_nm_(wavelength_nm), options_(options) {
+    // PathTracer checks the path and lays out its crossings; this tracer takes them over.
+    const PathTracer exact(lens, path, wavelength_nm);
+    inv_stop_semi_aperture_ = 1.0 / exact.stop_semi_aperture_mm_;
+    double previous_z = 0.0;
+    for (size_t k = 0; k < exact.steps_.size(); ++k) {
+        const PathTracer::Step& e = exact.steps_[k];
+        Step s;
+        switch (e.kind) {
+            case PathTracer::StepKind::Refract:
+                s.kind = Step::Refract;
+                break;
+            case PathTracer::StepKind::Reflect:
+                s.kind = Step::Reflect;
+                break;
+            case PathTracer::StepKind::Stop:
+                s.kind = Step::Stop;
+                break;
+            case PathTracer::StepKind::Image:
+                s.kind = Step::Image;
+                break;
+        }
+        if (k == 0) first_vertex_z_mm_ = e.z_mm;
+        s.shift_mm = k == 0 ? 0.0 : e.z_mm - previous_z;
+        previous_z = e.z_mm;
+        s.curvature = e.curvature;
+        s.semi_aperture2 = e.semi_aperture2;
+        s.inv_semi_aperture2 = e.semi_aperture2 > 0.0 ? 1.0 / e.semi_aperture2 : 0.0;
+        s.n1 = e.n1;
+        s.n2 = e.n2;
+        s.eta = e.n1 / e.n2;
+        s.same_medium = e.n1 == e.n2;
+        s.first_stop_crossing = e.first_stop_crossing;
+        s.coated = e.coated;
+        s.coat_index = e.coat_index;
+        s.coat_thickness_nm = e.coat_thickness_nm;
+        if (e.coated && s.kind != Step::Stop && s.kind != Step::Image) {
+            s.coating = static_cast<int>(coatings_.size());
+            coatings_.push_back(cachedFit({e.n1, e.coat_index, e.coat_thickness_nm, e.n2,
+                                           wavelength_nm, options.fresnel_tolerance}));
+        } else {
+            s.coated = false;
+        }
+        steps_.push_back(s);
+    }
+}
+
+std::pair<RowTracer::Precision, double> RowTracer::choosePrecision(std::span<const double> x,
+                                                                   std::span<const double> y,
+                                                                   double z,
+                                                                   const Eigen::Vector3d& direction,
+                                                                   double tolerance_mm) {
+    TracedRow narrow, wide;
+    options_.precision = Precision::Float;
+    trace(x, y, z, direction, narrow);
+    options_.precision = Precision::Double;
+    trace(x, y, z, direction, wide);
+    // Positions count as they are; stop coordinates by what they move the ghost's stop edge on
+    // the sensor: their error times the half-size of the footprint.
+    double worst_position = 0.0, worst_stop = 0.0;
+    double lo_x = 0.0, hi_x = 0.0, lo_y = 0.0, hi_y = 0.0;
+    bool any = false;
+    for (size_t i = 0; i < x.size(); ++i) {
+        if (narrow.status[i] == 0 || wide.status[i] == 0) continue;
+        worst_position = std::max(worst_position, std::hypot(narrow.x_mm[i] - wide.x_mm[i],
+                                                             narrow.y_mm[i] - wide.y_mm[i]));
+        worst_stop = std::max(worst_stop, std::hypot(narrow.stop_u[i] - wide.stop_u[i],
+                                                     narrow.stop_v[i] - wide.stop_v[i]));
+        lo_x = any ? std::min(lo_x, wide.x_mm[i]) : wide.x_mm[i];
+        hi_x = any ? std::max(hi_x, wide.x_mm[i]) : wide.x_mm[i];
+        lo_y = any ? std::min(lo_y, wide.y_mm[i]) : wide.y_mm[i];
+        hi_y = any ? std::max(hi_y, wide.y_mm[i]) : wide.y_mm[i];
+        any = true;
+    }
+    const double half_size = 0.5 * std::max(hi_x - lo_x, hi_y - lo_y);
+    const double worst = std::max(worst_position, worst_stop * half_size);
+    options_.precision = worst <= tolerance_mm ? Precision::Float : Precision::Double;
+    return {options_.precision, worst};
+}
+
+bool RowTracer::usesAvx2() const { return options_.allow_avx2 && processorHasAvx2(); }
+
+void RowTracer::trace(std::span<const double> x,
+                      std::span<const double> y,
+                      double z,
+                      const Eigen::Vector3d& direction,
+                      TracedRow& out) const {
+    FLARELAB_CHECK_EQ(x.size(), y.size());
+    const KernelInput in{steps_.data(),    steps_.size(),           coatings_.data(),
+                         options_.fresnel, inv_stop_semi_aperture_, wavelength_nm_};
+    const double z_rel = z - first_vertex_z_mm_;
+    if (options_.precision == Precision::Float)
+        runRow<float>(in, usesAvx2(), x, y, z_rel, direction, out);
+    else
+        runRow<double>(in, usesAvx2(), x, y, z_rel, direction, out);
+}
+
+}  // namespace flarelab::optics
