@@ -97,6 +97,14 @@ render::SceneOptions baseOptions(const RenderBenchOptions& o) {
     return s;
 }
 
+// The image every figure is measured against: every ghost (no culling), traced ray by ray in
+// double, on the full eq. 13 grids.
+render::SceneOptions truthOptions(render::SceneOptions s) {
+    s.cull_relative_l2 = 0.0;
+    s.grid_tracer = optics::GridTracer::Exact;
+    return s;
+}
+
 }  // namespace
 
 Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
@@ -170,7 +178,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
         for (const int count : o.light_counts) {
             const auto lights = lightsFor(count);
             log << "bench render: " << name << ", " << count << " light(s): reference\n";
-            render::SceneOptions ref_options = baseOptions(o);
+            render::SceneOptions ref_options = truthOptions(baseOptions(o));
             ref_options.tiled = false;
             auto reference = timed(lens, lights, ref_options, o.repeat);
             if (!reference) return reference.error();
@@ -276,6 +284,44 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
             << o.light_counts.front() << " light(s))\n\n"
             << tiles_md.str();
 
+    // Ghost culling per lens: how many ghost grids each budget drops, the time, and the PSNR
+    // against the truth (tiled, light merge, one light).
+    doc["cull"] = nlohmann::json::array();
+    if (o.cull && !o.quick) {
+        out << "\n## Ghost culling (" << o.width << "x" << o.height
+            << ", 1 light, light merge; PSNR against every ghost, exact tracer, no merge)\n\n"
+            << "| lens | cull_relative_l2 | ghost grids drawn | culled | estimated dropped L2 | "
+               "total ms | PSNR dB |\n|---|---|---|---|---|---|---|\n";
+        for (size_t li = 0; li < lenses.size(); ++li) {
+            const std::string name = std::filesystem::path(o.lens_files[li]).stem().string();
+            const auto lights = lightsFor(1);
+            render::SceneOptions truth_options = truthOptions(baseOptions(o));
+            log << "bench render: cull: " << name << ", the truth\n";
+            auto truth = timed(lenses[li], lights, truth_options, 1);
+            if (!truth) return truth.error();
+            for (const double cull : {0.0, 1e-4, 1e-3, 1e-2}) {
+                log << "bench render: cull: " << name << ", " << cull << "\n";
+                render::SceneOptions options = baseOptions(o);
+                options.merge = render::kLightMerge;
+                options.cull_relative_l2 = cull;
+                auto run = timed(lenses[li], lights, options, o.repeat);
+                if (!run) return run.error();
+                const double p = psnrOr(run->image, truth->image);
+                doc["cull"].push_back({{"name", name},
+                                       {"cull_relative_l2", cull},
+                                       {"ghost_grids", run->stats.ghosts_drawn},
+                                       {"culled", run->stats.ghosts_culled},
+                                       {"estimated_dropped_l2", run->stats.culled_relative_l2},
+                                       {"total_ms", run->total_ms},
+                                       {"psnr_db", finiteOrNull(p)}});
+                out << "| " << name << " | " << cull << " | " << run->stats.ghosts_drawn << " | "
+                    << run->stats.ghosts_culled << " | " << fixed(run->stats.culled_relative_l2, 5)
+                    << " | " << fixed(run->total_ms) << " | " << fixed(p) << " |\n";
+                out.flush();
+            }
+        }
+    }
+
     // The speed/accuracy trade, against a dense grid.
     const size_t trade_lens = [&] {
         for (size_t i = 0; i < o.lens_files.size(); ++i)
@@ -286,7 +332,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
     if (o.trade) {
         const optics::Lens& lens = lenses[trade_lens];
         const auto lights = lightsFor(1);
-        render::SceneOptions dense = baseOptions(o);
+        render::SceneOptions dense = truthOptions(baseOptions(o));
         dense.width = o.width / 2;
         dense.height = o.height / 2;
         dense.base_grid = 1024;
@@ -308,6 +354,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
                 render::SceneOptions options = dense;
                 options.base_grid = grid;
                 options.merge = m.merge;
+                options.grid_tracer = optics::GridTracer::Auto;  // no culling: grid and merge alone
                 auto run = timed(lens, lights, options, o.repeat);
                 if (!run) return run.error();
                 const double p = psnrOr(run->image, truth->image);
@@ -336,6 +383,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
             options.merge = render::kLightMerge;
             auto tiled = timed(lens, lightsFor(count), options, o.repeat);
             if (!tiled) return tiled.error();
+            options = truthOptions(options);
             options.tiled = false;
             options.merge = render::kNoMerge;
             auto reference = timed(lens, lightsFor(count), options, o.repeat);
@@ -360,6 +408,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
             options.merge = render::kLightMerge;
             auto tiled = timed(lens, lightsFor(1), options, o.repeat);
             if (!tiled) return tiled.error();
+            options = truthOptions(options);
             options.tiled = false;
             options.merge = render::kNoMerge;
             auto reference = timed(lens, lightsFor(1), options, o.repeat);

@@ -35,6 +35,7 @@ struct RenderBenchOptions {
     bool lenses = true;   // the per-lens tables (Tables 2-7)
     bool trade = true;    // grid size x merge against a dense-grid reference
     bool scaling = true;  // lights 1..8, image 480p..4K
+    bool cull = true;     // ghost culling: cull_relative_l2 from 0 to 1e-2, per lens
 };
 
 // Runs the benchmark, prints Markdown tables to `out` as it goes (progress to `log`) and returns

@@ -277,6 +277,23 @@ SimCamera::SimCamera(Key,
     options_.render.width = options_.width_px;
     options_.render.height = options_.height_px;
     options_.render.starburst = false;  // the light's image is drawn here (light_image_)
+    // A simulated capture keeps every ghost a camera could record: it drops only those whose mean
+    // falls below 1 % of one pixel's noise (background and dark shot noise and read noise) at the
+    // longest exposure the camera allows, in image units.
+    {
+        const optics::CameraDescription& sensor = lens_.camera();
+        const double pixel_area_mm2 =
+            (sensor.sensor_width_mm / static_cast<double>(options_.width_px)) *
+            (sensor.sensor_height_mm / static_cast<double>(options_.height_px));
+        const double to_e_s = options_.quantum_scale / pixel_area_mm2;
+        const double t = options_.max_exposure_s;
+        const double noise_e = std::sqrt(
+            (options_.background_e_s + options_.dark_current_e_s) * t +
+            options_.read_noise_e * options_.read_noise_e);
+        options_.render.cull_relative_l2 = 0.0;
+        options_.render.cull_mean_below =
+            to_e_s > 0.0 && t > 0.0 && std::isfinite(to_e_s) ? 0.01 * noise_e / (t * to_e_s) : 0.0;
+    }
     const int64_t n = options_.width_px * options_.height_px;
     const auto hot = static_cast<int64_t>(std::llround(options_.hot_pixel_fraction * n));
     if (hot > 0) {

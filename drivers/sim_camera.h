@@ -43,7 +43,9 @@
 // (4 e/DN, 12 bits), while the light's core saturates every exposure of a 0.25 / 1 / 4 s bracket,
 // as on the rig. The default render settings (simRenderDefaults) trade accuracy for speed: a
 // 0..30 deg sweep at 0.2 deg (151 angles x 3 exposures) at 640 x 427 takes about 20 s on two
-// shared cores in fast mode (SimCameraTiming.DISABLED_SweepTiming measures it).
+// shared cores in fast mode (SimCameraTiming.DISABLED_SweepTiming measures it). Ghosts are
+// culled against the sensor's noise floor, not the renderer's relative budget: one whose mean is
+// below 1 % of a pixel's noise at max_exposure_s is not drawn (render::SceneOptions).
 //
 // Response. By default the converter is linear, as above. SimResponse::Gamma and ::Log stand for
 // cameras that bend their output before they hand it out (a webcam's gamma curve; a logarithmic

@@ -116,6 +116,10 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return invalid("merge gamma must be finite and >= 0");
     if (options.probe_grid < 2 || options.probe_grid > 256)
         return invalid("probe_grid must lie in 2..256");
+    if (!(options.cull_relative_l2 >= 0.0 && options.cull_relative_l2 <= 1.0))
+        return invalid("cull_relative_l2 must lie in 0..1");
+    if (!(options.cull_mean_below >= 0.0) || !std::isfinite(options.cull_mean_below))
+        return invalid("cull_mean_below must be finite and >= 0");
     if (!(options.grid_sigma > 0.0) || !(options.grid_phi > 0.0) ||
         !std::isfinite(options.grid_sigma) || !std::isfinite(options.grid_phi))
         return invalid("grid_sigma and grid_phi must be positive");
@@ -169,11 +173,19 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return Ok{};
     };
     // One grid per light, ghost and channel, with its eq. 13 size from a probe grid whose entry
-    // square the full grid reuses.
+    // square the full grid reuses. The probes come first, all of them, so that culling can weigh
+    // each ghost against all the others.
     struct Task {
-        const Light* light;
-        const optics::GhostPath* path;
-        int channel;
+        const Light* light = nullptr;
+        const optics::GhostPath* path = nullptr;
+        int channel = 0;
+        // From the probe:
+        bool lit = false;  // some valid ray, and the footprint touches the image
+        int n = 0;         // the full grid's size (eq. 13)
+        optics::EntrySquare square;
+        double power = 0.0;     // on the image, in image units summed over pixels
+        double area_px = 0.0;   // of the footprint on the image
+        double l2_share = 0.0;  // power^2 / area
     };
     struct Traced {
         GhostQuads quads;
@@ -181,33 +193,77 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         int64_t rays = 0;
         Status status = Ok{};
     };
+    const double width_px = static_cast<double>(options.width);
+    const double height_px = static_cast<double>(options.height);
+    const auto probeTask = [&](Task& task) -> Status {
+        const double theta = degToRad(task.light->theta_deg), phi = degToRad(task.light->phi_deg);
+        optics::RayGridOptions probe_options;
+        probe_options.tracer = options.grid_tracer;
+        const auto probe =
+            optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
+                                 options.probe_grid, probe_options);
+        if (!probe) return probe.error();
+        if (probe->validCount() == 0) return Ok{};
+        task.n = adaptiveGridSize(options.base_grid, footprintArea(*probe), sensor_area,
+                                  options.grid_sigma, options.grid_phi);
+        task.square = probe->square();
+        // The footprint in pixels, and the power that lands on the image. A probe cell stands
+        // for cell_area of the entry plane.
+        const double cell = 2.0 * probe->entry_half_width_mm / (probe->n - 1);
+        double lo_x = 1e300, hi_x = -1e300, lo_y = 1e300, hi_y = -1e300, power = 0.0;
+        double spacing = 0.0;  // the largest step between neighbouring valid samples (pixels)
+        for (int iy = 0; iy < probe->n; ++iy) {
+            for (int ix = 0; ix < probe->n; ++ix) {
+                const optics::GridSample& s = probe->at(ix, iy);
+                if (!s.valid) continue;
+                const Eigen::Vector2d p = mapping.toPixels(s.sensor_x_mm, s.sensor_y_mm);
+                lo_x = std::min(lo_x, p.x());
+                hi_x = std::max(hi_x, p.x());
+                lo_y = std::min(lo_y, p.y());
+                hi_y = std::max(hi_y, p.y());
+                if (p.x() >= 0.0 && p.x() <= width_px && p.y() >= 0.0 && p.y() <= height_px)
+                    power += s.throughput * cell * cell;
+                for (const auto& [dx, dy] : {std::pair{1, 0}, std::pair{0, 1}}) {
+                    if (ix + dx >= probe->n || iy + dy >= probe->n) continue;
+                    const optics::GridSample& t = probe->at(ix + dx, iy + dy);
+                    if (!t.valid) continue;
+                    spacing = std::max(spacing, (mapping.toPixels(t.sensor_x_mm, t.sensor_y_mm) - p)
+                                                    .lpNorm<Eigen::Infinity>());
+                }
+            }
+        }
+        // Grown by one probe cell: the full grid's quads reach that far past the probe's rays.
+        lo_x -= spacing;
+        hi_x += spacing;
+        lo_y -= spacing;
+        hi_y += spacing;
+        const double in_x = std::min(hi_x, width_px) - std::max(lo_x, 0.0);
+        const double in_y = std::min(hi_y, height_px) - std::max(lo_y, 0.0);
+        if (!(in_x > 0.0 && in_y > 0.0)) return Ok{};
+        task.lit = true;
+        task.power = power * task.light->rgb[task.channel];
+        task.area_px = std::max(1.0, in_x * in_y);
+        task.l2_share = task.power * task.power / task.area_px;
+        return Ok{};
+    };
     const auto traceTask = [&](const Task& task) {
         Traced out;
         const double theta = degToRad(task.light->theta_deg), phi = degToRad(task.light->phi_deg);
-        const double lambda = kChannel_nm[task.channel];
-        const auto probe =
-            optics::traceRayGrid(lens, *task.path, theta, phi, lambda, options.probe_grid);
-        if (!probe) {
-            out.status = probe.error();
-            return out;
-        }
-        if (probe->validCount() == 0) return out;
-        const int n = adaptiveGridSize(options.base_grid, footprintArea(*probe), sensor_area,
-                                       options.grid_sigma, options.grid_phi);
         optics::RayGridOptions grid_options;
-        grid_options.square = probe->square();
-        const auto grid =
-            optics::traceRayGrid(lens, *task.path, theta, phi, lambda, n, grid_options);
+        grid_options.square = task.square;
+        grid_options.tracer = options.grid_tracer;
+        const auto grid = optics::traceRayGrid(lens, *task.path, theta, phi,
+                                               kChannel_nm[task.channel], task.n, grid_options);
         if (!grid) {
             out.status = grid.error();
             return out;
         }
         out.quads = quadsFromGrid(*grid, mapping, options.merge);
         out.quad_count = static_cast<int64_t>(out.quads.quads.size());
-        out.rays = static_cast<int64_t>(n) * n;
+        out.rays = static_cast<int64_t>(task.n) * task.n;
         return out;
     };
-    std::vector<Task> tasks;
+    std::vector<Task> probed;
     for (const Light& light : lights) {
         if (light.theta_deg >= 90.0) {
             ++st.lights_behind;
@@ -215,14 +271,59 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         }
         for (const optics::GhostPath& path : enumeration->ghosts)
             for (int c = 0; c < 3; ++c)
-                if (light.rgb[c] > 0.0f) tasks.push_back({&light, &path, c});
+                if (light.rgb[c] > 0.0f) {
+                    Task task;
+                    task.light = &light;
+                    task.path = &path;
+                    task.channel = c;
+                    probed.push_back(task);
+                }
     }
+    const auto start = Clock::now();
+    std::vector<Status> probe_status(probed.size(), Ok{});
+    tbb::parallel_for(size_t{0}, probed.size(),
+                      [&](size_t i) { probe_status[i] = probeTask(probed[i]); });
+    for (const Status& status : probe_status)
+        if (!status) return status.error();
+    // Culling: the faintest first, while their shares together stay within the budget.
+    double total_share = 0.0;
+    for (const Task& t : probed) total_share += t.lit ? t.l2_share : 0.0;
+    std::vector<size_t> faintest;
+    for (size_t i = 0; i < probed.size(); ++i)
+        if (probed[i].lit) faintest.push_back(i);
+    std::sort(faintest.begin(), faintest.end(),
+              [&](size_t a, size_t b) { return probed[a].l2_share < probed[b].l2_share; });
+    const double budget = options.cull_relative_l2 * options.cull_relative_l2 * total_share;
+    double dropped = 0.0;
+    std::vector<bool> culled(probed.size(), false);
+    for (const size_t i : faintest) {
+        if (dropped + probed[i].l2_share > budget) break;
+        dropped += probed[i].l2_share;
+        culled[i] = true;
+    }
+    std::vector<Task> tasks;
+    double culled_share = 0.0;
+    for (size_t i = 0; i < probed.size(); ++i) {
+        const Task& t = probed[i];
+        if (!t.lit) {
+            st.ghosts_off_image += t.n > 0 ? 1 : 0;
+            continue;
+        }
+        const bool faint =
+            options.cull_mean_below > 0.0 && t.power / t.area_px < options.cull_mean_below;
+        if (culled[i] || faint) {
+            ++st.ghosts_culled;
+            culled_share += t.l2_share;
+            continue;
+        }
+        tasks.push_back(t);
+    }
+    st.culled_relative_l2 = total_share > 0.0 ? std::sqrt(culled_share / total_share) : 0.0;
     const auto count = [&](const Traced& t) {
         ++st.ghosts_drawn;
         st.quads += t.quad_count;
         st.rays += t.rays;
     };
-    const auto start = Clock::now();
     if (options.tiled) {
         // Tasks in blocks, each block traced in parallel and its primitives appended in task
         // order; a block is a few tasks per core, so memory stays bounded.

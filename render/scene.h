@@ -25,11 +25,11 @@
 #include <cstdint>
 #include <span>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "optics/ghosts.h"
 #include "optics/lens.h"
 #include "render/ghost_quads.h"
-#include "common/image.h"
 #include "render/starburst.h"
 #include "render/tiles.h"
 
@@ -60,10 +60,24 @@ struct SceneOptions {
     // The tiled renderer draws whenever this many primitives are waiting (sizeof(Primitive),
     // 400 bytes, each), so memory stays bounded for any lens, grid and number of lights.
     int64_t max_pending_primitives = 1'000'000;
+    // Culling, from each ghost's probe grid (per light and channel): its power on the image P and
+    // the area A it spreads over there (pixels) give its mean value P / A and its share of the
+    // image's L2 norm, P^2 / A. Ghosts whose probe footprint, grown by one probe cell, misses the
+    // image are always skipped. Then the faintest ghosts are dropped as long as their shares
+    // together stay within cull_relative_l2^2 of all ghosts' (0: keep every ghost), and any ghost
+    // whose mean value is below cull_mean_below (image units; a simulated sensor's noise floor).
+    double cull_relative_l2 = 1e-3;
+    double cull_mean_below = 0.0;
+    // How the ray grids are traced (ray_grid.h): Auto (float lanes where a probe allows) for
+    // speed, Exact for a reference image.
+    optics::GridTracer grid_tracer = optics::GridTracer::Auto;
 };
 
 struct SceneStats {
-    int64_t ghosts_drawn = 0;  // ghost x light x channel grids that put light in the image
+    int64_t ghosts_drawn = 0;         // ghost x light x channel grids that put light in the image
+    int64_t ghosts_off_image = 0;     // skipped: the probe's footprint misses the image
+    int64_t ghosts_culled = 0;        // dropped by cull_relative_l2 or cull_mean_below
+    double culled_relative_l2 = 0.0;  // the dropped ghosts' estimated share of the L2 norm
     int64_t quads = 0;
     int64_t rays = 0;
     int lights_behind = 0;  // lights at 90 degrees or more, skipped

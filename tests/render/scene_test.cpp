@@ -4,6 +4,7 @@
 #include <tbb/global_control.h>
 
 #include <cmath>
+#include <limits>
 
 #include "render/metrics.h"
 #include "tests/test_paths.h"
@@ -150,6 +151,81 @@ TEST(RenderScene, RejectsBadLightsAndOptionsNamingThem) {
     o = small();
     o.base_grid = 1;
     EXPECT_FALSE(renderScene(heliar(), {}, o));
+}
+
+double relativeL2(const ImageRGB& test, const ImageRGB& truth) {
+    double diff = 0.0, norm = 0.0;
+    for (size_t i = 0; i < truth.pixels.size(); ++i) {
+        const double d = double{test.pixels[i]} - truth.pixels[i];
+        diff += d * d;
+        norm += double{truth.pixels[i]} * truth.pixels[i];
+    }
+    return std::sqrt(diff / norm);
+}
+
+TEST(RenderScene, CullingDropsTheFaintestGhostsWithinItsL2Budget) {
+    for (const char* file : {"heliar-tronnier.csv", "nikon-tele-zoom.csv"}) {
+        SCOPED_TRACE(file);
+        const optics::Lens lens =
+            *optics::Lens::make(*optics::loadPrescription(flarelab::testing::lensPath(file)),
+                                optics::CameraDescription{});
+        SceneOptions o = small();
+        o.width = 192;
+        o.height = 128;
+        o.base_grid = 32;
+        o.starburst = false;
+        o.cull_relative_l2 = 0.0;
+        const Light light{8.0, 30.0, {1, 1, 1}};
+        SceneStats all;
+        const auto truth = renderScene(lens, std::span(&light, 1), o, &all);
+        ASSERT_TRUE(truth);
+        EXPECT_EQ(all.ghosts_culled, 0);
+        int64_t culled_before = 0;
+        for (const double budget : {1e-3, 1e-2, 5e-2}) {
+            o.cull_relative_l2 = budget;
+            SceneStats stats;
+            const auto culled = renderScene(lens, std::span(&light, 1), o, &stats);
+            ASSERT_TRUE(culled);
+            EXPECT_GE(stats.ghosts_culled, culled_before);
+            culled_before = stats.ghosts_culled;
+            // A culled grid might have drawn nothing anyway (its probe touched the image, its
+            // quads did not), so the counts bound each other.
+            EXPECT_LE(stats.ghosts_drawn, all.ghosts_drawn);
+            EXPECT_GE(stats.ghosts_drawn + stats.ghosts_culled, all.ghosts_drawn);
+            EXPECT_LE(stats.culled_relative_l2, budget);
+            // The estimate ignores overlaps and shapes; the image stays within twice the budget.
+            EXPECT_LE(relativeL2(*culled, *truth), 2.0 * budget) << "budget " << budget;
+        }
+        EXPECT_GT(culled_before, 0);
+    }
+}
+
+TEST(RenderScene, AGhostBelowTheMeanFloorIsNotDrawn) {
+    SceneOptions o = small();
+    o.starburst = false;
+    o.cull_mean_below = 1e30;  // above any ghost
+    const Light light{8.0, 30.0, {1, 1, 1}};
+    SceneStats stats;
+    const auto image = renderScene(heliar(), std::span(&light, 1), o, &stats);
+    ASSERT_TRUE(image);
+    EXPECT_EQ(sum(*image), 0.0);
+    EXPECT_EQ(stats.ghosts_drawn, 0);
+    EXPECT_GT(stats.ghosts_culled, 0);
+}
+
+TEST(RenderScene, RejectsBadCullingNamingIt) {
+    for (const double bad : {-1e-3, 1.5, std::nan("")}) {
+        SceneOptions o = small();
+        o.cull_relative_l2 = bad;
+        const auto r = renderScene(heliar(), {}, o);
+        ASSERT_FALSE(r);
+        EXPECT_NE(r.error().message.find("cull_relative_l2"), std::string::npos);
+        o = small();
+        o.cull_mean_below = bad < 1.0 ? bad : std::numeric_limits<double>::infinity();
+        const auto m = renderScene(heliar(), {}, o);
+        ASSERT_FALSE(m);
+        EXPECT_NE(m.error().message.find("cull_mean_below"), std::string::npos);
+    }
 }
 
 }  // namespace
