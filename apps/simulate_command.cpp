@@ -109,7 +109,8 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
     if (!writePngPreview(*image, s.png_path, s.exposure_stops, err)) return 1;
     out << "simulate: " << lens->name() << ", " << lights.size() << " light(s)"
         << (stats.lights_behind ? " (" + std::to_string(stats.lights_behind) + " behind)" : "")
-        << ", " << stats.ghosts_drawn << " ghost grids, " << stats.quads << " quads, "
+        << ", " << stats.ghosts_drawn << " ghost grids (" << stats.ghosts_culled << " culled, "
+        << stats.ghosts_off_image << " off the image), " << stats.quads << " quads, "
         << (s.reference ? "reference" : "tiled") << ": trace " << stats.trace_ms << " ms, draw "
         << stats.draw_ms << " ms, total " << seconds << " s -> " << s.exr_path
         << (s.png_path.empty() ? "" : ", " + s.png_path) << "\n";

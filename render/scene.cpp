@@ -44,6 +44,15 @@ double footprintArea(const optics::RayGrid& grid) {
     return any ? (hi_x - lo_x) * (hi_y - lo_y) : 0.0;
 }
 
+// Whether any ray on the grid's border is valid: the beam may then reach past the grid's square.
+bool ringHasValidRays(const optics::RayGrid& grid) {
+    for (int i = 0; i < grid.n; ++i)
+        if (grid.at(i, 0).valid || grid.at(i, grid.n - 1).valid || grid.at(0, i).valid ||
+            grid.at(grid.n - 1, i).valid)
+            return true;
+    return false;
+}
+
 // The light's own image: where its chief ray lands, and the power the imaging path carries.
 void addLightImage(ImageRGB& image,
                    const optics::Lens& lens,
@@ -183,6 +192,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         bool lit = false;  // some valid ray, and the footprint touches the image
         int n = 0;         // the full grid's size (eq. 13)
         optics::EntrySquare square;
+        int aimed_again = 0;  // 1: the shared square did not hold this channel's beam
         double power = 0.0;     // on the image, in image units summed over pixels
         double area_px = 0.0;   // of the footprint on the image
         double l2_share = 0.0;  // power^2 / area
@@ -195,18 +205,28 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     };
     const double width_px = static_cast<double>(options.width);
     const double height_px = static_cast<double>(options.height);
-    const auto probeTask = [&](Task& task) -> Status {
+    // The probe of one task over `square`, the square aimed at green for its light and path.
+    // Where the probe's outer ring has valid rays and green's had none, dispersion has pushed the
+    // beam past the square: the channel is aimed on its own.
+    const auto probeTask = [&](Task& task, const optics::EntrySquare& square,
+                               bool green_ring_lit) -> Status {
         const double theta = degToRad(task.light->theta_deg), phi = degToRad(task.light->phi_deg);
         optics::RayGridOptions probe_options;
         probe_options.tracer = options.grid_tracer;
-        const auto probe =
-            optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
-                                 options.probe_grid, probe_options);
+        probe_options.square = square;
+        auto probe = optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
+                                          options.probe_grid, probe_options);
+        if (probe && !green_ring_lit && ringHasValidRays(*probe)) {
+            probe_options.square.reset();
+            probe = optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
+                                         options.probe_grid, probe_options);
+            ++task.aimed_again;
+        }
         if (!probe) return probe.error();
+        task.square = probe->square();
         if (probe->validCount() == 0) return Ok{};
         task.n = adaptiveGridSize(options.base_grid, footprintArea(*probe), sensor_area,
                                   options.grid_sigma, options.grid_phi);
-        task.square = probe->square();
         // The footprint in pixels, and the power that lands on the image. A probe cell stands
         // for cell_area of the entry plane.
         const double cell = 2.0 * probe->entry_half_width_mm / (probe->n - 1);
@@ -280,11 +300,35 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                 }
     }
     const auto start = Clock::now();
+    // The channels of one light and path share the square aimed at green (aiming is the costly
+    // part of a probe: Newton steps through every surface); each channel's own probe checks it.
+    std::vector<std::pair<size_t, size_t>> groups;  // [first, last) of tasks of one light and path
+    for (size_t i = 0; i < probed.size(); ++i)
+        if (groups.empty() || probed[i].light != probed[groups.back().first].light ||
+            probed[i].path != probed[groups.back().first].path)
+            groups.push_back({i, i + 1});
+        else
+            groups.back().second = i + 1;
     std::vector<Status> probe_status(probed.size(), Ok{});
-    tbb::parallel_for(size_t{0}, probed.size(),
-                      [&](size_t i) { probe_status[i] = probeTask(probed[i]); });
+    tbb::parallel_for(size_t{0}, groups.size(), [&](size_t g) {
+        const auto [first, last] = groups[g];
+        const Light& light = *probed[first].light;
+        optics::RayGridOptions aim;
+        aim.tracer = options.grid_tracer;
+        auto green =
+            optics::traceRayGrid(lens, *probed[first].path, degToRad(light.theta_deg),
+                                 degToRad(light.phi_deg), kLambdaGreen_nm, options.probe_grid, aim);
+        if (!green) {
+            probe_status[first] = green.error();
+            return;
+        }
+        const bool green_ring_lit = ringHasValidRays(*green);
+        for (size_t i = first; i < last; ++i)
+            probe_status[i] = probeTask(probed[i], green->square(), green_ring_lit);
+    });
     for (const Status& status : probe_status)
         if (!status) return status.error();
+    for (const Task& t : probed) st.channels_aimed_again += t.aimed_again;
     // Culling: the faintest first, while their shares together stay within the budget.
     double total_share = 0.0;
     for (const Task& t : probed) total_share += t.lit ? t.l2_share : 0.0;

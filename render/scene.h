@@ -74,10 +74,11 @@ struct SceneOptions {
 };
 
 struct SceneStats {
-    int64_t ghosts_drawn = 0;         // ghost x light x channel grids that put light in the image
-    int64_t ghosts_off_image = 0;     // skipped: the probe's footprint misses the image
-    int64_t ghosts_culled = 0;        // dropped by cull_relative_l2 or cull_mean_below
-    double culled_relative_l2 = 0.0;  // the dropped ghosts' estimated share of the L2 norm
+    int64_t ghosts_drawn = 0;          // ghost x light x channel grids that put light in the image
+    int64_t ghosts_off_image = 0;      // skipped: the probe's footprint misses the image
+    int64_t ghosts_culled = 0;         // dropped by cull_relative_l2 or cull_mean_below
+    double culled_relative_l2 = 0.0;   // the dropped ghosts' estimated share of the L2 norm
+    int64_t channels_aimed_again = 0;  // red or blue beams that did not fit green's square
     int64_t quads = 0;
     int64_t rays = 0;
     int lights_behind = 0;  // lights at 90 degrees or more, skipped
