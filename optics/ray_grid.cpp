@@ -128,7 +128,8 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
         TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = options.fresnel});
     const auto finite = [](const GridSample& s) {
         return std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
-               std::isfinite(s.stop_u) && std::isfinite(s.stop_v) && std::isfinite(s.throughput);
+               std::isfinite(s.stop_u) && std::isfinite(s.stop_v) && std::isfinite(s.throughput) &&
+               std::isfinite(s.open_throughput) && std::isfinite(s.aperture_ratio);
     };
     grid.samples.assign(static_cast<size_t>(n) * static_cast<size_t>(n), GridSample{});
     // A row at a time through traceBatch: the same results as ray by ray, several times faster.
@@ -145,7 +146,10 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
             GridSample& s = grid.samples[static_cast<size_t>(iy) * n + ix];
             s.sensor_x_mm = static_cast<float>(traced[ix]->ray.position.x());
             s.sensor_y_mm = static_cast<float>(traced[ix]->ray.position.y());
-            s.throughput = cut ? 0.0f : static_cast<float>(traced[ix]->ray.throughput);
+            s.open_throughput = static_cast<float>(traced[ix]->ray.throughput);
+            s.throughput = cut ? 0.0f : s.open_throughput;
+            s.aperture_ratio =
+                options.clip_apertures ? static_cast<float>(traced[ix]->aperture_ratio) : 0.0f;
             s.stop_u = static_cast<float>(traced[ix]->stop_u);
             s.stop_v = static_cast<float>(traced[ix]->stop_v);
             s.has_position = finite(s);

@@ -19,6 +19,10 @@ namespace {
 
 constexpr double kChannel_nm[3] = {kLambdaRed_nm, kLambdaGreen_nm, kLambdaBlue_nm};
 
+// Rays per side of the grid whose integral is the light's own power (imagingPower): the stop's
+// outline crosses about 100 of its cells, each sampled finely.
+constexpr int kLightGrid = 32;
+
 using Clock = std::chrono::steady_clock;
 
 double millisecondsSince(Clock::time_point start) {
@@ -60,15 +64,11 @@ void addLightImage(ImageRGB& image,
     Eigen::Vector2d centre_mm = Eigen::Vector2d::Zero();
     bool placed = false;
     for (int c = 0; c < 3; ++c) {
-        const auto grid =
-            optics::traceRayGrid(lens, optics::GhostPath{}, degToRad(light.theta_deg),
-                                 degToRad(light.phi_deg), kChannel_nm[c], options.probe_grid);
+        const auto grid = optics::traceRayGrid(lens, optics::GhostPath{}, degToRad(light.theta_deg),
+                                               degToRad(light.phi_deg), kChannel_nm[c],
+                                               std::max(options.probe_grid, kLightGrid));
         if (!grid || grid->n < 2) continue;
-        const double cell = 2.0 * grid->entry_half_width_mm / (grid->n - 1);
-        double through = 0.0;
-        for (const optics::GridSample& s : grid->samples)
-            if (s.valid && lens.aperture().contains(s.stop_u, s.stop_v)) through += s.throughput;
-        power[c] = static_cast<float>(light.rgb[c] * through * cell * cell);
+        power[c] = static_cast<float>(light.rgb[c] * imagingPower(*grid, lens.aperture()));
         if (c == 1) {
             const optics::PathTracer chief(lens, optics::GhostPath{}, kLambdaGreen_nm);
             const auto entry =
