@@ -35,6 +35,10 @@ struct RenderBenchOptions {
     bool lenses = true;   // the per-lens tables (Tables 2-7)
     bool trade = true;    // grid size x merge against a dense-grid reference
     bool scaling = true;  // lights 1..8, image 480p..4K
+    // N > 0: also draw the main configuration with N x N point samples per pixel (the same
+    // primitives; RasterOptions::supersample) and report the default image's PSNR against it
+    // (`truth_psnr_db`, `truth_ms`): how far pixel-area integration is from the sampled truth.
+    int truth_samples = 0;
 };
 
 // Runs the benchmark, prints Markdown tables to `out` as it goes (progress to `log`) and returns

@@ -352,37 +352,52 @@ namespace {
 // 64 blades).
 constexpr int kMaxPolygon = 4 + 4 + 1 + 64 + 3;
 struct Polygon {
-    int n = 4;
-    std::array<double, kMaxPolygon> x{-0.5, 0.5, 0.5, -0.5};
-    std::array<double, kMaxPolygon> y{-0.5, -0.5, 0.5, 0.5};
+    int n = 0;
+    double x[kMaxPolygon];  // left uninitialized: a pixel that needs no cut never touches them
+    double y[kMaxPolygon];
 };
 
-// Keeps the part of `poly` where h + gx x + gy y >= 0 (one step of Sutherland-Hodgman).
-void clip(Polygon& poly, double h, double gx, double gy) {
-    Polygon out;
+void setPixelSquare(Polygon& poly) {
+    poly.n = 4;
+    poly.x[0] = -0.5, poly.y[0] = -0.5;
+    poly.x[1] = 0.5, poly.y[1] = -0.5;
+    poly.x[2] = 0.5, poly.y[2] = 0.5;
+    poly.x[3] = -0.5, poly.y[3] = 0.5;
+}
+
+// Writes to `out` the part of `in` where h + gx x + gy y >= 0 (one step of Sutherland-Hodgman).
+void clip(const Polygon& in, double h, double gx, double gy, Polygon& out) {
     out.n = 0;
-    for (int i = 0; i < poly.n; ++i) {
-        const int j = i + 1 < poly.n ? i + 1 : 0;
-        const double hi =
-            h + gx * poly.x[static_cast<size_t>(i)] + gy * poly.y[static_cast<size_t>(i)];
-        const double hj =
-            h + gx * poly.x[static_cast<size_t>(j)] + gy * poly.y[static_cast<size_t>(j)];
+    for (int i = 0; i < in.n; ++i) {
+        const int j = i + 1 < in.n ? i + 1 : 0;
+        const double hi = h + gx * in.x[i] + gy * in.y[i];
+        const double hj = h + gx * in.x[j] + gy * in.y[j];
         if (hi >= 0.0 && out.n < kMaxPolygon) {
-            out.x[static_cast<size_t>(out.n)] = poly.x[static_cast<size_t>(i)];
-            out.y[static_cast<size_t>(out.n++)] = poly.y[static_cast<size_t>(i)];
+            out.x[out.n] = in.x[i];
+            out.y[out.n++] = in.y[i];
         }
         if ((hi >= 0.0) != (hj >= 0.0) && out.n < kMaxPolygon) {
             const double t = hi / (hi - hj);
-            out.x[static_cast<size_t>(out.n)] =
-                poly.x[static_cast<size_t>(i)] +
-                t * (poly.x[static_cast<size_t>(j)] - poly.x[static_cast<size_t>(i)]);
-            out.y[static_cast<size_t>(out.n++)] =
-                poly.y[static_cast<size_t>(i)] +
-                t * (poly.y[static_cast<size_t>(j)] - poly.y[static_cast<size_t>(i)]);
+            out.x[out.n] = in.x[i] + t * (in.x[j] - in.x[i]);
+            out.y[out.n++] = in.y[i] + t * (in.y[j] - in.y[i]);
         }
     }
-    poly = out;
 }
+
+// The pixel square and the cuts made to it so far, in two buffers used in turn.
+class PixelPart {
+public:
+    PixelPart() { setPixelSquare(buffer_[0]); }
+    void cut(double h, double gx, double gy) {
+        clip(buffer_[current_], h, gx, gy, buffer_[1 - current_]);
+        current_ = 1 - current_;
+    }
+    const Polygon& polygon() const { return buffer_[current_]; }
+
+private:
+    Polygon buffer_[2];
+    int current_ = 0;
+};
 
 struct AreaCentroid {
     double area = 0.0;
@@ -392,8 +407,8 @@ AreaCentroid measure(const Polygon& poly) {
     double twice = 0.0, cx = 0.0, cy = 0.0;
     for (int i = 0; i < poly.n; ++i) {
         const int j = i + 1 < poly.n ? i + 1 : 0;
-        const double xi = poly.x[static_cast<size_t>(i)], yi = poly.y[static_cast<size_t>(i)];
-        const double xj = poly.x[static_cast<size_t>(j)], yj = poly.y[static_cast<size_t>(j)];
+        const double xi = poly.x[i], yi = poly.y[i];
+        const double xj = poly.x[j], yj = poly.y[j];
         const double cross = xi * yj - xj * yi;
         twice += cross;
         cx += (xi + xj) * cross;
@@ -458,19 +473,19 @@ bool interpolateConvex(const Primitive& p, double px, double py, bool gradient, 
 // the centroid of what is left; the throughput taken at the centroid of the final part.
 double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask& stop) {
     const double cx = static_cast<double>(x) + 0.5, cy = static_cast<double>(y) + 0.5;
-    Polygon poly;
+    PixelPart poly;
     bool clipped = false;
     for (const EdgeFunction& e : p.edge) {
         // The edge function is linear: over the pixel it stays within `reach` of its centre value.
         const double a = e.at(cx, cy);
         if (!(a > -e.reach)) return 0.0;
         if (a < e.reach) {
-            clip(poly, a, e.gradX(), e.gradY());
+            poly.cut(a, e.gradX(), e.gradY());
             clipped = true;
         }
     }
     AreaCentroid part{1.0, 0.0, 0.0};
-    if (clipped) part = measure(poly);
+    if (clipped) part = measure(poly.polygon());
     if (!(part.area > 0.0)) return 0.0;
     const bool stop_clear = p.stop_radius <= stop.inscribedRadius();
     const bool masked = !stop_clear || !p.vignette_clear;
@@ -485,7 +500,7 @@ double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask&
             const double reach = 0.5 * (std::abs(gx) + std::abs(gy));
             if (h >= reach) return true;
             if (!(h > -reach)) return false;
-            clip(poly, h, gx, gy);
+            poly.cut(h, gx, gy);
             cut = true;
             return true;
         };
@@ -508,7 +523,7 @@ double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask&
             }
         }
         if (cut) {
-            const AreaCentroid rest = measure(poly);
+            const AreaCentroid rest = measure(poly.polygon());
             if (!(rest.area > 0.0)) return 0.0;
             throughput += at.dx[0] * (rest.x - part.x) + at.dy[0] * (rest.y - part.y);
             part = rest;

@@ -4,7 +4,6 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
-#include <cstdio>
 #include <numbers>
 #include <string>
 #include <utility>
@@ -263,8 +262,6 @@ TEST(AreaIntegration, MatchesA16x16SupersampledTruthOnShippedLenses) {
                     const auto db = psnr(area, truth);
                     ASSERT_TRUE(db.has_value());
                     EXPECT_GE(*db, 50.0);
-                    std::printf("truth %s blades %d theta %.2f ghost %s n %d: %.1f dB\n", file,
-                                blades, theta_deg, optics::pathLabel(path).c_str(), n, *db);
                     ++drawn;
                 }
             }
