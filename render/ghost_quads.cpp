@@ -426,44 +426,44 @@ struct Attributes {
     std::array<double, 4> value{}, dx{}, dy{};
 };
 bool interpolateConvex(const Primitive& p, double px, double py, bool gradient, Attributes& out) {
-    double a[4], ax[4], ay[4];
-    for (int i = 0; i < 4; ++i) {
-        const EdgeFunction& e = p.edge[static_cast<size_t>(i)];
-        a[i] = std::max(0.0, e.at(px, py));  // the point is inside up to rounding
-        ax[i] = e.gradX();
-        ay[i] = e.gradY();
-    }
-    double w[4], wx[4], wy[4];
-    double total = 0.0, total_x = 0.0, total_y = 0.0;
+    double a[4];
+    for (int i = 0; i < 4; ++i)
+        a[i] = std::max(0.0, p.edge[static_cast<size_t>(i)].at(px, py));  // inside up to rounding
+    const auto& c = p.quad.corners;
+    const auto& area = p.corner_area;
+    const double w[4] = {area[0] * a[1] * a[2], area[1] * a[2] * a[3], area[2] * a[3] * a[0],
+                         area[3] * a[0] * a[1]};
+    const double total = w[0] + w[1] + w[2] + w[3];
+    if (!(total > 0.0)) return false;
+    const auto mix = [&](const double* weights, std::array<double, 4>& sums) {
+        sums = {0.0, 0.0, 0.0, 0.0};
+        for (int i = 0; i < 4; ++i) {
+            sums[0] += weights[i] * c[static_cast<size_t>(i)].throughput;
+            sums[1] += weights[i] * c[static_cast<size_t>(i)].stop_u;
+            sums[2] += weights[i] * c[static_cast<size_t>(i)].stop_v;
+            sums[3] += weights[i] * c[static_cast<size_t>(i)].aperture_ratio;
+        }
+    };
+    mix(w, out.value);
+    for (double& v : out.value) v /= total;
+    if (!gradient) return true;
+    double wx[4], wy[4];
+    double total_x = 0.0, total_y = 0.0;
     for (int i = 0; i < 4; ++i) {
         const int j = (i + 1) % 4, k = (i + 2) % 4;
-        const double c = p.corner_area[static_cast<size_t>(i)];
-        w[i] = c * a[j] * a[k];
-        wx[i] = c * (a[k] * ax[j] + a[j] * ax[k]);
-        wy[i] = c * (a[k] * ay[j] + a[j] * ay[k]);
-        total += w[i];
+        const EdgeFunction& ej = p.edge[static_cast<size_t>(j)];
+        const EdgeFunction& ek = p.edge[static_cast<size_t>(k)];
+        wx[i] = area[static_cast<size_t>(i)] * (a[k] * ej.gradX() + a[j] * ek.gradX());
+        wy[i] = area[static_cast<size_t>(i)] * (a[k] * ej.gradY() + a[j] * ek.gradY());
         total_x += wx[i];
         total_y += wy[i];
     }
-    if (!(total > 0.0)) return false;
-    for (int f = 0; f < 4; ++f) {
-        double sum = 0.0, sum_x = 0.0, sum_y = 0.0;
-        for (int i = 0; i < 4; ++i) {
-            const QuadCorner& c = p.quad.corners[static_cast<size_t>(i)];
-            const double v = f == 0   ? c.throughput
-                             : f == 1 ? c.stop_u
-                             : f == 2 ? c.stop_v
-                                      : c.aperture_ratio;
-            sum += w[i] * v;
-            sum_x += wx[i] * v;
-            sum_y += wy[i] * v;
-        }
-        const double value = sum / total;
-        out.value[static_cast<size_t>(f)] = value;
-        if (gradient) {
-            out.dx[static_cast<size_t>(f)] = (sum_x - value * total_x) / total;
-            out.dy[static_cast<size_t>(f)] = (sum_y - value * total_y) / total;
-        }
+    std::array<double, 4> sum_x, sum_y;
+    mix(wx, sum_x);
+    mix(wy, sum_y);
+    for (size_t f = 0; f < 4; ++f) {
+        out.dx[f] = (sum_x[f] - out.value[f] * total_x) / total;
+        out.dy[f] = (sum_y[f] - out.value[f] * total_y) / total;
     }
     return true;
 }
