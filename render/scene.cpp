@@ -114,6 +114,8 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return invalid("merge steps must lie in 0..7");
     if (!(options.merge.gamma >= 0.0) || !std::isfinite(options.merge.gamma))
         return invalid("merge gamma must be finite and >= 0");
+    if (options.raster.supersample < 0 || options.raster.supersample > 64)
+        return invalid("raster supersample must lie in 0..64");
     if (options.probe_grid < 2 || options.probe_grid > 256)
         return invalid("probe_grid must lie in 2..256");
     if (!(options.grid_sigma > 0.0) || !(options.grid_phi > 0.0) ||

@@ -18,6 +18,7 @@
 #include "render/ghost_quads.h"
 #include "render/metrics.h"
 #include "render/model_ghost.h"
+#include "render/scene.h"
 #include "render/tiles.h"
 #include "tests/test_paths.h"
 
@@ -295,6 +296,21 @@ TEST(AreaIntegration, TheLightsPowerConvergesWithTheGrid) {
                     EXPECT_EQ(s.valid, s.aperture_ratio <= 1.0f);
                 }
         }
+    }
+}
+
+// A sampling count out of range is an error naming the field, not an abort.
+TEST(AreaIntegration, RenderSceneRefusesASupersampleOutOfRange) {
+    const optics::Lens lens = loadLens("heliar-tronnier.csv");
+    SceneOptions options;
+    options.width = 16;
+    options.height = 16;
+    const Light light{5.0, 0.0, {1.0f, 1.0f, 1.0f}};
+    for (const int samples : {-1, 65}) {
+        options.raster.supersample = samples;
+        const auto image = renderScene(lens, {&light, 1}, options);
+        ASSERT_FALSE(image.has_value());
+        EXPECT_NE(image.error().message.find("supersample"), std::string::npos);
     }
 }
 
