@@ -39,6 +39,10 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     render->add_flag("!--no-trade", options->trade, "skip the grid-size x merge trade table");
     render->add_flag("!--no-scaling", options->scaling, "skip the lights and image-size tables");
     render->add_flag("!--no-cull", options->cull, "skip the ghost-culling table");
+    render
+        ->add_option("--truth-samples", options->truth_samples,
+                     "also PSNR against N x N point samples per pixel (0: not)")
+        ->check(CLI::Range(0, 64));
     render->add_option("--json", *json_path, "also write the results as JSON here");
     render->callback([options, json_path, lights, &out, &err, &exit_code] {
         if (*lights > 0) options->light_counts = {*lights};

@@ -131,6 +131,8 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
             return makeError(ErrorCode::InvalidArgument, "bench: --lights must lie in 1..64");
     if (o.repeat < 1 || o.repeat > 100)
         return makeError(ErrorCode::InvalidArgument, "bench: --repeat must lie in 1..100");
+    if (o.truth_samples < 0 || o.truth_samples > 64)
+        return makeError(ErrorCode::InvalidArgument, "bench: --truth-samples must lie in 0..64");
 
     std::vector<optics::Lens> lenses;
     for (const std::string& file : o.lens_files) {
@@ -240,6 +242,20 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
                             {"psnr_db", finiteOrNull(p)},
                             {"ghost_grids", tiled->stats.ghosts_drawn},
                             {"rays", tiled->stats.rays}};
+                if (o.truth_samples > 0) {
+                    log << "bench render: " << name << ", " << count
+                        << " light(s): " << o.truth_samples << " x " << o.truth_samples
+                        << " samples per pixel\n";
+                    render::SceneOptions truth_options = options;
+                    truth_options.raster.supersample = o.truth_samples;
+                    auto truth = timed(lens, lights, truth_options, 1);
+                    if (!truth) return truth.error();
+                    main_row["truth_psnr_db"] = finiteOrNull(psnrOr(tiled->image, truth->image));
+                    main_row["truth_ms"] = truth->total_ms;
+                    log << "bench render: " << name << ": "
+                        << fixed(psnrOr(tiled->image, truth->image)) << " dB against "
+                        << o.truth_samples << " x " << o.truth_samples << " samples\n";
+                }
                 out << "| " << name << " | " << count << " | " << fixed(tiled->stats.trace_ms)
                     << " | " << fixed(t.build_ms) << " | " << fixed(t.traverse_ms) << " | "
                     << fixed(tiled->total_ms) << " | " << fixed(one_thread_ms) << " | "

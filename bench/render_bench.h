@@ -36,6 +36,10 @@ struct RenderBenchOptions {
     bool trade = true;    // grid size x merge against a dense-grid reference
     bool scaling = true;  // lights 1..8, image 480p..4K
     bool cull = true;     // ghost culling: cull_relative_l2 from 0 to 1e-2, per lens
+    // N > 0: also draw the main configuration with N x N point samples per pixel (the same
+    // primitives; RasterOptions::supersample) and report the default image's PSNR against it
+    // (`truth_psnr_db`, `truth_ms`): how far pixel-area integration is from the sampled truth.
+    int truth_samples = 0;
 };
 
 // Runs the benchmark, prints Markdown tables to `out` as it goes (progress to `log`) and returns

@@ -15,6 +15,7 @@
 #include "optics/prescription.h"
 #include "optics/ray_grid.h"
 #include "optics/tracer.h"
+#include "render/ghost_quads.h"
 
 namespace flarelab::drivers {
 namespace {
@@ -102,11 +103,7 @@ SimLightSpot simLightSpot(const optics::Lens& lens, const render::Light& light) 
         const auto grid =
             optics::traceRayGrid(lens, imaging, theta, phi, kChannel_nm[c], kLightGrid);
         if (!grid || grid->n < 2) continue;
-        const double cell_mm = 2.0 * grid->entry_half_width_mm / (grid->n - 1);
-        double through = 0.0;
-        for (const optics::GridSample& s : grid->samples)
-            if (s.valid && lens.aperture().contains(s.stop_u, s.stop_v)) through += s.throughput;
-        spot.power[c] = light.rgb[c] * through * cell_mm * cell_mm;
+        spot.power[c] = light.rgb[c] * render::imagingPower(*grid, lens.aperture());
         if (c != 1) continue;
         const Eigen::Vector3d direction = optics::lightDirection(theta, phi);
         const optics::EntryPlane plane = optics::defaultEntryPlane(lens);

@@ -126,16 +126,19 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
     // had in a wider lens and carries no light.
     grid.samples.assign(static_cast<size_t>(n) * static_cast<size_t>(n), GridSample{});
     const auto store = [&](GridSample& s, double x, double y, double throughput, double u, double v,
-                           bool cut_by_aperture) {
+                           bool cut_by_aperture, double aperture_ratio) {
         const bool cut = options.clip_apertures && cut_by_aperture;
         s.sensor_x_mm = static_cast<float>(x);
         s.sensor_y_mm = static_cast<float>(y);
-        s.throughput = cut ? 0.0f : static_cast<float>(throughput);
+        s.open_throughput = static_cast<float>(throughput);
+        s.throughput = cut ? 0.0f : s.open_throughput;
+        s.aperture_ratio = options.clip_apertures ? static_cast<float>(aperture_ratio) : 0.0f;
         s.stop_u = static_cast<float>(u);
         s.stop_v = static_cast<float>(v);
         s.has_position = std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
                          std::isfinite(s.stop_u) && std::isfinite(s.stop_v) &&
-                         std::isfinite(s.throughput);
+                         std::isfinite(s.throughput) && std::isfinite(s.open_throughput) &&
+                         std::isfinite(s.aperture_ratio);
         s.valid = !cut && s.has_position;
         if (!s.has_position) s = GridSample{};
     };
@@ -155,7 +158,8 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
                 if (!traced[ix]) continue;  // missed a surface or totally reflected: no geometry
                 const TracedRay& t = *traced[ix];
                 store(grid.samples[static_cast<size_t>(iy) * n + ix], t.ray.position.x(),
-                      t.ray.position.y(), t.ray.throughput, t.stop_u, t.stop_v, t.cut);
+                      t.ray.position.y(), t.ray.throughput, t.stop_u, t.stop_v, t.cut,
+                      t.aperture_ratio);
             }
         }
         return grid;
@@ -199,7 +203,8 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
         for (int ix = 0; ix < n; ++ix) {
             if (row.status[ix] == 0) continue;
             store(grid.samples[static_cast<size_t>(iy) * n + ix], row.x_mm[ix], row.y_mm[ix],
-                  row.throughput[ix], row.stop_u[ix], row.stop_v[ix], row.status[ix] == 2);
+                  row.throughput[ix], row.stop_u[ix], row.stop_v[ix], row.status[ix] == 2,
+                  row.aperture_ratio[ix]);
         }
     }
     return grid;

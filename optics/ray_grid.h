@@ -36,6 +36,11 @@ struct GridSample {
     float stop_v = 0.0f;
     bool valid = false;         // reached the sensor through every clear aperture
     bool has_position = false;  // position and stop coordinates are meaningful (valid or cut)
+    // TracedRay::aperture_ratio (above 1: cut) and the throughput the ray would carry if no clear
+    // aperture cut it, so a renderer can place the vignetting edge between rays instead of
+    // fading the light over a whole cell. Both meaningful where has_position is.
+    float aperture_ratio = 0.0f;
+    float open_throughput = 0.0f;
 };
 
 // The square of the entry plane a grid covers.

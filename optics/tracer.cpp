@@ -1,5 +1,6 @@
 #include "optics/tracer.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -142,6 +143,7 @@ bool PathTracer::advance(const Step& step, RayState& r) const {
     if (step.kind == StepKind::Image) return true;
     const double r2 = r.p.x() * r.p.x() + r.p.y() * r.p.y();
     if (step.kind == StepKind::Stop) return stopCrossing(step, r);
+    r.aperture_ratio2 = std::max(r.aperture_ratio2, r2 / step.semi_aperture2);
     if (r2 > step.semi_aperture2) {
         if (options_.clip_apertures) return false;
         r.out.cut = true;
@@ -163,6 +165,7 @@ std::optional<TracedRay> PathTracer::finish(RayState& r) const {
     r.out.ray.direction = r.d;
     r.out.ray.wavelength_nm = wavelength_nm_;
     r.out.ray.throughput = r.throughput;
+    r.out.aperture_ratio = std::sqrt(r.aperture_ratio2);
     r.out.ray.valid =
         std::isfinite(r.p.x()) && std::isfinite(r.p.y()) && std::isfinite(r.throughput);
     if (!r.out.ray.valid) return std::nullopt;
@@ -172,7 +175,7 @@ std::optional<TracedRay> PathTracer::finish(RayState& r) const {
 std::optional<TracedRay> PathTracer::trace(const Ray& input) const {
     FLARELAB_DCHECK(input.wavelength_nm == wavelength_nm_);
     if (!input.valid) return std::nullopt;
-    RayState r{input.position, input.direction, input.throughput, {}};
+    RayState r{input.position, input.direction, input.throughput, 0.0, {}};
     for (const Step& step : steps_)
         if (!advance(step, r)) return std::nullopt;
     return finish(r);
@@ -188,7 +191,7 @@ void PathTracer::traceBatch(std::span<const Ray> rays,
         FLARELAB_DCHECK(rays[i].wavelength_nm == wavelength_nm_);
         out[i].reset();
         if (!rays[i].valid) continue;
-        state[i] = RayState{rays[i].position, rays[i].direction, rays[i].throughput, {}};
+        state[i] = RayState{rays[i].position, rays[i].direction, rays[i].throughput, 0.0, {}};
         alive.push_back(static_cast<uint32_t>(i));
     }
     // Each step in phases over all live rays (intersect, clip, bend, Fresnel): short loops of
@@ -216,6 +219,7 @@ void PathTracer::traceBatch(std::span<const Ray> rays,
         for (const uint32_t i : alive) {
             RayState& r = state[i];
             const double r2 = r.p.x() * r.p.x() + r.p.y() * r.p.y();
+            r.aperture_ratio2 = std::max(r.aperture_ratio2, r2 / step.semi_aperture2);
             if (r2 > step.semi_aperture2) {
                 if (options_.clip_apertures) continue;
                 r.out.cut = true;

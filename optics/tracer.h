@@ -48,6 +48,11 @@ struct TracedRay {
     // With clip_apertures off: whether the ray passed outside some clear aperture (it would have
     // been dropped with clipping on). Always false with clipping on.
     bool cut = false;
+    // The largest ratio of the ray's distance from the axis to a surface's clear semi-aperture,
+    // over the refracting and reflecting surfaces it met (not the stop, not the image plane):
+    // above 1 exactly when the ray is cut. The renderer interpolates it across a quad, as it
+    // does the stop coordinates, to place a vignetting edge inside a grid cell.
+    double aperture_ratio = 0.0;
 };
 
 class PathTracer {
@@ -107,6 +112,7 @@ private:
         Eigen::Vector3d p = Eigen::Vector3d::Zero();
         Eigen::Vector3d d = Eigen::Vector3d::UnitZ();
         double throughput = 1.0;
+        double aperture_ratio2 = 0.0;  // squared; TracedRay::aperture_ratio at the end
         TracedRay out;
     };
     bool advance(const Step& step, RayState& r) const;

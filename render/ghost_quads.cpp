@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "common/check.h"
 #include "common/units.h"
@@ -42,6 +43,7 @@ void setUpConvex(Primitive& p) {
         // turning with sign `turn` keeps its inside when it runs a -> b.
         edge.sign = (forward ? 1.0 : -1.0) * static_cast<double>(turn);
         edge.closed = forward;  // of the two quads sharing the edge, the one running s -> e
+        edge.reach = 0.5 * (std::abs(edge.dx) + std::abs(edge.dy));
     }
     for (int i = 0; i < 4; ++i) {
         const Eigen::Vector2d u = c[i].position_px - c[(i + 3) % 4].position_px;
@@ -56,6 +58,7 @@ void setUpConvex(Primitive& p) {
 StopMask::StopMask(const optics::ApertureShape& shape) {
     if (shape.blades < 3) return;
     blades_ = shape.blades;
+    inscribed_radius_ = std::cos(kPi / blades_);
     const double step = 2.0 * kPi / blades_;
     const double apothem = std::cos(kPi / blades_);
     for (int k = 0; k < blades_; ++k) {
@@ -111,9 +114,13 @@ Quad quadFrom(const optics::RayGrid& grid, const SensorToImage& mapping, int ix,
     Quad q;
     for (int k = 0; k < 4; ++k) {
         q.corners[k].position_px = mapping.toPixels(s[k]->sensor_x_mm, s[k]->sensor_y_mm);
-        q.corners[k].throughput = s[k]->valid ? s[k]->throughput : 0.0f;
+        // A cut ray keeps the light it would carry: its aperture ratio cuts it between rays.
+        q.corners[k].throughput = s[k]->valid          ? s[k]->throughput
+                                  : s[k]->has_position ? s[k]->open_throughput
+                                                       : 0.0f;
         q.corners[k].stop_u = s[k]->stop_u;
         q.corners[k].stop_v = s[k]->stop_v;
+        q.corners[k].aperture_ratio = s[k]->aperture_ratio;
     }
     return q;
 }
@@ -211,6 +218,47 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
     return out;
 }
 
+namespace {
+
+// Non-convex quads (folds at caustics, flat corners) are point-sampled this many times per side
+// in each pixel: they are rare, and their interpolation (mean value coordinates, triangles) has
+// no cheap gradient to place edges with.
+constexpr int kNonConvexSamples = 4;
+// Convex quads below this area (px^2) are splats even when integrated: their edge functions and
+// weights lose their digits, and their light fits in one pixel anyway.
+constexpr double kMinIntegratedArea = 1e-9;
+
+// Distance from the origin to the convex hull of four points, 0 when the hull holds it.
+double hullDistanceFromOrigin(const std::array<Eigen::Vector2d, 4>& p) {
+    // The origin lies in the hull when it lies in one of the four triangles of three corners.
+    for (int skip = 0; skip < 4; ++skip) {
+        int sides[3], k = 0;
+        std::array<Eigen::Vector2d, 3> t;
+        for (int i = 0; i < 4; ++i)
+            if (i != skip) t[static_cast<size_t>(k++)] = p[static_cast<size_t>(i)];
+        for (int e = 0; e < 3; ++e)
+            sides[e] = orientation(t[static_cast<size_t>(e)], t[static_cast<size_t>((e + 1) % 3)],
+                                   Eigen::Vector2d::Zero());
+        const bool no_negative = sides[0] >= 0 && sides[1] >= 0 && sides[2] >= 0;
+        const bool no_positive = sides[0] <= 0 && sides[1] <= 0 && sides[2] <= 0;
+        if (no_negative || no_positive) return 0.0;
+    }
+    // Outside: the nearest point lies on a hull edge, and every pair's segment lies in the hull,
+    // so the nearest of the six segments is it.
+    double best = std::numeric_limits<double>::infinity();
+    for (int i = 0; i < 4; ++i)
+        for (int j = i + 1; j < 4; ++j) {
+            const Eigen::Vector2d& a = p[static_cast<size_t>(i)];
+            const Eigen::Vector2d d = p[static_cast<size_t>(j)] - a;
+            const double length2 = d.squaredNorm();
+            const double t = length2 > 0.0 ? std::clamp(-a.dot(d) / length2, 0.0, 1.0) : 0.0;
+            best = std::min(best, (a + t * d).norm());
+        }
+    return best;
+}
+
+}  // namespace
+
 std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           double cell_area_mm2,
                                           int channel,
@@ -219,10 +267,12 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           int64_t height,
                                           const RasterOptions& options) {
     FLARELAB_CHECK(channel >= 0 && channel < 3);
+    FLARELAB_CHECK(options.supersample >= 0 && options.supersample <= 64);
     if (width < 1 || height < 1 || !(irradiance > 0.0f) || !std::isfinite(irradiance))
         return std::nullopt;
     double lo_x = quad.corners[0].position_px.x(), hi_x = lo_x;
     double lo_y = quad.corners[0].position_px.y(), hi_y = lo_y;
+    bool lit = false;
     for (const QuadCorner& c : quad.corners) {
         if (!std::isfinite(c.position_px.x()) || !std::isfinite(c.position_px.y()))
             return std::nullopt;
@@ -230,15 +280,21 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
         hi_x = std::max(hi_x, c.position_px.x());
         lo_y = std::min(lo_y, c.position_px.y());
         hi_y = std::max(hi_y, c.position_px.y());
+        lit = lit || c.throughput > 0.0f;
     }
+    if (!lit) return std::nullopt;
     Primitive p;
     p.quad = quad;
     p.channel = channel;
-    const double min_area = std::max(options.min_quad_area_px, 1e-12);
     const double area = quadArea(quad);
-    if (area < min_area) {
-        // Smaller than a pixel: it may hold no pixel centre at all, and point sampling would
-        // lose its light. It goes whole to the pixel under its centre, masked there.
+    const bool convex = quadIsConvex(quad);
+    const int samples = options.supersample;
+    const double min_area = std::max(options.min_quad_area_px, 1e-12);
+    const bool splat = samples > 0 ? area < min_area / (static_cast<double>(samples) * samples)
+                                   : (convex ? area < kMinIntegratedArea : area < min_area);
+    if (splat) {
+        // Too small to sample or integrate: it goes whole to the pixel under its centre, masked
+        // there.
         const Eigen::Vector2d centre =
             0.25 * (quad.corners[0].position_px + quad.corners[1].position_px +
                     quad.corners[2].position_px + quad.corners[3].position_px);
@@ -250,38 +306,269 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
         p.y0 = p.y1 = static_cast<int64_t>(centre.y());
         p.scale = irradiance * cell_area_mm2;
     } else {
-        // Pixel centres x + 0.5 inside [lo, hi], clamped to the image in double before any
+        // Every pixel the quad's box overlaps, clamped to the image in double before any
         // conversion, so quads far outside cost nothing and cannot overflow an index.
-        const double x0 = std::max(0.0, std::ceil(lo_x - 0.5));
-        const double x1 = std::min(static_cast<double>(width) - 1.0, std::floor(hi_x - 0.5));
-        const double y0 = std::max(0.0, std::ceil(lo_y - 0.5));
-        const double y1 = std::min(static_cast<double>(height) - 1.0, std::floor(hi_y - 0.5));
+        const double x0 = std::max(0.0, std::floor(lo_x));
+        const double x1 = std::min(static_cast<double>(width) - 1.0, std::ceil(hi_x) - 1.0);
+        const double y0 = std::max(0.0, std::floor(lo_y));
+        const double y1 = std::min(static_cast<double>(height) - 1.0, std::ceil(hi_y) - 1.0);
         if (x0 > x1 || y0 > y1) return std::nullopt;
         p.x0 = static_cast<int64_t>(x0);
         p.x1 = static_cast<int64_t>(x1);
         p.y0 = static_cast<int64_t>(y0);
         p.y1 = static_cast<int64_t>(y1);
         p.scale = irradiance * cell_area_mm2 / area;
-        if (quadIsConvex(quad)) setUpConvex(p);
+        if (convex) {
+            setUpConvex(p);
+            // What the corners say about the whole quad: its interpolated values are convex
+            // mixtures of theirs, and the stop and the clear apertures' limit are convex.
+            bool all_clear = true, all_cut = true;
+            std::array<Eigen::Vector2d, 4> stop_uv;
+            for (int i = 0; i < 4; ++i) {
+                const QuadCorner& c = quad.corners[static_cast<size_t>(i)];
+                all_clear = all_clear && c.aperture_ratio <= 1.0f;
+                all_cut = all_cut && c.aperture_ratio > 1.0f;
+                stop_uv[static_cast<size_t>(i)] = {c.stop_u, c.stop_v};
+                p.stop_radius = std::max(p.stop_radius, stop_uv[static_cast<size_t>(i)].norm());
+            }
+            if (all_cut) return std::nullopt;
+            p.vignette_clear = all_clear;
+            // A hull farther than 1 from the stop's centre misses the circle and every blade
+            // polygon inscribed in it.
+            if (hullDistanceFromOrigin(stop_uv) > 1.0) return std::nullopt;
+        }
+        if (samples > 0)
+            p.supersample = samples;
+        else if (!convex)
+            p.supersample = kNonConvexSamples;
     }
     if (!std::isfinite(p.scale)) return std::nullopt;
     return p;
 }
+namespace {
+
+// A convex polygon in pixel coordinates relative to the pixel's centre: the pixel square cut by
+// half-planes, each cut adding at most one corner (4 quad edges, one clear-aperture edge, up to
+// 64 blades).
+constexpr int kMaxPolygon = 4 + 4 + 1 + 64 + 3;
+struct Polygon {
+    int n = 0;
+    double x[kMaxPolygon];  // left uninitialized: a pixel that needs no cut never touches them
+    double y[kMaxPolygon];
+};
+
+void setPixelSquare(Polygon& poly) {
+    poly.n = 4;
+    poly.x[0] = -0.5, poly.y[0] = -0.5;
+    poly.x[1] = 0.5, poly.y[1] = -0.5;
+    poly.x[2] = 0.5, poly.y[2] = 0.5;
+    poly.x[3] = -0.5, poly.y[3] = 0.5;
+}
+
+// Writes to `out` the part of `in` where h + gx x + gy y >= 0 (one step of Sutherland-Hodgman).
+void clip(const Polygon& in, double h, double gx, double gy, Polygon& out) {
+    out.n = 0;
+    for (int i = 0; i < in.n; ++i) {
+        const int j = i + 1 < in.n ? i + 1 : 0;
+        const double hi = h + gx * in.x[i] + gy * in.y[i];
+        const double hj = h + gx * in.x[j] + gy * in.y[j];
+        if (hi >= 0.0 && out.n < kMaxPolygon) {
+            out.x[out.n] = in.x[i];
+            out.y[out.n++] = in.y[i];
+        }
+        if ((hi >= 0.0) != (hj >= 0.0) && out.n < kMaxPolygon) {
+            const double t = hi / (hi - hj);
+            out.x[out.n] = in.x[i] + t * (in.x[j] - in.x[i]);
+            out.y[out.n++] = in.y[i] + t * (in.y[j] - in.y[i]);
+        }
+    }
+}
+
+// The pixel square and the cuts made to it so far, in two buffers used in turn.
+class PixelPart {
+public:
+    PixelPart() { setPixelSquare(buffer_[0]); }
+    void cut(double h, double gx, double gy) {
+        clip(buffer_[current_], h, gx, gy, buffer_[1 - current_]);
+        current_ = 1 - current_;
+    }
+    const Polygon& polygon() const { return buffer_[current_]; }
+
+private:
+    Polygon buffer_[2];
+    int current_ = 0;
+};
+
+struct AreaCentroid {
+    double area = 0.0;
+    double x = 0.0, y = 0.0;
+};
+AreaCentroid measure(const Polygon& poly) {
+    double twice = 0.0, cx = 0.0, cy = 0.0;
+    for (int i = 0; i < poly.n; ++i) {
+        const int j = i + 1 < poly.n ? i + 1 : 0;
+        const double xi = poly.x[i], yi = poly.y[i];
+        const double xj = poly.x[j], yj = poly.y[j];
+        const double cross = xi * yj - xj * yi;
+        twice += cross;
+        cx += (xi + xj) * cross;
+        cy += (yi + yj) * cross;
+    }
+    if (!(std::abs(twice) > 0.0)) return {};
+    return {0.5 * std::abs(twice), cx / (3.0 * twice), cy / (3.0 * twice)};
+}
+
+// The corner attributes of a convex primitive (throughput, stop u and v, aperture ratio) mixed
+// with Wachspress weights at (px, py), and, when asked, their gradients in pixels: the weights
+// are w_i = C_i A_{i+1} A_{i+2} with linear A, so dw_i = C_i (A_{i+2} dA_{i+1} + A_{i+1} dA_{i+2})
+// and d(sum w f / sum w) = (sum dw f - f sum dw) / sum w. false where the weights vanish.
+struct Attributes {
+    std::array<double, 4> value{}, dx{}, dy{};
+};
+bool interpolateConvex(const Primitive& p, double px, double py, bool gradient, Attributes& out) {
+    double a[4];
+    for (int i = 0; i < 4; ++i)
+        a[i] = std::max(0.0, p.edge[static_cast<size_t>(i)].at(px, py));  // inside up to rounding
+    const auto& c = p.quad.corners;
+    const auto& area = p.corner_area;
+    const double w[4] = {area[0] * a[1] * a[2], area[1] * a[2] * a[3], area[2] * a[3] * a[0],
+                         area[3] * a[0] * a[1]};
+    const double total = w[0] + w[1] + w[2] + w[3];
+    if (!(total > 0.0)) return false;
+    const auto mix = [&](const double* weights, std::array<double, 4>& sums) {
+        sums = {0.0, 0.0, 0.0, 0.0};
+        for (int i = 0; i < 4; ++i) {
+            sums[0] += weights[i] * c[static_cast<size_t>(i)].throughput;
+            sums[1] += weights[i] * c[static_cast<size_t>(i)].stop_u;
+            sums[2] += weights[i] * c[static_cast<size_t>(i)].stop_v;
+            sums[3] += weights[i] * c[static_cast<size_t>(i)].aperture_ratio;
+        }
+    };
+    mix(w, out.value);
+    for (double& v : out.value) v /= total;
+    if (!gradient) return true;
+    double wx[4], wy[4];
+    double total_x = 0.0, total_y = 0.0;
+    for (int i = 0; i < 4; ++i) {
+        const int j = (i + 1) % 4, k = (i + 2) % 4;
+        const EdgeFunction& ej = p.edge[static_cast<size_t>(j)];
+        const EdgeFunction& ek = p.edge[static_cast<size_t>(k)];
+        wx[i] = area[static_cast<size_t>(i)] * (a[k] * ej.gradX() + a[j] * ek.gradX());
+        wy[i] = area[static_cast<size_t>(i)] * (a[k] * ej.gradY() + a[j] * ek.gradY());
+        total_x += wx[i];
+        total_y += wy[i];
+    }
+    std::array<double, 4> sum_x, sum_y;
+    mix(wx, sum_x);
+    mix(wy, sum_y);
+    for (size_t f = 0; f < 4; ++f) {
+        out.dx[f] = (sum_x[f] - out.value[f] * total_x) / total;
+        out.dy[f] = (sum_y[f] - out.value[f] * total_y) / total;
+    }
+    return true;
+}
+
+// The light of a convex primitive integrated over pixel (x, y): the pixel square cut by the
+// quad's edges exactly, then by the stop's outline and the clear-aperture limit linearized about
+// the centroid of what is left; the throughput taken at the centroid of the final part.
+double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask& stop) {
+    const double cx = static_cast<double>(x) + 0.5, cy = static_cast<double>(y) + 0.5;
+    PixelPart poly;
+    bool clipped = false;
+    for (const EdgeFunction& e : p.edge) {
+        // The edge function is linear: over the pixel it stays within `reach` of its centre value.
+        const double a = e.at(cx, cy);
+        if (!(a > -e.reach)) return 0.0;
+        if (a < e.reach) {
+            poly.cut(a, e.gradX(), e.gradY());
+            clipped = true;
+        }
+    }
+    AreaCentroid part{1.0, 0.0, 0.0};
+    if (clipped) part = measure(poly.polygon());
+    if (!(part.area > 0.0)) return 0.0;
+    const bool stop_clear = p.stop_radius <= stop.inscribedRadius();
+    const bool masked = !stop_clear || !p.vignette_clear;
+    Attributes at;
+    if (!interpolateConvex(p, cx + part.x, cy + part.y, masked, at)) return 0.0;
+    double throughput = at.value[0];
+    if (masked) {
+        bool cut = false;
+        // Keeps h(q) = h0 + g . (q - centroid) >= 0 over the polygon; false when nothing is left.
+        const auto keep = [&](double h0, double gx, double gy) {
+            const double h = h0 - gx * part.x - gy * part.y;  // at the pixel's centre
+            const double reach = 0.5 * (std::abs(gx) + std::abs(gy));
+            if (h >= reach) return true;
+            if (!(h > -reach)) return false;
+            poly.cut(h, gx, gy);
+            cut = true;
+            return true;
+        };
+        if (!p.vignette_clear && !keep(1.0 - at.value[3], -at.dx[3], -at.dy[3])) return 0.0;
+        if (!stop_clear) {
+            const double u = at.value[1], v = at.value[2];
+            if (stop.blades() == 0) {
+                const double r = std::hypot(u, v);
+                // Near the stop's centre the radius has no gradient, and no edge is near.
+                if (r > 1e-9 && !keep(1.0 - r, -(u * at.dx[1] + v * at.dx[2]) / r,
+                                      -(u * at.dy[1] + v * at.dy[2]) / r))
+                    return 0.0;
+            } else {
+                for (int k = 0; k < stop.blades(); ++k) {
+                    const double nu = stop.normalU(k), nv = stop.normalV(k);
+                    if (!keep(1.0 - (nu * u + nv * v), -(nu * at.dx[1] + nv * at.dx[2]),
+                              -(nu * at.dy[1] + nv * at.dy[2])))
+                        return 0.0;
+                }
+            }
+        }
+        if (cut) {
+            const AreaCentroid rest = measure(poly.polygon());
+            if (!(rest.area > 0.0)) return 0.0;
+            throughput += at.dx[0] * (rest.x - part.x) + at.dy[0] * (rest.y - part.y);
+            part = rest;
+        }
+    }
+    const double value = p.scale * std::max(0.0, throughput) * part.area;
+    return std::isfinite(value) ? value : 0.0;
+}
+
+// The light of a primitive that is not convex at a point, per pixel area.
+double pointValueAt(const Primitive& p, double px, double py, const StopMask& stop) {
+    if (p.convex) return convexValueAt(p, px, py, stop);
+    const auto weights = quadBarycentrics(p.quad, Eigen::Vector2d(px, py));
+    if (!weights) return 0.0;
+    const QuadSample sample = interpolateQuad(p.quad, *weights);
+    if (!(sample.throughput > 0.0f) || !(sample.aperture_ratio <= 1.0f) ||
+        !stop.contains(sample.stop_u, sample.stop_v))
+        return 0.0;
+    const double value = p.scale * sample.throughput;
+    return std::isfinite(value) ? value : 0.0;
+}
+
+}  // namespace
 
 double primitiveValueAt(const Primitive& primitive, int64_t x, int64_t y, const StopMask& stop) {
-    const double px = static_cast<double>(x) + 0.5, py = static_cast<double>(y) + 0.5;
-    if (primitive.convex) return convexValueAt(primitive, px, py, stop);
-    QuadSample sample;
     if (primitive.splat) {
-        sample = interpolateQuad(primitive.quad, {0.25, 0.25, 0.25, 0.25});
-    } else {
-        const auto weights = quadBarycentrics(primitive.quad, Eigen::Vector2d(px, py));
-        if (!weights) return 0.0;
-        sample = interpolateQuad(primitive.quad, *weights);
+        const QuadSample sample = interpolateQuad(primitive.quad, {0.25, 0.25, 0.25, 0.25});
+        if (!(sample.throughput > 0.0f) || !(sample.aperture_ratio <= 1.0f) ||
+            !stop.contains(sample.stop_u, sample.stop_v))
+            return 0.0;
+        const double value = primitive.scale * sample.throughput;
+        return std::isfinite(value) ? value : 0.0;
     }
-    if (!(sample.throughput > 0.0f) || !stop.contains(sample.stop_u, sample.stop_v)) return 0.0;
-    const double value = primitive.scale * sample.throughput;
-    return std::isfinite(value) ? value : 0.0;
+    if (primitive.supersample > 0) {
+        const int n = primitive.supersample;
+        const double step = 1.0 / n;
+        double sum = 0.0;
+        for (int j = 0; j < n; ++j) {
+            const double py = static_cast<double>(y) + (j + 0.5) * step;
+            for (int i = 0; i < n; ++i)
+                sum += pointValueAt(primitive, static_cast<double>(x) + (i + 0.5) * step, py, stop);
+        }
+        return sum / (static_cast<double>(n) * n);
+    }
+    return convexAreaValue(primitive, x, y, stop);
 }
 
 void rasterizeReference(ImageRGB& image,
@@ -301,6 +588,61 @@ void rasterizeReference(ImageRGB& image,
                 image.at(x, y)[channel] +=
                     static_cast<float>(primitiveValueAt(*primitive, x, y, stop));
     }
+}
+
+double imagingPower(const optics::RayGrid& grid, const optics::ApertureShape& aperture) {
+    if (grid.n < 2) return 0.0;
+    const StopMask stop(aperture);
+    constexpr int kSamples = 16;
+    const auto light = [](const optics::GridSample& s) {
+        return static_cast<double>(s.valid ? s.throughput : s.open_throughput);
+    };
+    double cells = 0.0;  // the sum, in cells
+    for (int iy = 0; iy + 1 < grid.n; ++iy) {
+        for (int ix = 0; ix + 1 < grid.n; ++ix) {
+            // Bilinear order: (0, 0), (1, 0), (0, 1), (1, 1).
+            const optics::GridSample* s[4] = {&grid.at(ix, iy), &grid.at(ix + 1, iy),
+                                              &grid.at(ix, iy + 1), &grid.at(ix + 1, iy + 1)};
+            bool placed = true;
+            int inside = 0, clear = 0;
+            std::array<Eigen::Vector2d, 4> uv;
+            for (int k = 0; k < 4; ++k) {
+                placed = placed && s[k]->has_position;
+                inside += stop.contains(s[k]->stop_u, s[k]->stop_v);
+                clear += s[k]->aperture_ratio <= 1.0f;
+                uv[static_cast<size_t>(k)] = {s[k]->stop_u, s[k]->stop_v};
+            }
+            if (!placed) {
+                for (const optics::GridSample* c : s)
+                    if (c->valid && stop.contains(c->stop_u, c->stop_v)) cells += 0.25 * light(*c);
+                continue;
+            }
+            if (inside == 4 && clear == 4) {
+                cells += 0.25 * (light(*s[0]) + light(*s[1]) + light(*s[2]) + light(*s[3]));
+                continue;
+            }
+            if (clear == 0 || (inside == 0 && hullDistanceFromOrigin(uv) > 1.0)) continue;
+            double sum = 0.0;
+            for (int j = 0; j < kSamples; ++j) {
+                const double b = (j + 0.5) / kSamples;
+                for (int i = 0; i < kSamples; ++i) {
+                    const double a = (i + 0.5) / kSamples;
+                    const double w[4] = {(1 - a) * (1 - b), a * (1 - b), (1 - a) * b, a * b};
+                    double t = 0.0, u = 0.0, v = 0.0, ratio = 0.0;
+                    for (int k = 0; k < 4; ++k) {
+                        t += w[k] * light(*s[k]);
+                        u += w[k] * s[k]->stop_u;
+                        v += w[k] * s[k]->stop_v;
+                        ratio += w[k] * s[k]->aperture_ratio;
+                    }
+                    if (ratio <= 1.0 && stop.contains(u, v)) sum += t;
+                }
+            }
+            cells += sum / (kSamples * kSamples);
+        }
+    }
+    const double cell = 2.0 * grid.entry_half_width_mm / (grid.n - 1);
+    return cells * cell * cell;
 }
 
 }  // namespace flarelab::render

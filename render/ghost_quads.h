@@ -10,12 +10,24 @@
 //
 // Radiometry. A grid ray stands for the light crossing one cell of the entry plane, of area
 // cell_area_mm2 (perpendicular to the axis). Landing in a quad of area A on the sensor, that light
-// spreads over A: a pixel inside receives throughput * cell_area / A (per unit of the light's
+// spreads over A: a point inside receives throughput * cell_area / A (per unit of the light's
 // irradiance, per pixel area). Summed over the image, a quad therefore delivers exactly its
 // throughput times its cell area, the power that entered through its cell: the drawing conserves
-// energy whatever the grid size. A quad smaller than a pixel may cover no pixel centre, so it is
-// not sampled but added whole to the pixel under its centre; that keeps the energy when grids get
-// denser than the image.
+// energy whatever the grid size.
+//
+// Pixels integrate over their area, as a sensor's do (and as the model ghosts of model_ghost.h
+// are drawn). A pixel gets the integral of the quad's light over the part of the pixel that lies
+// inside the quad, inside the stop and inside every clear aperture:
+//   - the quad's straight edges cut the pixel square exactly (polygon clipping);
+//   - the stop's outline and the vignetting edge are placed from the stop coordinates and the
+//     clear-aperture ratio interpolated across the quad, linearized over the pixel (their value
+//     and gradient at the centroid of what is left), and cut the same way: a circle of radius R
+//     pixels is replaced by its tangent over one pixel, an area error below 1 / (12 R) of it;
+//   - the throughput is taken at the centroid of the covered part (exact for a linear one).
+// Pixels wholly inside all of these cost one interpolation, like a point sample. Quads that are
+// not convex (folds at caustics) are point-sampled on a 4 x 4 grid per pixel. For tests and
+// truth images, RasterOptions::supersample draws every quad by point sampling N x N per pixel
+// instead, with the same interpolation.
 #pragma once
 
 #include <algorithm>
@@ -26,10 +38,10 @@
 #include <span>
 #include <vector>
 
+#include "common/image.h"
 #include "optics/aperture.h"
 #include "optics/prescription.h"
 #include "optics/ray_grid.h"
-#include "common/image.h"
 #include "render/quad.h"
 
 namespace flarelab::render {
@@ -80,9 +92,10 @@ inline constexpr MergeOptions kLightMerge{4, 0.001};
 inline constexpr MergeOptions kHeavyMerge{4, 0.1};
 
 // The quads of one traced grid, in pixels. A quad is kept when at least one of its corners is a
-// valid ray and all four have a position (a corner cut by a clear aperture carries throughput 0,
-// so the light fades out across the cut); quads with a corner that has no geometry at all (a ray
-// that missed a surface or was totally reflected) are dropped.
+// valid ray and all four have a position; quads with a corner that has no geometry at all (a ray
+// that missed a surface or was totally reflected) are dropped. A corner cut by a clear aperture
+// keeps the throughput it would have had (GridSample::open_throughput) and its aperture ratio
+// above 1: the rasterizer cuts the light where the interpolated ratio crosses 1.
 struct GhostQuads {
     std::vector<Quad> quads;
     std::vector<uint16_t> cells;  // grid cells each quad stands for (4^k); empty: all 1
@@ -96,7 +109,12 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                          const MergeOptions& merge = {});
 
 struct RasterOptions {
-    double min_quad_area_px = 1.0;  // quads below this area (px^2) are added whole at their centre
+    // Quads that are not convex and below this area (px^2) are added whole to the pixel under
+    // their centre. With supersample N, every quad below min_quad_area_px / N^2 is.
+    double min_quad_area_px = 1.0;
+    // 0: pixel-area integration (the header's comment). N in 1..64: N x N point samples per
+    // pixel, the slow reference the integration is tested against (1: the pixel centre only).
+    int supersample = 0;
 };
 
 // The stop shape as the renderers look it up, many millions of times per image: the circle, or
@@ -105,6 +123,11 @@ struct RasterOptions {
 class StopMask {
 public:
     explicit StopMask(const optics::ApertureShape& shape);
+    int blades() const { return blades_; }                        // 0: circle
+    double inscribedRadius() const { return inscribed_radius_; }  // 1, or the blades' apothem
+    // Blade k's edge normal over the apothem: inside when (u, v) . normal <= 1.
+    double normalU(int k) const { return normal_u_[static_cast<size_t>(k)]; }
+    double normalV(int k) const { return normal_v_[static_cast<size_t>(k)]; }
     bool contains(double u, double v) const {
         if (blades_ == 0) return u * u + v * v <= 1.0;
         double ratio = -1.0;
@@ -114,7 +137,8 @@ public:
     }
 
 private:
-    int blades_ = 0;                           // 0: circle
+    int blades_ = 0;  // 0: circle
+    double inscribed_radius_ = 1.0;
     std::vector<double> normal_u_, normal_v_;  // edge normals over the apothem
 };
 
@@ -126,7 +150,10 @@ struct EdgeFunction {
     double ax = 0.0, ay = 0.0, dx = 0.0, dy = 0.0;  // canonical start point and direction
     double sign = 1.0;                              // +1 or -1: the quad's inside is positive
     bool closed = true;
+    double reach = 0.0;  // how far `at` changes from a pixel's centre to its corners
     double at(double px, double py) const { return sign * (dx * (py - ay) - dy * (px - ax)); }
+    double gradX() const { return -sign * dy; }
+    double gradY() const { return sign * dx; }
 };
 
 // A quad ready to draw into one channel of a width x height image: the range of pixels it can
@@ -140,6 +167,14 @@ struct Primitive {
     int channel = 0;
     bool splat = false;   // below min_quad_area_px: drawn whole at the pixel under its centre
     bool convex = false;  // edge and corner_area hold the set-up below
+    // 0: area-integrated (convex quads); N > 0: N x N point samples per pixel.
+    int supersample = 0;
+    // Convex quads interpolate convex mixtures of their corners' values: when all four corners
+    // lie inside a convex shape, every point of the quad does. stop_radius is the corners'
+    // largest |(stop_u, stop_v)| (inside the stop's inscribed circle: no stop edge in the quad),
+    // vignette_clear whether every corner passes every clear aperture.
+    double stop_radius = 0.0;
+    bool vignette_clear = false;
     // Convex quads: edge i runs from corner i to i+1. With A_i(p) = edge[i].at(p) and C_i the
     // area of the corner triangle (i-1, i, i+1), the Wachspress weight of corner i (eq. 8-9 of
     // Bodonyi & Kunkli 2023) is C_i / (A_{i-1} A_i); multiplied through by the product of all
@@ -148,8 +183,9 @@ struct Primitive {
     std::array<double, 4> corner_area{};
 };
 
-// nullopt when the quad cannot put light in the image (outside it, non-finite, no irradiance).
-// cell_area_mm2 is the entry-plane area the quad stands for (GhostQuads::cellArea).
+// nullopt when the quad cannot put light in the image (outside it, non-finite, no irradiance, no
+// throughput, or a convex quad wholly outside the stop or a clear aperture). cell_area_mm2 is the
+// entry-plane area the quad stands for (GhostQuads::cellArea).
 std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           double cell_area_mm2,
                                           int channel,
@@ -158,9 +194,9 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           int64_t height,
                                           const RasterOptions& options = {});
 
-// What the primitive adds at pixel (x, y) of its range: 0 outside the quad or the stop shape.
-// Convex quads take the set-up path, the others quadBarycentrics (whose boundary belongs to
-// every quad that has it).
+// The light of a convex primitive at the point (px, py), per pixel area: 0 outside the quad, the
+// stop shape or a clear aperture; a point exactly on an edge shared by two quads belongs to one
+// of them (EdgeFunction::closed). What RasterOptions::supersample samples.
 inline double convexValueAt(const Primitive& p, double px, double py, const StopMask& stop) {
     double a[4];
     for (int i = 0; i < 4; ++i) {
@@ -171,27 +207,40 @@ inline double convexValueAt(const Primitive& p, double px, double py, const Stop
                          p.corner_area[2] * a[3] * a[0], p.corner_area[3] * a[0] * a[1]};
     const double total = w[0] + w[1] + w[2] + w[3];
     if (!(total > 0.0)) return 0.0;
-    double t = 0.0, u = 0.0, v = 0.0;
+    double t = 0.0, u = 0.0, v = 0.0, ratio = 0.0;
     for (int i = 0; i < 4; ++i) {
         t += w[i] * p.quad.corners[i].throughput;
         u += w[i] * p.quad.corners[i].stop_u;
         v += w[i] * p.quad.corners[i].stop_v;
+        ratio += w[i] * p.quad.corners[i].aperture_ratio;
     }
-    if (!(t > 0.0) || !stop.contains(u / total, v / total)) return 0.0;
+    if (!(t > 0.0) || !(ratio <= total) || !stop.contains(u / total, v / total)) return 0.0;
     const double value = p.scale * (t / total);
     return std::isfinite(value) ? value : 0.0;
 }
+
+// What the primitive adds to pixel (x, y) of its range: its light integrated over the pixel
+// (per pixel area), or the mean of its point samples, or for a splat its whole light masked at
+// its centre. Finite and >= 0.
 double primitiveValueAt(const Primitive& primitive, int64_t x, int64_t y, const StopMask& stop);
 
 // Adds one ghost's quads to `channel` (0 red, 1 green, 2 blue) of `image`, scaled by the light's
 // irradiance in that channel, the stop shape applied to the interpolated stop coordinates. Pixels
-// are sampled at their centres. Quads partly or wholly outside the image are clipped; nothing
-// non-finite is ever written.
+// integrate over their area (or are supersampled, options.supersample). Quads partly or wholly
+// outside the image are clipped; nothing non-finite is ever written.
 void rasterizeReference(ImageRGB& image,
                         const GhostQuads& ghost,
                         int channel,
                         float irradiance,
                         const optics::ApertureShape& aperture,
                         const RasterOptions& options = {});
+
+// The power a traced grid of the imaging path carries to the sensor per unit of the light's
+// irradiance (mm^2: the effective area of the entrance pupil), integrated as the ghosts are:
+// across each cell of the grid the four rays' throughput, stop coordinates and clear-aperture
+// ratio are interpolated bilinearly, cells wholly inside the stop and every clear aperture count
+// their mean throughput, and cells that an edge crosses are sampled 16 x 16. Cells with a ray
+// that has no geometry count their corners that pass. 0 for a grid of fewer than 2 x 2 rays.
+double imagingPower(const optics::RayGrid& grid, const optics::ApertureShape& aperture);
 
 }  // namespace flarelab::render

@@ -286,13 +286,15 @@ std::optional<std::array<double, 4>> quadBarycentrics(const Quad& quad, const Ei
 }
 
 QuadSample interpolateQuad(const Quad& quad, const std::array<double, 4>& weights) {
-    double throughput = 0.0, u = 0.0, v = 0.0;
+    double throughput = 0.0, u = 0.0, v = 0.0, ratio = 0.0;
     for (int i = 0; i < 4; ++i) {
         throughput += weights[i] * quad.corners[i].throughput;
         u += weights[i] * quad.corners[i].stop_u;
         v += weights[i] * quad.corners[i].stop_v;
+        ratio += weights[i] * quad.corners[i].aperture_ratio;
     }
-    return QuadSample{static_cast<float>(throughput), static_cast<float>(u), static_cast<float>(v)};
+    return QuadSample{static_cast<float>(throughput), static_cast<float>(u), static_cast<float>(v),
+                      static_cast<float>(ratio)};
 }
 
 }  // namespace flarelab::render

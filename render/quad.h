@@ -35,6 +35,7 @@ struct QuadCorner {
     float throughput = 0.0f;
     float stop_u = 0.0f;  // stop coordinates as in optics::GridSample
     float stop_v = 0.0f;
+    float aperture_ratio = 0.0f;  // optics::GridSample::aperture_ratio: above 1, vignetted
 };
 
 struct Quad {
@@ -67,6 +68,7 @@ struct QuadSample {
     float throughput = 0.0f;
     float stop_u = 0.0f;
     float stop_v = 0.0f;
+    float aperture_ratio = 0.0f;
 };
 QuadSample interpolateQuad(const Quad& quad, const std::array<double, 4>& weights);
 

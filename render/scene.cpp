@@ -19,6 +19,10 @@ namespace {
 
 constexpr double kChannel_nm[3] = {kLambdaRed_nm, kLambdaGreen_nm, kLambdaBlue_nm};
 
+// Rays per side of the grid whose integral is the light's own power (imagingPower): the stop's
+// outline crosses about 100 of its cells, each sampled finely.
+constexpr int kLightGrid = 32;
+
 using Clock = std::chrono::steady_clock;
 
 double millisecondsSince(Clock::time_point start) {
@@ -69,15 +73,11 @@ void addLightImage(ImageRGB& image,
     Eigen::Vector2d centre_mm = Eigen::Vector2d::Zero();
     bool placed = false;
     for (int c = 0; c < 3; ++c) {
-        const auto grid =
-            optics::traceRayGrid(lens, optics::GhostPath{}, degToRad(light.theta_deg),
-                                 degToRad(light.phi_deg), kChannel_nm[c], options.probe_grid);
+        const auto grid = optics::traceRayGrid(lens, optics::GhostPath{}, degToRad(light.theta_deg),
+                                               degToRad(light.phi_deg), kChannel_nm[c],
+                                               std::max(options.probe_grid, kLightGrid));
         if (!grid || grid->n < 2) continue;
-        const double cell = 2.0 * grid->entry_half_width_mm / (grid->n - 1);
-        double through = 0.0;
-        for (const optics::GridSample& s : grid->samples)
-            if (s.valid && lens.aperture().contains(s.stop_u, s.stop_v)) through += s.throughput;
-        power[c] = static_cast<float>(light.rgb[c] * through * cell * cell);
+        power[c] = static_cast<float>(light.rgb[c] * imagingPower(*grid, lens.aperture()));
         if (c == 1) {
             const optics::PathTracer chief(lens, optics::GhostPath{}, kLambdaGreen_nm);
             const auto entry =
@@ -123,6 +123,8 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return invalid("merge steps must lie in 0..7");
     if (!(options.merge.gamma >= 0.0) || !std::isfinite(options.merge.gamma))
         return invalid("merge gamma must be finite and >= 0");
+    if (options.raster.supersample < 0 || options.raster.supersample > 64)
+        return invalid("raster supersample must lie in 0..64");
     if (options.probe_grid < 2 || options.probe_grid > 256)
         return invalid("probe_grid must lie in 2..256");
     if (!(options.cull_relative_l2 >= 0.0 && options.cull_relative_l2 <= 1.0))

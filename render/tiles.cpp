@@ -153,15 +153,8 @@ Status renderTiled(ImageRGB& image,
             const int64_t y0 = std::max(ty, p.y0), y1 = std::min(ty1, p.y1);
             for (int64_t y = y0; y <= y1; ++y) {
                 float* row = accumulator.data() + ((y - ty) * dense - tx) * 3 + p.channel;
-                if (p.convex) {
-                    const double py = static_cast<double>(y) + 0.5;
-                    for (int64_t x = x0; x <= x1; ++x)
-                        row[x * 3] += static_cast<float>(
-                            convexValueAt(p, static_cast<double>(x) + 0.5, py, stop));
-                } else {
-                    for (int64_t x = x0; x <= x1; ++x)
-                        row[x * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
-                }
+                for (int64_t x = x0; x <= x1; ++x)
+                    row[x * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
             }
         }
         for (int64_t y = ty; y <= ty1; ++y) {
