@@ -1,6 +1,8 @@
 #include "fit/model_eval.h"
 
 #include <algorithm>
+#include <cstdio>
+#include <cstdlib>
 #include <cmath>
 #include <numbers>
 #include <string>
@@ -226,12 +228,18 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
             shading.border_rgb[c] *= options.intensity_scale;
             shading.inner_rgb[c] *= options.intensity_scale;
         }
-        auto p = render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width,
-                                               height, options.distance);
+        render::GhostDrawOptions draw;
+        draw.distance = options.distance;
+        draw.evaluation = options.evaluation;
+        draw.smooth_tolerance = options.smooth_tolerance;
+        auto p =
+            render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width, height, draw);
         if (p) primitives.push_back(std::move(*p));
     }
+    render::TileStats dbg_stats;
     const Status drawn =
-        render::renderTiled(image, {}, primitives, optics::ApertureShape{}, options.tiles);
+        render::renderTiled(image, {}, primitives, optics::ApertureShape{}, options.tiles, &dbg_stats);
+    if (std::getenv("D19_DEBUG")) fprintf(stderr, "D19 smooth %ld edge %ld build %.2f trav %.2f\n", (long)dbg_stats.ghost_tiles_smooth, (long)dbg_stats.ghost_tiles_edge, dbg_stats.build_ms, dbg_stats.traverse_ms);
     FLARELAB_CHECK(
         drawn.has_value());  // ranges come from prepareGhostPrimitive, tiles from the caller
     return image;
@@ -249,6 +257,9 @@ Result<ImageRGB> renderModel(const FlareModel& model,
     if (!(options.intensity_scale >= 0.0) || !std::isfinite(options.intensity_scale))
         return makeError(ErrorCode::InvalidArgument,
                          "render model: intensity_scale must be finite and >= 0");
+    if (!(options.smooth_tolerance > 0.0 && options.smooth_tolerance <= 0.1))
+        return makeError(ErrorCode::InvalidArgument,
+                         "render model: smooth_tolerance must lie in (0, 0.1]");
     if (!(model.lens.sensor_width_mm > 0.0) || !(model.lens.sensor_height_mm > 0.0))
         return makeError(ErrorCode::InvalidArgument, "render model: the model has no sensor size");
     const int dense = options.tiles.dense_tile_px, coarse = options.tiles.coarse_tile_px;
