@@ -275,10 +275,10 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     });
     auto playback_options = std::make_shared<bench::PlaybackBenchOptions>();
     auto playback_json_path = std::make_shared<std::string>();
-    CLI::App* playback = bench->add_subcommand(
-        "playback",
-        "a model file drawn frame after frame (flarelab model render's fast path) against the exact "
-        "evaluation: frame time and error");
+    CLI::App* playback = bench->add_subcommand("playback",
+                                               "a model file drawn frame after frame (flarelab "
+                                               "model render's fast path) against the exact "
+                                               "evaluation: frame time and error");
     playback->add_option("MODEL", playback_options->model_path, "flare model file")->required();
     playback->add_option("--width", playback_options->width, "image width")
         ->check(CLI::Range(int64_t{1}, int64_t{32768}))
@@ -288,7 +288,8 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
         ->capture_default_str();
     playback->add_option("--angle", playback_options->angle_deg,
                          "head angle (deg); default: the valid range's angle with the most ghosts");
-    playback->add_option("--roll", playback_options->roll_deg, "roll (deg); default: the capture's");
+    playback->add_option("--roll", playback_options->roll_deg,
+                         "roll (deg); default: the capture's");
     playback->add_option("--frames", playback_options->frames, "timed frames after the first")
         ->check(CLI::Range(1, 10000))
         ->capture_default_str();

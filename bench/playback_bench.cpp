@@ -28,8 +28,8 @@ double busiestAngle(const fit::FlareModel& model, double roll_deg) {
     size_t best = 0;
     constexpr int kSteps = 200;
     for (int i = 0; i <= kSteps; ++i) {
-        const double angle = model.valid_from_deg +
-                             (model.valid_to_deg - model.valid_from_deg) * i / double(kSteps);
+        const double angle =
+            model.valid_from_deg + (model.valid_to_deg - model.valid_from_deg) * i / double(kSteps);
         const auto ghosts = fit::modelGhostsAt(model, angle, roll_deg);
         if (ghosts && ghosts->size() > best) {
             best = ghosts->size();
@@ -107,7 +107,8 @@ Result<PlaybackBenchResult> runPlaybackBench(const PlaybackBenchOptions& o, std:
 }
 
 void printPlaybackBench(const PlaybackBenchResult& r, std::ostream& out) {
-    out << "| ghosts | angle (deg) | size | threads | frame_ms (best) | median | first | exact_ms | "
+    out << "| ghosts | angle (deg) | size | threads | frame_ms (best) | median | first | exact_ms "
+           "| "
            "max_rel_err | rel_l2 |\n|---|---|---|---|---|---|---|---|---|---|\n";
     out << "| " << r.ghosts << " | " << r.angle_deg << " | " << r.width << "x" << r.height << " | "
         << r.threads << " | " << r.frame_ms << " | " << r.frame_median_ms << " | "

@@ -1,8 +1,6 @@
 #include "fit/model_eval.h"
 
 #include <algorithm>
-#include <cstdio>
-#include <cstdlib>
 #include <cmath>
 #include <numbers>
 #include <string>
@@ -232,14 +230,12 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
         draw.distance = options.distance;
         draw.evaluation = options.evaluation;
         draw.smooth_tolerance = options.smooth_tolerance;
-        auto p =
-            render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width, height, draw);
+        auto p = render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width,
+                                               height, draw);
         if (p) primitives.push_back(std::move(*p));
     }
-    render::TileStats dbg_stats;
     const Status drawn =
-        render::renderTiled(image, {}, primitives, optics::ApertureShape{}, options.tiles, &dbg_stats);
-    if (std::getenv("D19_DEBUG")) fprintf(stderr, "D19 smooth %ld edge %ld build %.2f trav %.2f\n", (long)dbg_stats.ghost_tiles_smooth, (long)dbg_stats.ghost_tiles_edge, dbg_stats.build_ms, dbg_stats.traverse_ms);
+        render::renderTiled(image, {}, primitives, optics::ApertureShape{}, options.tiles);
     FLARELAB_CHECK(
         drawn.has_value());  // ranges come from prepareGhostPrimitive, tiles from the caller
     return image;

@@ -42,14 +42,14 @@ struct Flattener {
     double tolerance_mm;
     Vec2 region_lo, region_hi;  // the image's pixel centres, mm
     double margin_mm;           // pieces farther than this from the region need no detail
-    std::vector<Vec2>* out;
+    GhostOutline* out;
     bool overflow = false;
 
     // Appends the end points of the chords that replace c (its start is already there). A piece
     // far from the image is one chord whatever its flatness: curve and chord lie in the same box,
     // which holds no pixel centre, so the winding number of every pixel is the same for both, and
     // both are farther from every pixel than any falloff reaches.
-    void run(const Cubic& c, int depth) {
+    void run(const Cubic& c, int depth, int32_t segment, double t0, double t1) {
         if (overflow) return;
         Vec2 lo = c[0], hi = c[0];
         for (int i = 1; i < 4; ++i) {
@@ -58,15 +58,18 @@ struct Flattener {
         }
         const bool far = boxGap(lo, hi, region_lo, region_hi) > margin_mm;
         if (far || depth >= kMaxDepth || flatness(c) <= tolerance_mm) {
-            out->push_back(c[3]);
-            if (out->size() > kMaxChords) overflow = true;
+            out->vertices_mm.push_back(c[3]);
+            out->chord_segment.push_back(segment);
+            out->chord_t.push_back({t0, t1});
+            if (out->vertices_mm.size() > kMaxChords) overflow = true;
             return;
         }
         const Vec2 p01 = 0.5 * (c[0] + c[1]), p12 = 0.5 * (c[1] + c[2]), p23 = 0.5 * (c[2] + c[3]);
         const Vec2 p012 = 0.5 * (p01 + p12), p123 = 0.5 * (p12 + p23);
         const Vec2 mid = 0.5 * (p012 + p123);
-        run({c[0], p01, p012, mid}, depth + 1);
-        run({mid, p123, p23, c[3]}, depth + 1);
+        const double t_mid = 0.5 * (t0 + t1);
+        run({c[0], p01, p012, mid}, depth + 1, segment, t0, t_mid);
+        run({mid, p123, p23, c[3]}, depth + 1, segment, t_mid, t1);
     }
 };
 
@@ -124,8 +127,8 @@ bool buildSpans(GhostOutline& o, const SensorToImage& m, int64_t y0, int64_t y1)
             prefix += it->second;
             if (prefix == 0 || it + 1 == end) continue;
             const double from = it->first, to = (it + 1)->first;
-            if (!o.spans_px.empty() && o.row_start[static_cast<size_t>(r)] <
-                                           static_cast<int64_t>(o.spans_px.size()) &&
+            if (!o.spans_px.empty() &&
+                o.row_start[static_cast<size_t>(r)] < static_cast<int64_t>(o.spans_px.size()) &&
                 o.spans_px.back()[1] == from)
                 o.spans_px.back()[1] = to;  // adjacent intervals of non-zero winding
             else
@@ -159,9 +162,9 @@ std::shared_ptr<const GhostOutline> buildOutline(const BezierLoop& loop,
                    (static_cast<double>(height) - 0.5 - m.centre_y_px) / m.px_per_mm_y};
     f.margin_mm = std::max(shading.inner_falloff_mm, shading.outer_falloff_mm) + o->reach_mm +
                   2.0 * o->tolerance_mm + mm_per_px;
-    f.out = &o->vertices_mm;
+    f.out = o.get();
     o->vertices_mm.push_back(loop.control_points_mm.front());
-    for (int s = 0; s < loop.segmentCount(); ++s) f.run(loop.segment(s), 0);
+    for (int s = 0; s < loop.segmentCount(); ++s) f.run(loop.segment(s), 0, s, 0.0, 1.0);
     if (f.overflow) return nullptr;
     o->vertices_mm.back() = o->vertices_mm.front();  // closed exactly
     const int32_t chords = static_cast<int32_t>(o->vertices_mm.size() - 1);
@@ -200,6 +203,8 @@ std::shared_ptr<const GhostOutline> buildOutline(const BezierLoop& loop,
 struct Nearest {
     double distance_mm = std::numeric_limits<double>::infinity();
     Vec2 point_mm = Vec2::Zero();
+    int32_t chord = 0;
+    double u = 0.0;  // where on the chord, in [0, 1]
 };
 
 double boxDistance2(const GhostOutline::Chunk& c, const Vec2& q) {
@@ -212,7 +217,7 @@ void scanChunk(const GhostOutline& o,
                const GhostOutline::Chunk& c,
                const Vec2& q,
                double& best2,
-               Vec2& best) {
+               Nearest& best) {
     for (int32_t i = c.begin; i < c.end; ++i) {
         const Vec2& a = o.vertices_mm[static_cast<size_t>(i)];
         const Vec2 e = o.vertices_mm[static_cast<size_t>(i) + 1] - a;
@@ -222,7 +227,9 @@ void scanChunk(const GhostOutline& o,
         const double d2 = (p - q).squaredNorm();
         if (d2 < best2) {
             best2 = d2;
-            best = p;
+            best.point_mm = p;
+            best.chord = i;
+            best.u = t;
         }
     }
 }
@@ -239,11 +246,11 @@ double boxDistance2(const std::array<Vec2, 2>& box, const Vec2& q) {
 Nearest nearest(const GhostOutline& o,
                 const Vec2& q,
                 double bound = std::numeric_limits<double>::infinity()) {
-    const double start2 = std::isfinite(bound)
-                              ? bound * bound * (1.0 + 1e-9) + 1e-300
-                              : std::numeric_limits<double>::infinity();
+    const double start2 = std::isfinite(bound) ? bound * bound * (1.0 + 1e-9) + 1e-300
+                                               : std::numeric_limits<double>::infinity();
     double best2 = start2;
-    Vec2 best = q;
+    Nearest best;
+    best.point_mm = q;
     struct Item {
         int level;  // -1: a chunk
         size_t index;
@@ -255,8 +262,9 @@ Nearest nearest(const GhostOutline& o,
     else
         stack[top++] = {static_cast<int>(o.levels.size()) - 1, 0};
     const auto distance2 = [&](const Item& item) {
-        return item.level < 0 ? boxDistance2(o.chunks[item.index], q)
-                              : boxDistance2(o.levels[static_cast<size_t>(item.level)][item.index], q);
+        return item.level < 0
+                   ? boxDistance2(o.chunks[item.index], q)
+                   : boxDistance2(o.levels[static_cast<size_t>(item.level)][item.index], q);
     };
     while (top > 0) {
         const Item item = stack[--top];
@@ -266,9 +274,8 @@ Nearest nearest(const GhostOutline& o,
             continue;
         }
         const int child_level = item.level - 1;
-        const size_t count = child_level < 0
-                                 ? o.chunks.size()
-                                 : o.levels[static_cast<size_t>(child_level)].size();
+        const size_t count =
+            child_level < 0 ? o.chunks.size() : o.levels[static_cast<size_t>(child_level)].size();
         Item a{child_level, 2 * item.index}, b{child_level, 2 * item.index + 1};
         if (b.index >= count) {
             stack[top++] = a;
@@ -279,7 +286,8 @@ Nearest nearest(const GhostOutline& o,
         stack[top++] = b;
     }
     if (best2 == start2 && std::isfinite(bound)) return nearest(o, q);  // rounding: search all
-    return {std::sqrt(best2), best};
+    best.distance_mm = std::sqrt(best2);
+    return best;
 }
 
 bool inside(const GhostOutline& o, int64_t x, int64_t y) {
@@ -302,11 +310,8 @@ Vec2 pixelCentreMm(const SensorToImage& m, int64_t x, int64_t y) {
 
 // Eq. 6.4's mean over the pixel centred on q at unsigned distance `distance` from the chords,
 // nearest at `point`, as shadeGhostBlock takes it from the curve.
-std::array<double, 3> shadeFromNearest(const GhostPrimitive& g,
-                                       const Vec2& q,
-                                       double distance,
-                                       const Vec2& point,
-                                       bool in) {
+std::array<double, 3> shadeFromNearest(
+    const GhostPrimitive& g, const Vec2& q, double distance, const Vec2& point, bool in) {
     const Vec2 half(0.5 / g.mapping.px_per_mm_x, 0.5 / g.mapping.px_per_mm_y);
     const Vec2 spread = blockSpread(q, ClosestPoint{distance, 0, 0.0, point}, half);
     const GhostShading& s = g.shading;
@@ -322,8 +327,7 @@ std::array<double, 3> shadeFromNearest(const GhostPrimitive& g,
         if (distance + reach <= f) {
             const double e = in ? s.inner_exponent : s.outer_exponent;
             const double p = std::pow(distance / f, e);
-            const double variance =
-                (spread.x() * spread.x() + spread.y() * spread.y()) / 3.0;
+            const double variance = (spread.x() * spread.x() + spread.y() * spread.y()) / 3.0;
             w = p + 0.5 * variance * e * (e - 1.0) * p / (distance * distance);
         }
         for (size_t c = 0; c < 3; ++c)
@@ -331,12 +335,49 @@ std::array<double, 3> shadeFromNearest(const GhostPrimitive& g,
                         : s.border_rgb[c] * (1.0 - w);
         return out;
     }
-    const auto w =
-        boxTransferWeights<double>(in ? -distance : distance, spread.x(), spread.y(),
-                                   s.inner_falloff_mm, s.outer_falloff_mm, s.inner_exponent,
-                                   s.outer_exponent);
+    const auto w = boxTransferWeights<double>(in ? -distance : distance, spread.x(), spread.y(),
+                                              s.inner_falloff_mm, s.outer_falloff_mm,
+                                              s.inner_exponent, s.outer_exponent);
     for (size_t c = 0; c < 3; ++c) out[c] = s.border_rgb[c] * w.border + s.inner_rgb[c] * w.inner;
     return out;
+}
+
+// The curve's own distance near the chord's: Newton on (C(t) - q) . C'(t) = 0 from the chord
+// point's parameter, two steps (the start is within the sagitta, so they converge far below it).
+// The chords put the distance within their sagitta of the curve's, which at an edge sharper than
+// a pixel moves the pixel's mean by up to the sagitta's share of the pixel (1 % at 0.01 px); this
+// takes that away. Kept only when it is a point of the curve no farther than the chord's plus the
+// sagitta (else the chord's stands). Within two sagittas of the chords, where they and the curve
+// may disagree about the side, the side is the curve's winding number.
+void refineOnCurve(const GhostPrimitive& g, const Vec2& q, Nearest& n, bool& in) {
+    const GhostOutline& o = *g.outline;
+    const size_t i = static_cast<size_t>(n.chord);
+    const auto c = g.loop_mm.segment(o.chord_segment[i]);
+    double t = o.chord_t[i][0] + n.u * (o.chord_t[i][1] - o.chord_t[i][0]);
+    for (int step = 0; step < 2; ++step) {
+        const double s = 1.0 - t;
+        const Vec2 p = (s * s * s) * c[0] + (3.0 * s * s * t) * c[1] + (3.0 * s * t * t) * c[2] +
+                       (t * t * t) * c[3];
+        const Vec2 d1 = (3.0 * s * s) * (c[1] - c[0]) + (6.0 * s * t) * (c[2] - c[1]) +
+                        (3.0 * t * t) * (c[3] - c[2]);
+        const Vec2 d2 =
+            (6.0 * s) * (c[2] - 2.0 * c[1] + c[0]) + (6.0 * t) * (c[3] - 2.0 * c[2] + c[1]);
+        const Vec2 r = p - q;
+        const double gn = d1.squaredNorm();
+        const double h = gn + r.dot(d2);
+        const double curvature = h > 0.0 ? h : gn;
+        if (!(curvature > 0.0)) break;
+        t = std::clamp(t - r.dot(d1) / curvature, 0.0, 1.0);
+    }
+    const double s = 1.0 - t;
+    const Vec2 p = (s * s * s) * c[0] + (3.0 * s * s * t) * c[1] + (3.0 * s * t * t) * c[2] +
+                   (t * t * t) * c[3];
+    const double d = (p - q).norm();
+    if (d <= n.distance_mm + o.tolerance_mm) {
+        n.distance_mm = d;
+        n.point_mm = p;
+    }
+    if (n.distance_mm <= 2.0 * o.tolerance_mm) in = windingNumber(g.loop_mm, q) != 0;
 }
 
 std::array<double, 3> fastValue(const GhostPrimitive& g,
@@ -344,8 +385,10 @@ std::array<double, 3> fastValue(const GhostPrimitive& g,
                                 int64_t y,
                                 double bound = std::numeric_limits<double>::infinity()) {
     const Vec2 q = pixelCentreMm(g.mapping, x, y);
-    const Nearest n = nearest(*g.outline, q, bound);
-    return shadeFromNearest(g, q, n.distance_mm, n.point_mm, inside(*g.outline, x, y));
+    Nearest n = nearest(*g.outline, q, bound);
+    bool in = inside(*g.outline, x, y);
+    refineOnCurve(g, q, n, in);
+    return shadeFromNearest(g, q, n.distance_mm, n.point_mm, in);
 }
 
 }  // namespace
@@ -427,8 +470,7 @@ void addGhostRow(const GhostPrimitive& g, int64_t y, int64_t x0, int64_t x1, flo
 std::array<double, 3> ghostPixelValue(const GhostPrimitive& g, int64_t x, int64_t y) {
     if (g.outline) return fastValue(g, x, y);
     const Eigen::Vector2d half(0.5 / g.mapping.px_per_mm_x, 0.5 / g.mapping.px_per_mm_y);
-    return shadeGhostBlock(g.loop_mm, g.shading, pixelCentreMm(g.mapping, x, y), half,
-                           g.distance);
+    return shadeGhostBlock(g.loop_mm, g.shading, pixelCentreMm(g.mapping, x, y), half, g.distance);
 }
 
 GhostBlockCover coverGhostBlock(
@@ -447,11 +489,15 @@ GhostBlockCover coverGhostBlock(
     const Vec2 c = pixelCentreMm(g.mapping, mx, my);
     double r = 0.0;
     for (const int64_t x : {x0, x1})
-        for (const int64_t y : {y0, y1}) r = std::max(r, (pixelCentreMm(g.mapping, x, y) - c).norm());
-    const Nearest nc = nearest(o, c);
-    const bool in = inside(o, mx, my);
+        for (const int64_t y : {y0, y1})
+            r = std::max(r, (pixelCentreMm(g.mapping, x, y) - c).norm());
+    Nearest nc = nearest(o, c);
+    bool in = inside(o, mx, my);
+    refineOnCurve(g, c, nc, in);
     const double d = in ? -nc.distance_mm : nc.distance_mm;
-    const double h = o.reach_mm;
+    // Pixels take the curve's distance where Newton finds it, the chords' (within a sagitta)
+    // where not: two sagittas of slack on the bound.
+    const double h = o.reach_mm + 2.0 * o.tolerance_mm;
     if (d - r >= s.outer_falloff_mm + h) {
         cover.kind = GhostBlockKind::Outside;
         return cover;
@@ -460,8 +506,9 @@ GhostBlockCover coverGhostBlock(
         bool lit = false;
         for (size_t k = 0; k < 3; ++k) lit = lit || s.inner_rgb[k] > 0.0;
         cover.kind = lit ? GhostBlockKind::Smooth : GhostBlockKind::Outside;
-        for (auto& corner : cover.corners)
-            for (size_t k = 0; k < 3; ++k) corner[k] = static_cast<float>(s.inner_rgb[k]);
+        for (auto& row : cover.nodes)
+            for (auto& node : row)
+                for (size_t k = 0; k < 3; ++k) node[k] = static_cast<float>(s.inner_rgb[k]);
         return cover;
     }
     // The edge, where a pixel's mean bends the value within a pixel, is drawn per pixel; so are
@@ -471,36 +518,38 @@ GhostBlockCover coverGhostBlock(
         const double f = in ? s.inner_falloff_mm : s.outer_falloff_mm;
         if (std::abs(d) - r <= f + h && std::abs(d) + r >= f - h) return cover;
     }
-    // Nine samples: the corners carry the block, the other five check it.
+    // Nine nodes carry the block, four points between them check it.
     const int64_t xs[3] = {x0, mx, x1}, ys[3] = {y0, my, y1};
+    const auto sample = [&](int64_t x, int64_t y) {
+        return fastValue(
+            g, x, y, nc.distance_mm + o.tolerance_mm + (pixelCentreMm(g.mapping, x, y) - c).norm());
+    };
     std::array<double, 3> v[3][3];
     for (int j = 0; j < 3; ++j)
         for (int i = 0; i < 3; ++i)
-            v[j][i] = (i == 1 && j == 1)
-                          ? shadeFromNearest(g, c, nc.distance_mm, nc.point_mm, in)
-                          : fastValue(g, xs[i], ys[j],
-                                      nc.distance_mm +
-                                          (pixelCentreMm(g.mapping, xs[i], ys[j]) - c).norm());
-    const double wx = x1 > x0 ? static_cast<double>(mx - x0) / static_cast<double>(x1 - x0) : 0.0;
-    const double wy = y1 > y0 ? static_cast<double>(my - y0) / static_cast<double>(y1 - y0) : 0.0;
-    const double fx[3] = {0.0, wx, 1.0}, fy[3] = {0.0, wy, 1.0};
-    for (int j = 0; j < 3; ++j)
-        for (int i = 0; i < 3; ++i) {
-            if ((i != 1 && j != 1)) continue;  // corners
+            v[j][i] = (i == 1 && j == 1) ? shadeFromNearest(g, c, nc.distance_mm, nc.point_mm, in)
+                                         : sample(xs[i], ys[j]);
+    const int64_t check_x[2] = {midPixel(x0, mx), midPixel(mx, x1)};
+    const int64_t check_y[2] = {midPixel(y0, my), midPixel(my, y1)};
+    for (const int64_t y : check_y) {
+        const auto wy = quadraticWeights(static_cast<double>(y0), static_cast<double>(my),
+                                         static_cast<double>(y1), static_cast<double>(y));
+        for (const int64_t x : check_x) {
+            const auto wx = quadraticWeights(static_cast<double>(x0), static_cast<double>(mx),
+                                             static_cast<double>(x1), static_cast<double>(x));
+            const std::array<double, 3> truth = sample(x, y);
             for (size_t k = 0; k < 3; ++k) {
-                const double top = v[0][0][k] + (v[0][2][k] - v[0][0][k]) * fx[i];
-                const double bottom = v[2][0][k] + (v[2][2][k] - v[2][0][k]) * fx[i];
-                const double bilinear = top + (bottom - top) * fy[j];
-                if (!(std::abs(bilinear - v[j][i][k]) <= o.tolerance)) return cover;
+                double interpolated = 0.0;
+                for (int j = 0; j < 3; ++j)
+                    for (int i = 0; i < 3; ++i) interpolated += wy[j] * wx[i] * v[j][i][k];
+                if (!(std::abs(interpolated - truth[k]) <= o.tolerance)) return cover;
             }
         }
-    cover.kind = GhostBlockKind::Smooth;
-    for (size_t k = 0; k < 3; ++k) {
-        cover.corners[0][k] = static_cast<float>(v[0][0][k]);
-        cover.corners[1][k] = static_cast<float>(v[0][2][k]);
-        cover.corners[2][k] = static_cast<float>(v[2][0][k]);
-        cover.corners[3][k] = static_cast<float>(v[2][2][k]);
     }
+    cover.kind = GhostBlockKind::Smooth;
+    for (int j = 0; j < 3; ++j)
+        for (int i = 0; i < 3; ++i)
+            for (size_t k = 0; k < 3; ++k) cover.nodes[j][i][k] = static_cast<float>(v[j][i][k]);
     return cover;
 }
 
@@ -522,15 +571,16 @@ void addGhostBlock(const GhostPrimitive& g,
     const Vec2 c = pixelCentreMm(g.mapping, mx, my);
     double r = 0.0;
     for (const int64_t x : {x0, x1})
-        for (const int64_t y : {y0, y1}) r = std::max(r, (pixelCentreMm(g.mapping, x, y) - c).norm());
+        for (const int64_t y : {y0, y1})
+            r = std::max(r, (pixelCentreMm(g.mapping, x, y) - c).norm());
     const double reach = nearest(o, c).distance_mm + 2.0 * r;
     const double reach2 = reach * reach * (1.0 + 1e-12) + 1e-300;
-    struct Chord {
-        Vec2 a, e;
-        double inv_len2;
-    };
-    thread_local std::vector<Chord> near;
-    near.clear();
+    // The candidates in single precision relative to the block's middle pixel (a few pixels of
+    // millimetres: rounding far below the sagitta), in arrays the compiler vectorizes; only the
+    // nearest one is recomputed in double.
+    thread_local std::vector<float> ax, ay, ex, ey, inv, d2;
+    thread_local std::vector<int32_t> index;
+    ax.clear(), ay.clear(), ex.clear(), ey.clear(), inv.clear(), index.clear();
     for (const auto& chunk : o.chunks) {
         if (boxDistance2(chunk, c) > reach2) continue;
         for (int32_t i = chunk.begin; i < chunk.end; ++i) {
@@ -538,27 +588,57 @@ void addGhostBlock(const GhostPrimitive& g,
             const Vec2 e = o.vertices_mm[static_cast<size_t>(i) + 1] - a;
             const double len2 = e.squaredNorm();
             const double t = len2 > 0.0 ? std::clamp((c - a).dot(e) / len2, 0.0, 1.0) : 0.0;
-            if ((a + t * e - c).squaredNorm() <= reach2)
-                near.push_back({a, e, len2 > 0.0 ? 1.0 / len2 : 0.0});
+            if ((a + t * e - c).squaredNorm() > reach2) continue;
+            ax.push_back(static_cast<float>(a.x() - c.x()));
+            ay.push_back(static_cast<float>(a.y() - c.y()));
+            ex.push_back(static_cast<float>(e.x()));
+            ey.push_back(static_cast<float>(e.y()));
+            const float len2f = ex.back() * ex.back() + ey.back() * ey.back();
+            inv.push_back(len2f > 0.0f ? 1.0f / len2f : 0.0f);
+            index.push_back(i);
         }
     }
+    const size_t count = index.size();
+    d2.resize(count);
     for (int64_t y = y0; y <= y1; ++y) {
         float* row = rgb + (y - y0) * row_stride;
         for (int64_t x = x0; x <= x1; ++x, row += 3) {
             const Vec2 q = pixelCentreMm(g.mapping, x, y);
-            double best2 = std::numeric_limits<double>::infinity();
-            Vec2 best = q;
-            for (const Chord& k : near) {
-                const Vec2 qa = q - k.a;
-                const double t = std::clamp(qa.dot(k.e) * k.inv_len2, 0.0, 1.0);
-                const Vec2 p = k.a + t * k.e;
-                const double d2 = (p - q).squaredNorm();
-                if (d2 < best2) {
-                    best2 = d2;
-                    best = p;
+            const float qx = static_cast<float>(q.x() - c.x());
+            const float qy = static_cast<float>(q.y() - c.y());
+            {
+                // Plain selects, not std::clamp (whose NaN order keeps it scalar): one SIMD lane
+                // per chord.
+                const float* __restrict pax = ax.data();
+                const float* __restrict pay = ay.data();
+                const float* __restrict pex = ex.data();
+                const float* __restrict pey = ey.data();
+                const float* __restrict pinv = inv.data();
+                float* __restrict pd2 = d2.data();
+                for (size_t k = 0; k < count; ++k) {
+                    const float px = qx - pax[k], py = qy - pay[k];
+                    float t = (px * pex[k] + py * pey[k]) * pinv[k];
+                    t = t > 0.0f ? t : 0.0f;
+                    t = t < 1.0f ? t : 1.0f;
+                    const float dx = px - t * pex[k], dy = py - t * pey[k];
+                    pd2[k] = dx * dx + dy * dy;
                 }
             }
-            const auto v = shadeFromNearest(g, q, std::sqrt(best2), best, inside(o, x, y));
+            size_t best = 0;
+            float best_d2 = d2[0];
+            for (size_t k = 1; k < count; ++k)
+                if (d2[k] < best_d2) best_d2 = d2[best = k];
+            Nearest n;
+            n.chord = index[best];
+            const Vec2& a = o.vertices_mm[static_cast<size_t>(n.chord)];
+            const Vec2 e = o.vertices_mm[static_cast<size_t>(n.chord) + 1] - a;
+            const double len2 = e.squaredNorm();
+            n.u = len2 > 0.0 ? std::clamp((q - a).dot(e) / len2, 0.0, 1.0) : 0.0;
+            n.point_mm = a + n.u * e;
+            n.distance_mm = (n.point_mm - q).norm();
+            bool in = inside(o, x, y);
+            refineOnCurve(g, q, n, in);
+            const auto v = shadeFromNearest(g, q, n.distance_mm, n.point_mm, in);
             for (size_t k = 0; k < 3; ++k) row[k] += static_cast<float>(v[k]);
         }
     }

@@ -22,8 +22,8 @@
 //     to the chords is within the sagitta of the curve's and, like it, 1-Lipschitz, so one value
 //     at a block's centre bounds it over the block (coverGhostBlock): a block beyond the outer
 //     falloff is skipped, one deep inside is the constant inner value, and one away from the edge
-//     whose value is bilinear in the pixel position to within `smooth_tolerance` of the ghost's
-//     peak at five check points is drawn from its four corners. Only the remaining dense tiles,
+//     that the biquadratic through its 3 x 3 nodes matches to within `smooth_tolerance` of the
+//     ghost's peak at four check points is drawn by that interpolation. Only the dense tiles left,
 //     those an edge crosses, are evaluated per pixel (addGhostBlock): the distance over the
 //     chords near the tile, the sign from the spans, and eq. 6.4's box mean (the powers) as in
 //     the exact evaluation. bench/playback_bench.cpp measures both and their difference.
@@ -46,7 +46,7 @@ struct GhostDrawOptions {
     FastDistanceOptions distance;  // the exact evaluation's Newton distance
     GhostEvaluation evaluation = GhostEvaluation::Fast;
     double sagitta_px = 0.01;  // fast: chords within this of the curve, in (0, 1]
-    // fast: a block drawn from its corners is off by at most this fraction of the ghost's peak
+    // fast: a block drawn by interpolation is off by at most this fraction of the ghost's peak
     // (its largest border or inner value) at its check points, in (0, 0.1]
     double smooth_tolerance = 1e-4;
 };
@@ -58,6 +58,10 @@ struct GhostOutline {
         int32_t begin = 0, end = 0;    // chords begin..end-1; chord i runs vertex i -> i + 1
     };
     std::vector<Eigen::Vector2d> vertices_mm;  // closed: the last vertex repeats the first
+    // Chord i replaces segment chord_segment[i] of the loop from t = chord_t[i][0] to [1]: where
+    // a pixel needs the distance to the curve itself, Newton starts there.
+    std::vector<int32_t> chord_segment;
+    std::vector<std::array<double, 2>> chord_t;
     std::vector<Chunk> chunks;
     // Boxes over runs of chunks, for the nearest-chord search: levels[l][i] bounds chunks
     // i 2^(l+1) .. (i + 1) 2^(l+1) - 1; the last level is one box.
@@ -77,7 +81,7 @@ struct GhostPrimitive {
     GhostShading shading;
     SensorToImage mapping;  // sensor mm to pixels of the image it is drawn into
     FastDistanceOptions distance;
-    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;  // inclusive pixel range
+    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;     // inclusive pixel range
     std::shared_ptr<const GhostOutline> outline;  // null: the exact evaluation
 };
 
@@ -98,17 +102,30 @@ void addGhostRow(const GhostPrimitive& ghost, int64_t y, int64_t x0, int64_t x1,
 // What a block of pixels (x0..x1, y0..y1, inclusive, inside the image) holds of a ghost.
 enum class GhostBlockKind {
     Outside,  // nothing: the block is beyond the outer falloff or the range
-    Smooth,   // bilinear between `corners` (constant inside the inner falloff)
+    Smooth,   // the biquadratic through `nodes` (constant inside the inner falloff)
     Edge,     // neither: smaller blocks, or per pixel
 };
+// A block's nodes are the pixels {x0, midPixel(x0, x1), x1} x {y0, midPixel(y0, y1), y1}.
+inline int64_t midPixel(int64_t a, int64_t b) { return a + (b - a) / 2; }
+// The weights of the quadratic through nodes n0 <= n1 <= n2 at x (Lagrange); linear between n0
+// and n2 when the middle node coincides with one of them, constant when all do.
+inline std::array<double, 3> quadraticWeights(double n0, double n1, double n2, double x) {
+    if (!(n2 > n0)) return {1.0, 0.0, 0.0};
+    if (!(n1 > n0) || !(n2 > n1)) {
+        const double t = (x - n0) / (n2 - n0);
+        return {1.0 - t, 0.0, t};
+    }
+    return {(x - n1) * (x - n2) / ((n0 - n1) * (n0 - n2)),
+            (x - n0) * (x - n2) / ((n1 - n0) * (n1 - n2)),
+            (x - n0) * (x - n1) / ((n2 - n0) * (n2 - n1))};
+}
 struct GhostBlockCover {
     GhostBlockKind kind = GhostBlockKind::Edge;
-    // RGB at the pixels (x0, y0), (x1, y0), (x0, y1), (x1, y1) when Smooth
-    std::array<std::array<float, 3>, 4> corners{};
+    // RGB at the nodes when Smooth: nodes[j][i] at (x node i, y node j)
+    std::array<std::array<std::array<float, 3>, 3>, 3> nodes{};
 };
-// `finest`: the caller cannot split the block further, so it may be drawn from its corners
-// although the outer or inner falloff's end crosses it (checked at the five points all the
-// same). An exact ghost is never Smooth.
+// `finest`: the caller cannot split the block further, so it may be interpolated although the
+// outer or inner falloff's end crosses it (checked all the same). An exact ghost is never Smooth.
 GhostBlockCover coverGhostBlock(
     const GhostPrimitive& ghost, int64_t x0, int64_t y0, int64_t x1, int64_t y1, bool finest);
 

@@ -85,48 +85,54 @@ Status renderTiled(ImageRGB& image,
     const auto build_start = Clock::now();
     const int64_t dense_x = ceilDiv(image.width, dense), dense_y = ceilDiv(image.height, dense);
     std::vector<std::vector<uint32_t>> dense_lists(static_cast<size_t>(dense_x * dense_y));
-    // Fast model ghosts' smooth parts, summed per dense tile as the values at the tile's four
-    // corner pixels (bilinear in between): written only by the thread that owns the tile's
-    // coarse tile, like the lists.
-    std::vector<std::array<float, 12>> smooth_corners;
+    // Fast model ghosts' smooth parts, summed per dense tile as the values at the tile's 3 x 3
+    // nodes (model_ghost.h; biquadratic in between): written only by the thread that owns the
+    // tile's coarse tile, like the lists.
+    using Nodes = std::array<float, 27>;  // [j][i][channel]
+    std::vector<Nodes> smooth_nodes;
     std::vector<uint8_t> has_smooth;
     std::atomic<int64_t> smooth_tiles{0}, edge_tiles{0};
     const auto tilePixels = [&](int64_t ax, int64_t ay, int64_t bx, int64_t by) {
         return Range{ax * dense, ay * dense, std::min((bx + 1) * dense, image.width) - 1,
                      std::min((by + 1) * dense, image.height) - 1};
     };
-    // Adds a bilinear block (corners at its corner pixels) to the dense tiles ax..bx, ay..by.
+    // Adds a smooth block to the nodes of the dense tiles ax..bx, ay..by: a biquadratic restricted
+    // to a tile is the biquadratic through its values at the tile's nodes.
     const auto addSmooth = [&](const GhostBlockCover& cover, const Range& block, int64_t ax,
                                int64_t ay, int64_t bx, int64_t by) {
-        const auto at = [&](int64_t x, int64_t y, size_t k) {
-            const float fx = block.x1 > block.x0 ? static_cast<float>(x - block.x0) /
-                                                       static_cast<float>(block.x1 - block.x0)
-                                                 : 0.0f;
-            const float fy = block.y1 > block.y0 ? static_cast<float>(y - block.y0) /
-                                                       static_cast<float>(block.y1 - block.y0)
-                                                 : 0.0f;
-            const auto& c = cover.corners;
-            const float top = c[0][k] + (c[1][k] - c[0][k]) * fx;
-            const float bottom = c[2][k] + (c[3][k] - c[2][k]) * fx;
-            return top + (bottom - top) * fy;
-        };
+        const double bx0 = static_cast<double>(block.x0), bx1 = static_cast<double>(block.x1);
+        const double by0 = static_cast<double>(block.y0), by1 = static_cast<double>(block.y1);
+        const double bxm = static_cast<double>(midPixel(block.x0, block.x1));
+        const double bym = static_cast<double>(midPixel(block.y0, block.y1));
         for (int64_t ty = ay; ty <= by; ++ty)
             for (int64_t tx = ax; tx <= bx; ++tx) {
                 const Range t = tilePixels(tx, ty, tx, ty);
-                const size_t i = static_cast<size_t>(ty * dense_x + tx);
-                auto& corners = smooth_corners[i];
-                const int64_t xs[4] = {t.x0, t.x1, t.x0, t.x1}, ys[4] = {t.y0, t.y0, t.y1, t.y1};
-                for (size_t q = 0; q < 4; ++q)
-                    for (size_t k = 0; k < 3; ++k) corners[q * 3 + k] += at(xs[q], ys[q], k);
-                has_smooth[i] = 1;
+                const size_t index = static_cast<size_t>(ty * dense_x + tx);
+                Nodes& nodes = smooth_nodes[index];
+                const int64_t xs[3] = {t.x0, midPixel(t.x0, t.x1), t.x1};
+                const int64_t ys[3] = {t.y0, midPixel(t.y0, t.y1), t.y1};
+                for (size_t j = 0; j < 3; ++j) {
+                    const auto wy = quadraticWeights(by0, bym, by1, static_cast<double>(ys[j]));
+                    for (size_t i = 0; i < 3; ++i) {
+                        const auto wx = quadraticWeights(bx0, bxm, bx1, static_cast<double>(xs[i]));
+                        for (size_t k = 0; k < 3; ++k) {
+                            double v = 0.0;
+                            for (size_t q = 0; q < 3; ++q)
+                                for (size_t p = 0; p < 3; ++p)
+                                    v += wy[q] * wx[p] * cover.nodes[q][p][k];
+                            nodes[(j * 3 + i) * 3 + k] += static_cast<float>(v);
+                        }
+                    }
+                }
+                has_smooth[index] = 1;
             }
     };
     // A fast ghost over the dense tiles ax..bx, ay..by: blocks the ghost misses are dropped,
-    // smooth ones go to the corner sums, the rest are halved down to single tiles, which go to
+    // smooth ones go to the node sums, the rest are halved down to single tiles, which go to
     // the lists and are drawn per pixel.
-    const auto classify = [&](const auto& self, const GhostPrimitive& g, uint32_t index,
-                              int64_t ax, int64_t ay, int64_t bx, int64_t by,
-                              int64_t& smooth_count, int64_t& edge_count) -> void {
+    const auto classify = [&](const auto& self, const GhostPrimitive& g, uint32_t index, int64_t ax,
+                              int64_t ay, int64_t bx, int64_t by, int64_t& smooth_count,
+                              int64_t& edge_count) -> void {
         const Range block = tilePixels(ax, ay, bx, by);
         const bool finest = ax == bx && ay == by;
         const GhostBlockCover cover =
@@ -155,7 +161,7 @@ Status renderTiled(ImageRGB& image,
     const bool any_fast = std::any_of(ghosts.begin(), ghosts.end(),
                                       [](const GhostPrimitive& g) { return g.outline != nullptr; });
     if (any_fast) {
-        smooth_corners.assign(dense_lists.size(), std::array<float, 12>{});
+        smooth_nodes.assign(dense_lists.size(), Nodes{});
         has_smooth.assign(dense_lists.size(), 0);
     }
     const auto add_to_dense = [&](uint32_t index, int64_t tx0, int64_t ty0, int64_t tx1,
@@ -211,8 +217,8 @@ Status renderTiled(ImageRGB& image,
                                             ghosts.size() * sizeof(GhostPrimitive));
     st.ghost_tiles_smooth = smooth_tiles.load();
     st.ghost_tiles_edge = edge_tiles.load();
-    st.memory_bytes += static_cast<int64_t>(smooth_corners.size() * sizeof(std::array<float, 12>) +
-                                            has_smooth.size());
+    st.memory_bytes +=
+        static_cast<int64_t>(smooth_nodes.size() * sizeof(Nodes) + has_smooth.size());
     st.build_ms = millisecondsSince(build_start);
 
     const auto traverse_start = Clock::now();
@@ -227,20 +233,32 @@ Status renderTiled(ImageRGB& image,
         // The tile's pixels are summed here, each in the order of the list, and written once.
         thread_local std::vector<float> accumulator;
         accumulator.assign(static_cast<size_t>(dense) * dense * 3, 0.0f);
-        if (smooth) {  // the fast ghosts' smooth parts first, bilinear between the corners
-            const auto& c = smooth_corners[static_cast<size_t>(t)];
+        if (smooth) {  // the fast ghosts' smooth parts first, biquadratic between the nodes
+            const Nodes& nodes = smooth_nodes[static_cast<size_t>(t)];
+            const double xm = static_cast<double>(midPixel(tx, tx1));
+            const double ym = static_cast<double>(midPixel(ty, ty1));
+            std::array<std::array<float, 3>, 256> wx;
+            for (int64_t x = tx; x <= tx1; ++x) {
+                const auto w = quadraticWeights(static_cast<double>(tx), xm,
+                                                static_cast<double>(tx1), static_cast<double>(x));
+                for (size_t i = 0; i < 3; ++i)
+                    wx[static_cast<size_t>(x - tx)][i] = static_cast<float>(w[i]);
+            }
             for (int64_t y = ty; y <= ty1; ++y) {
-                const float fy =
-                    ty1 > ty ? static_cast<float>(y - ty) / static_cast<float>(ty1 - ty) : 0.0f;
+                const auto wy = quadraticWeights(static_cast<double>(ty), ym,
+                                                 static_cast<double>(ty1), static_cast<double>(y));
+                float column[3][3];  // [node i][channel]
+                for (size_t i = 0; i < 3; ++i)
+                    for (size_t k = 0; k < 3; ++k)
+                        column[i][k] = static_cast<float>(wy[0] * nodes[(0 + i) * 3 + k] +
+                                                          wy[1] * nodes[(3 + i) * 3 + k] +
+                                                          wy[2] * nodes[(6 + i) * 3 + k]);
                 float* row = accumulator.data() + (y - ty) * dense * 3;
-                for (size_t k = 0; k < 3; ++k) {
-                    const float left = c[k] + (c[6 + k] - c[k]) * fy;
-                    const float right = c[3 + k] + (c[9 + k] - c[3 + k]) * fy;
-                    const float step =
-                        tx1 > tx ? (right - left) / static_cast<float>(tx1 - tx) : 0.0f;
-                    for (int64_t x = tx; x <= tx1; ++x)
+                for (int64_t x = tx; x <= tx1; ++x) {
+                    const auto& w = wx[static_cast<size_t>(x - tx)];
+                    for (size_t k = 0; k < 3; ++k)
                         row[(x - tx) * 3 + static_cast<int64_t>(k)] =
-                            left + step * static_cast<float>(x - tx);
+                            w[0] * column[0][k] + w[1] * column[1][k] + w[2] * column[2][k];
                 }
             }
         }
