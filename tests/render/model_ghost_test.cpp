@@ -259,9 +259,9 @@ double maxRelativeError(const ImageRGB& fast, const ImageRGB& exact) {
 // and a self-crossing loop (a figure of eight, inside where its winding number is not zero). The
 // fast frame stays within 2e-3 of the exact frame's peak everywhere (measured: see the README).
 TEST(ModelGhostFast, MatchesTheExactEvaluationOnRandomFrames) {
-    const int64_t w = 150, h = 100;
+    const int64_t w = 120, h = 80;
     double worst = 0.0;
-    for (uint64_t seed = 1; seed <= 4; ++seed) {
+    for (uint64_t seed = 1; seed <= 3; ++seed) {
         std::mt19937_64 rng(seed);
         std::uniform_real_distribution<double> u(-1.0, 1.0);
         std::vector<std::pair<BezierLoop, GhostShading>> ghosts;
@@ -329,11 +329,11 @@ TEST(ModelGhostFast, EightKImagesMatchTheExactEvaluationAtSampledPixels) {
     GhostDrawOptions exact_options;
     exact_options.evaluation = GhostEvaluation::Exact;
     std::vector<GhostPrimitive> exact;
-    for (int i = 0; i < 3; ++i) {
+    for (int i = 0; i < 2; ++i) {
         GhostShading s = randomShading(rng);
-        s.inner_falloff_mm = std::min(s.inner_falloff_mm, 1.0);
-        s.outer_falloff_mm = std::min(s.outer_falloff_mm, 1.0);
-        const BezierLoop loop = toBezierLoop(randomShape(rng, -8.0 + 8.0 * i, 0.0, 3.0));
+        s.inner_falloff_mm = std::min(s.inner_falloff_mm, 0.5);
+        s.outer_falloff_mm = std::min(s.outer_falloff_mm, 0.5);
+        const BezierLoop loop = toBezierLoop(randomShape(rng, -4.0 + 8.0 * i, 0.0, 1.0));
         ghosts.push_back(*prepareGhostPrimitive(loop, s, m, w, h));
         exact.push_back(*prepareGhostPrimitive(loop, s, m, w, h, exact_options));
     }
