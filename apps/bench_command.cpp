@@ -299,6 +299,16 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
                      "of the ghost's peak")
         ->check(CLI::Range(1e-9, 0.1))
         ->capture_default_str();
+    playback
+        ->add_option("--exact-seeds", playback_options->exact_seeds,
+                     "Newton seeds per segment of the exact frame's distance")
+        ->check(CLI::Range(1, 64))
+        ->capture_default_str();
+    playback
+        ->add_option("--exact-iterations", playback_options->exact_iterations,
+                     "Newton steps per seed of the exact frame's distance")
+        ->check(CLI::Range(0, 64))
+        ->capture_default_str();
     playback->add_flag("!--no-exact", playback_options->exact,
                        "skip the exact frame (and the error figures)");
     playback->add_option("--json", *playback_json_path, "also write the results as JSON here");

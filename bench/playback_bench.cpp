@@ -44,6 +44,10 @@ double busiestAngle(const fit::FlareModel& model, double roll_deg) {
 Result<PlaybackBenchResult> runPlaybackBench(const PlaybackBenchOptions& o, std::ostream& log) {
     if (o.frames < 1 || o.frames > 10000)
         return makeError(ErrorCode::InvalidArgument, "bench playback: frames must lie in 1..10000");
+    if (o.exact_seeds < 1 || o.exact_seeds > 64 || o.exact_iterations < 0 ||
+        o.exact_iterations > 64)
+        return makeError(ErrorCode::InvalidArgument,
+                         "bench playback: exact seeds must lie in 1..64, iterations in 0..64");
     if (o.width < 1 || o.height < 1 || o.width > 32768 || o.height > 32768)
         return makeError(ErrorCode::InvalidArgument,
                          "bench playback: width and height must lie in 1..32768");
@@ -85,6 +89,7 @@ Result<PlaybackBenchResult> runPlaybackBench(const PlaybackBenchOptions& o, std:
 
     fit::ModelRenderOptions exact;
     exact.evaluation = render::GhostEvaluation::Exact;
+    exact.distance = render::FastDistanceOptions{o.exact_iterations, o.exact_seeds};
     const auto start = Clock::now();
     const auto reference =
         fit::renderModel(*model, r.angle_deg, r.roll_deg, o.width, o.height, exact);

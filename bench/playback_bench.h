@@ -21,6 +21,7 @@
 #include <string>
 
 #include "common/result.h"
+#include "render/ghost_shape.h"
 
 namespace flarelab::bench {
 
@@ -33,6 +34,10 @@ struct PlaybackBenchOptions {
     int frames = 10;                 // timed frames after the first, >= 1
     double smooth_tolerance = 1e-4;  // fit::ModelRenderOptions::smooth_tolerance
     bool exact = true;               // false: no exact frame, no error figures
+    // The exact frame's Newton distance (the renderer's default is 4 seeds, 4 steps); more of
+    // both bring it nearer the curve's true distance where sharp edges make 0.01 px matter.
+    int exact_seeds = 4;
+    int exact_iterations = 4;
 };
 
 struct PlaybackBenchResult {
