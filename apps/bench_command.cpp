@@ -7,6 +7,7 @@
 #include "bench/bracket_bench.h"
 #include "bench/fit_bench.h"
 #include "bench/merge_bench.h"
+#include "bench/playback_bench.h"
 #include "bench/render_bench.h"
 #include "bench/response_bench.h"
 
@@ -271,6 +272,64 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             file << bench::bracketBenchJson(*rows).dump(2) << "\n";
             if (!file) {
                 err << "flarelab: cannot write " << *bracket_json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+    auto playback_options = std::make_shared<bench::PlaybackBenchOptions>();
+    auto playback_json_path = std::make_shared<std::string>();
+    CLI::App* playback = bench->add_subcommand("playback",
+                                               "a model file drawn frame after frame (flarelab "
+                                               "model render's fast path) against the exact "
+                                               "evaluation: frame time and error");
+    playback->add_option("MODEL", playback_options->model_path, "flare model file")->required();
+    playback->add_option("--width", playback_options->width, "image width")
+        ->check(CLI::Range(int64_t{1}, int64_t{32768}))
+        ->capture_default_str();
+    playback->add_option("--height", playback_options->height, "image height")
+        ->check(CLI::Range(int64_t{1}, int64_t{32768}))
+        ->capture_default_str();
+    playback->add_option("--angle", playback_options->angle_deg,
+                         "head angle (deg); default: the valid range's angle with the most ghosts");
+    playback->add_option("--roll", playback_options->roll_deg,
+                         "roll (deg); default: the capture's");
+    playback->add_option("--frames", playback_options->frames, "timed frames after the first")
+        ->check(CLI::Range(1, 10000))
+        ->capture_default_str();
+    playback
+        ->add_option("--smooth-tolerance", playback_options->smooth_tolerance,
+                     "largest error of an interpolated block at its check points, as a fraction "
+                     "of the ghost's peak")
+        ->check(CLI::Range(1e-9, 0.1))
+        ->capture_default_str();
+    playback
+        ->add_option("--exact-seeds", playback_options->exact_seeds,
+                     "Newton seeds per segment of the exact frame's distance")
+        ->check(CLI::Range(1, 64))
+        ->capture_default_str();
+    playback
+        ->add_option("--exact-iterations", playback_options->exact_iterations,
+                     "Newton steps per seed of the exact frame's distance")
+        ->check(CLI::Range(0, 64))
+        ->capture_default_str();
+    playback->add_flag("!--no-exact", playback_options->exact,
+                       "skip the exact frame (and the error figures)");
+    playback->add_option("--json", *playback_json_path, "also write the results as JSON here");
+    playback->callback([playback_options, playback_json_path, &out, &err, &exit_code] {
+        auto result = bench::runPlaybackBench(*playback_options, err);
+        if (!result) {
+            err << "flarelab: bench playback: " << result.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printPlaybackBench(*result, out);
+        if (!playback_json_path->empty()) {
+            std::ofstream file(*playback_json_path);
+            file << bench::playbackBenchJson(*result).dump(2) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *playback_json_path << "\n";
                 exit_code = 1;
                 return;
             }

@@ -32,6 +32,7 @@ struct RenderState {
     std::string exr_path;
     std::string png_path;
     double exposure_stops = 0.0;
+    bool exact = false;
 };
 
 int runShow(const ShowState& state, std::ostream& out, std::ostream& err) {
@@ -71,6 +72,7 @@ int runRender(const RenderState& s, std::ostream& out, std::ostream& err) {
     const double roll = std::isnan(s.roll_deg) ? model->capture.roll_deg : s.roll_deg;
     fit::ModelRenderOptions options;
     options.intensity_scale = s.intensity_scale;
+    if (s.exact) options.evaluation = render::GhostEvaluation::Exact;
     const auto start = std::chrono::steady_clock::now();
     auto image = fit::renderModel(*model, s.angle_deg, roll, width, height, options);
     if (!image) {
@@ -135,6 +137,9 @@ void addModelCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
                      "multiplies every ghost's intensity (a light of another power)")
         ->check(CLI::NonNegativeNumber)
         ->capture_default_str();
+    render->add_flag("--exact", render_state->exact,
+                     "every pixel of every ghost by the exact evaluation (the reference; seconds "
+                     "per frame) instead of the fast one");
     render->add_option("-o,--output", render_state->exr_path, "OpenEXR file");
     render->add_option("--png", render_state->png_path, "tone-mapped PNG preview");
     render->add_option("--exposure-stops", render_state->exposure_stops, "PNG exposure in stops")

@@ -226,8 +226,12 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
             shading.border_rgb[c] *= options.intensity_scale;
             shading.inner_rgb[c] *= options.intensity_scale;
         }
+        render::GhostDrawOptions draw;
+        draw.distance = options.distance;
+        draw.evaluation = options.evaluation;
+        draw.smooth_tolerance = options.smooth_tolerance;
         auto p = render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width,
-                                               height, options.distance);
+                                               height, draw);
         if (p) primitives.push_back(std::move(*p));
     }
     const Status drawn =
@@ -249,6 +253,9 @@ Result<ImageRGB> renderModel(const FlareModel& model,
     if (!(options.intensity_scale >= 0.0) || !std::isfinite(options.intensity_scale))
         return makeError(ErrorCode::InvalidArgument,
                          "render model: intensity_scale must be finite and >= 0");
+    if (!(options.smooth_tolerance > 0.0 && options.smooth_tolerance <= 0.1))
+        return makeError(ErrorCode::InvalidArgument,
+                         "render model: smooth_tolerance must lie in (0, 0.1]");
     if (!(model.lens.sensor_width_mm > 0.0) || !(model.lens.sensor_height_mm > 0.0))
         return makeError(ErrorCode::InvalidArgument, "render model: the model has no sensor size");
     const int dense = options.tiles.dense_tile_px, coarse = options.tiles.coarse_tile_px;

@@ -81,7 +81,11 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
                                                 double roll_deg);
 
 struct ModelRenderOptions {
-    render::FastDistanceOptions distance{4, 4};
+    render::FastDistanceOptions distance{4, 4};  // the exact evaluation's
+    // Fast: flattened loop, blocks skipped, filled or interpolated, per pixel only at the edges;
+    // Exact: every pixel of every ghost's range by shadeGhostBlock (render/model_ghost.h).
+    render::GhostEvaluation evaluation = render::GhostEvaluation::Fast;
+    double smooth_tolerance = 1e-4;  // render::GhostDrawOptions::smooth_tolerance
     render::TileOptions tiles;
     double intensity_scale = 1.0;  // multiplies every intensity (another light's power), >= 0
 };

@@ -1,5 +1,7 @@
 // ============================================================================
-//  flarelab render: GhostPrimitive, prepareGhostPrimitive, addGhostRow
+//  flarelab render: GhostEvaluation, GhostDrawOptions, GhostOutline, GhostPrimitive,
+//                   prepareGhostPrimitive, addGhostRow, coverGhostBlock, addGhostBlock,
+//                   ghostPixelValue
 // ============================================================================
 //
 // The second primitive kind of the tile engine (tiles.h): a model ghost, a closed loop of cubic
@@ -8,40 +10,137 @@
 // pixel integrates the light: an edge sharper than a pixel is drawn anti-aliased, as the
 // simulator and a camera record it. Its pixel range is the loop's control-point box (which holds
 // the curve) grown by the outer falloff, past which the ghost is zero, and by half a pixel,
-// clipped to the image; the tile engine
-// visits only the dense tiles that range touches, and each pixel of it once, adding all three
-// channels. No pixel outside the range is touched, so a ghost costs what it covers.
+// clipped to the image; the tile engine visits only the dense tiles that range touches.
+//
+// Two evaluations of the same image:
+//   - Exact (the reference): every pixel of the range runs shadeGhostBlock, Newton's distance to
+//     the Béziers, the winding test and eq. 6.4's box mean. Seconds per 1080p frame of a fitted
+//     model, whose falloffs are often hundreds of pixels wide.
+//   - Fast (the default): the loop is flattened once into chords that stay within `sagitta_px`
+//     (0.01 px) of the curve, grouped in runs of 8 with bounding boxes; the inside test is a table
+//     of spans per pixel row (where the chords' winding number is not zero). The signed distance
+//     to the chords is within the sagitta of the curve's and, like it, 1-Lipschitz, so one value
+//     at a block's centre bounds it over the block (coverGhostBlock): a block beyond the outer
+//     falloff is skipped, one deep inside is the constant inner value, and one away from the edge
+//     that the biquadratic through its 3 x 3 nodes matches to within `smooth_tolerance` of the
+//     ghost's peak at four check points is drawn by that interpolation. Only the dense tiles left,
+//     those an edge crosses, are evaluated per pixel (addGhostBlock): the distance over the
+//     chords near the tile, the sign from the spans, and eq. 6.4's box mean (the powers) as in
+//     the exact evaluation. bench/playback_bench.cpp measures both and their difference.
 #pragma once
 
 #include <array>
 #include <cstdint>
+#include <memory>
 #include <optional>
+#include <vector>
 
 #include "render/ghost_quads.h"
 #include "render/ghost_shape.h"
 
 namespace flarelab::render {
 
+enum class GhostEvaluation { Fast, Exact };
+
+struct GhostDrawOptions {
+    FastDistanceOptions distance;  // the exact evaluation's Newton distance
+    GhostEvaluation evaluation = GhostEvaluation::Fast;
+    double sagitta_px = 0.01;  // fast: chords within this of the curve, in (0, 1]
+    // fast: a block drawn by interpolation is off by at most this fraction of the ghost's peak
+    // (its largest border or inner value) at its check points, in (0, 0.1]
+    double smooth_tolerance = 1e-4;
+};
+
+// The fast evaluation's flattened loop (see above). Built by prepareGhostPrimitive.
+struct GhostOutline {
+    struct Chunk {
+        Eigen::Vector2d lo_mm, hi_mm;  // box of the chunk's chords
+        int32_t begin = 0, end = 0;    // chords begin..end-1; chord i runs vertex i -> i + 1
+    };
+    std::vector<Eigen::Vector2d> vertices_mm;  // closed: the last vertex repeats the first
+    // Chord i replaces segment chord_segment[i] of the loop from t = chord_t[i][0] to [1]: where
+    // a pixel needs the distance to the curve itself, Newton starts there.
+    std::vector<int32_t> chord_segment;
+    std::vector<std::array<double, 2>> chord_t;
+    std::vector<Chunk> chunks;
+    // Boxes over runs of chunks, for the nearest-chord search: levels[l][i] bounds chunks
+    // i 2^(l+1) .. (i + 1) 2^(l+1) - 1; the last level is one box.
+    std::vector<std::vector<std::array<Eigen::Vector2d, 2>>> levels;
+    // Row y (in [row0, row0 + rows)) is inside the loop (non-zero winding) at pixel x exactly
+    // where x + 0.5 lies in one of spans_px[row_start[y - row0] .. row_start[y - row0 + 1]).
+    int64_t row0 = 0;
+    std::vector<int32_t> row_start;
+    std::vector<std::array<double, 2>> spans_px;
+    double tolerance_mm = 0.0;  // the chords' largest distance from the curve
+    double reach_mm = 0.0;      // half a pixel's diagonal: how far a pixel's mean looks
+    double tolerance = 0.0;     // smooth_tolerance times the peak, in the shading's unit
+};
+
 struct GhostPrimitive {
     BezierLoop loop_mm;
     GhostShading shading;
     SensorToImage mapping;  // sensor mm to pixels of the image it is drawn into
     FastDistanceOptions distance;
-    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;  // inclusive pixel range
+    int64_t x0 = 0, y0 = 0, x1 = -1, y1 = -1;     // inclusive pixel range
+    std::shared_ptr<const GhostOutline> outline;  // null: the exact evaluation
 };
 
 // nullopt when the ghost cannot put light in a width x height image: its range misses the image,
 // it is black in every channel, or anything about it is not finite or out of bounds (an empty
-// loop, a shading validateShading refuses).
+// loop, a shading validateShading refuses, options out of their ranges).
 std::optional<GhostPrimitive> prepareGhostPrimitive(const BezierLoop& loop_mm,
                                                     const GhostShading& shading,
                                                     const SensorToImage& mapping,
                                                     int64_t width,
                                                     int64_t height,
-                                                    const FastDistanceOptions& distance = {});
+                                                    const GhostDrawOptions& options = {});
 
-// Adds the ghost's mean over the pixels (x, y) for x in [x0, x1] to rgb, three floats
+// Adds the ghost's exact mean over the pixels (x, y) for x in [x0, x1] to rgb, three floats
 // per pixel starting with pixel x0. The caller keeps x0..x1 and y inside the ghost's range.
 void addGhostRow(const GhostPrimitive& ghost, int64_t y, int64_t x0, int64_t x1, float* rgb);
+
+// What a block of pixels (x0..x1, y0..y1, inclusive, inside the image) holds of a ghost.
+enum class GhostBlockKind {
+    Outside,  // nothing: the block is beyond the outer falloff or the range
+    Smooth,   // the biquadratic through `nodes` (constant inside the inner falloff)
+    Edge,     // neither: smaller blocks, or per pixel
+};
+// A block's nodes are the pixels {x0, midPixel(x0, x1), x1} x {y0, midPixel(y0, y1), y1}.
+inline int64_t midPixel(int64_t a, int64_t b) { return a + (b - a) / 2; }
+// The weights of the quadratic through nodes n0 <= n1 <= n2 at x (Lagrange); linear between n0
+// and n2 when the middle node coincides with one of them, constant when all do.
+inline std::array<double, 3> quadraticWeights(double n0, double n1, double n2, double x) {
+    if (!(n2 > n0)) return {1.0, 0.0, 0.0};
+    if (!(n1 > n0) || !(n2 > n1)) {
+        const double t = (x - n0) / (n2 - n0);
+        return {1.0 - t, 0.0, t};
+    }
+    return {(x - n1) * (x - n2) / ((n0 - n1) * (n0 - n2)),
+            (x - n0) * (x - n2) / ((n1 - n0) * (n1 - n2)),
+            (x - n0) * (x - n1) / ((n2 - n0) * (n2 - n1))};
+}
+struct GhostBlockCover {
+    GhostBlockKind kind = GhostBlockKind::Edge;
+    // RGB at the nodes when Smooth: nodes[j][i] at (x node i, y node j)
+    std::array<std::array<std::array<float, 3>, 3>, 3> nodes{};
+};
+// `finest`: the caller cannot split the block further, so it may be interpolated although the
+// outer or inner falloff's end crosses it (checked all the same). An exact ghost is never Smooth.
+GhostBlockCover coverGhostBlock(
+    const GhostPrimitive& ghost, int64_t x0, int64_t y0, int64_t x1, int64_t y1, bool finest);
+
+// Adds the ghost's mean over the pixels x0..x1, y0..y1 (inside the ghost's range) to rgb: pixel
+// (x, y) at rgb + (y - y0) * row_stride + (x - x0) * 3. Fast or exact as the ghost was prepared.
+void addGhostBlock(const GhostPrimitive& ghost,
+                   int64_t x0,
+                   int64_t y0,
+                   int64_t x1,
+                   int64_t y1,
+                   float* rgb,
+                   int64_t row_stride);
+
+// The fast evaluation of one pixel (any pixel of the image; zero outside the range). For an
+// exact ghost, the exact value.
+std::array<double, 3> ghostPixelValue(const GhostPrimitive& ghost, int64_t x, int64_t y);
 
 }  // namespace flarelab::render

@@ -4,6 +4,8 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <array>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -83,11 +85,99 @@ Status renderTiled(ImageRGB& image,
     const auto build_start = Clock::now();
     const int64_t dense_x = ceilDiv(image.width, dense), dense_y = ceilDiv(image.height, dense);
     std::vector<std::vector<uint32_t>> dense_lists(static_cast<size_t>(dense_x * dense_y));
+    // Fast model ghosts' smooth parts, summed per dense tile as the values at the tile's 3 x 3
+    // nodes (model_ghost.h; biquadratic in between): written only by the thread that owns the
+    // tile's coarse tile, like the lists.
+    using Nodes = std::array<float, 27>;  // [j][i][channel]
+    std::vector<Nodes> smooth_nodes;
+    std::vector<uint8_t> has_smooth;
+    std::atomic<int64_t> smooth_tiles{0}, edge_tiles{0};
+    const auto tilePixels = [&](int64_t ax, int64_t ay, int64_t bx, int64_t by) {
+        return Range{ax * dense, ay * dense, std::min((bx + 1) * dense, image.width) - 1,
+                     std::min((by + 1) * dense, image.height) - 1};
+    };
+    // Adds a smooth block to the nodes of the dense tiles ax..bx, ay..by: a biquadratic restricted
+    // to a tile is the biquadratic through its values at the tile's nodes.
+    const auto addSmooth = [&](const GhostBlockCover& cover, const Range& block, int64_t ax,
+                               int64_t ay, int64_t bx, int64_t by) {
+        const double bx0 = static_cast<double>(block.x0), bx1 = static_cast<double>(block.x1);
+        const double by0 = static_cast<double>(block.y0), by1 = static_cast<double>(block.y1);
+        const double bxm = static_cast<double>(midPixel(block.x0, block.x1));
+        const double bym = static_cast<double>(midPixel(block.y0, block.y1));
+        for (int64_t ty = ay; ty <= by; ++ty)
+            for (int64_t tx = ax; tx <= bx; ++tx) {
+                const Range t = tilePixels(tx, ty, tx, ty);
+                const size_t index = static_cast<size_t>(ty * dense_x + tx);
+                Nodes& nodes = smooth_nodes[index];
+                const int64_t xs[3] = {t.x0, midPixel(t.x0, t.x1), t.x1};
+                const int64_t ys[3] = {t.y0, midPixel(t.y0, t.y1), t.y1};
+                for (size_t j = 0; j < 3; ++j) {
+                    const auto wy = quadraticWeights(by0, bym, by1, static_cast<double>(ys[j]));
+                    for (size_t i = 0; i < 3; ++i) {
+                        const auto wx = quadraticWeights(bx0, bxm, bx1, static_cast<double>(xs[i]));
+                        for (size_t k = 0; k < 3; ++k) {
+                            double v = 0.0;
+                            for (size_t q = 0; q < 3; ++q)
+                                for (size_t p = 0; p < 3; ++p)
+                                    v += wy[q] * wx[p] * cover.nodes[q][p][k];
+                            nodes[(j * 3 + i) * 3 + k] += static_cast<float>(v);
+                        }
+                    }
+                }
+                has_smooth[index] = 1;
+            }
+    };
+    // A fast ghost over the dense tiles ax..bx, ay..by: blocks the ghost misses are dropped,
+    // smooth ones go to the node sums, the rest are halved down to single tiles, which go to
+    // the lists and are drawn per pixel.
+    const auto classify = [&](const auto& self, const GhostPrimitive& g, uint32_t index, int64_t ax,
+                              int64_t ay, int64_t bx, int64_t by, int64_t& smooth_count,
+                              int64_t& edge_count) -> void {
+        const Range block = tilePixels(ax, ay, bx, by);
+        const bool finest = ax == bx && ay == by;
+        const GhostBlockCover cover =
+            coverGhostBlock(g, block.x0, block.y0, block.x1, block.y1, finest);
+        if (cover.kind == GhostBlockKind::Outside) return;
+        if (cover.kind == GhostBlockKind::Smooth) {
+            addSmooth(cover, block, ax, ay, bx, by);
+            smooth_count += (bx - ax + 1) * (by - ay + 1);
+            return;
+        }
+        if (finest) {
+            dense_lists[static_cast<size_t>(ay * dense_x + ax)].push_back(index);
+            ++edge_count;
+            return;
+        }
+        if (bx - ax >= by - ay) {
+            const int64_t mid = ax + (bx - ax) / 2;
+            self(self, g, index, ax, ay, mid, by, smooth_count, edge_count);
+            self(self, g, index, mid + 1, ay, bx, by, smooth_count, edge_count);
+        } else {
+            const int64_t mid = ay + (by - ay) / 2;
+            self(self, g, index, ax, ay, bx, mid, smooth_count, edge_count);
+            self(self, g, index, ax, mid + 1, bx, by, smooth_count, edge_count);
+        }
+    };
+    const bool any_fast = std::any_of(ghosts.begin(), ghosts.end(),
+                                      [](const GhostPrimitive& g) { return g.outline != nullptr; });
+    if (any_fast) {
+        smooth_nodes.assign(dense_lists.size(), Nodes{});
+        has_smooth.assign(dense_lists.size(), 0);
+    }
     const auto add_to_dense = [&](uint32_t index, int64_t tx0, int64_t ty0, int64_t tx1,
                                   int64_t ty1) {
         const Range p = range(index);
         const int64_t ax = std::max(tx0, p.x0 / dense), bx = std::min(tx1, p.x1 / dense);
         const int64_t ay = std::max(ty0, p.y0 / dense), by = std::min(ty1, p.y1 / dense);
+        if (ax > bx || ay > by) return;
+        if (index >= quad_count && ghosts[index - quad_count].outline) {
+            int64_t smooth_count = 0, edge_count = 0;
+            classify(classify, ghosts[index - quad_count], index, ax, ay, bx, by, smooth_count,
+                     edge_count);
+            smooth_tiles += smooth_count;
+            edge_tiles += edge_count;
+            return;
+        }
         for (int64_t ty = ay; ty <= by; ++ty)
             for (int64_t tx = ax; tx <= bx; ++tx)
                 dense_lists[static_cast<size_t>(ty * dense_x + tx)].push_back(index);
@@ -125,27 +215,61 @@ Status renderTiled(ImageRGB& image,
     }
     st.memory_bytes += static_cast<int64_t>(primitives.size() * sizeof(Primitive) +
                                             ghosts.size() * sizeof(GhostPrimitive));
+    st.ghost_tiles_smooth = smooth_tiles.load();
+    st.ghost_tiles_edge = edge_tiles.load();
+    st.memory_bytes +=
+        static_cast<int64_t>(smooth_nodes.size() * sizeof(Nodes) + has_smooth.size());
     st.build_ms = millisecondsSince(build_start);
 
     const auto traverse_start = Clock::now();
     const StopMask stop(aperture);
     tbb::parallel_for(int64_t{0}, dense_x * dense_y, [&](int64_t t) {
         const std::vector<uint32_t>& list = dense_lists[static_cast<size_t>(t)];
-        if (list.empty()) return;
+        const bool smooth = !has_smooth.empty() && has_smooth[static_cast<size_t>(t)];
+        if (list.empty() && !smooth) return;
         const int64_t tx = (t % dense_x) * dense, ty = (t / dense_x) * dense;
         const int64_t tx1 = std::min(image.width, tx + dense) - 1;
         const int64_t ty1 = std::min(image.height, ty + dense) - 1;
         // The tile's pixels are summed here, each in the order of the list, and written once.
         thread_local std::vector<float> accumulator;
         accumulator.assign(static_cast<size_t>(dense) * dense * 3, 0.0f);
+        if (smooth) {  // the fast ghosts' smooth parts first, biquadratic between the nodes
+            const Nodes& nodes = smooth_nodes[static_cast<size_t>(t)];
+            const double xm = static_cast<double>(midPixel(tx, tx1));
+            const double ym = static_cast<double>(midPixel(ty, ty1));
+            std::array<std::array<float, 3>, 256> wx;
+            for (int64_t x = tx; x <= tx1; ++x) {
+                const auto w = quadraticWeights(static_cast<double>(tx), xm,
+                                                static_cast<double>(tx1), static_cast<double>(x));
+                for (size_t i = 0; i < 3; ++i)
+                    wx[static_cast<size_t>(x - tx)][i] = static_cast<float>(w[i]);
+            }
+            for (int64_t y = ty; y <= ty1; ++y) {
+                const auto wy = quadraticWeights(static_cast<double>(ty), ym,
+                                                 static_cast<double>(ty1), static_cast<double>(y));
+                float column[3][3];  // [node i][channel]
+                for (size_t i = 0; i < 3; ++i)
+                    for (size_t k = 0; k < 3; ++k)
+                        column[i][k] = static_cast<float>(wy[0] * nodes[(0 + i) * 3 + k] +
+                                                          wy[1] * nodes[(3 + i) * 3 + k] +
+                                                          wy[2] * nodes[(6 + i) * 3 + k]);
+                float* row = accumulator.data() + (y - ty) * dense * 3;
+                for (int64_t x = tx; x <= tx1; ++x) {
+                    const auto& w = wx[static_cast<size_t>(x - tx)];
+                    for (size_t k = 0; k < 3; ++k)
+                        row[(x - tx) * 3 + static_cast<int64_t>(k)] =
+                            w[0] * column[0][k] + w[1] * column[1][k] + w[2] * column[2][k];
+                }
+            }
+        }
         for (const uint32_t index : list) {
             if (index >= quad_count) {
                 const GhostPrimitive& g = ghosts[index - quad_count];
                 const int64_t x0 = std::max(tx, g.x0), x1 = std::min(tx1, g.x1);
                 const int64_t y0 = std::max(ty, g.y0), y1 = std::min(ty1, g.y1);
-                for (int64_t y = y0; y <= y1; ++y)
-                    addGhostRow(g, y, x0, x1,
-                                accumulator.data() + ((y - ty) * dense + (x0 - tx)) * 3);
+                if (x0 > x1 || y0 > y1) continue;
+                addGhostBlock(g, x0, y0, x1, y1,
+                              accumulator.data() + ((y0 - ty) * dense + (x0 - tx)) * 3, dense * 3);
                 continue;
             }
             const Primitive& p = primitives[index];

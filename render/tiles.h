@@ -20,6 +20,13 @@
 // Two primitive kinds share the tiles: the quads of traced ray grids (ghost_quads.h), one colour
 // channel each, and model ghosts (model_ghost.h), shaded Bézier loops that add all three
 // channels. A pixel sums the quads of its tile first, then the model ghosts, each in input order.
+//
+// Fast model ghosts (model_ghost.h) are sorted into dense tiles by coverGhostBlock while the tiles
+// are built: from the blocks of the coarse tile down to single dense tiles, a block the ghost
+// misses is dropped, a block where it is constant or biquadratic is added to its tiles' node values
+// (3 x 3 per tile, summed over ghosts, drawn first, before the quads), and only dense tiles an edge
+// crosses go to the lists and are drawn per pixel. Their sum is in a fixed order too, so the image still does
+// not depend on the number of threads, but it is not the order of the input array.
 #pragma once
 
 #include <cstdint>
@@ -44,8 +51,10 @@ struct TileStats {
     int64_t coarse_entries = 0;  // primitive references in coarse tiles
     int64_t dense_entries = 0;   // primitive references in dense tiles
     int64_t memory_bytes = 0;    // of the tile lists and the primitive array
-    double build_ms = 0.0;       // tile building
-    double traverse_ms = 0.0;    // per-pixel accumulation
+    int64_t ghost_tiles_smooth = 0;  // dense tiles x fast model ghosts interpolated
+    int64_t ghost_tiles_edge = 0;    // dense tiles x fast model ghosts drawn per pixel
+    double build_ms = 0.0;           // tile building (and fast model ghosts' classification)
+    double traverse_ms = 0.0;        // per-pixel accumulation
 };
 
 // Adds the primitives (prepared for this image's size) to `image`. InvalidArgument for tile sizes

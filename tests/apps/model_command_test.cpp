@@ -3,11 +3,15 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
 
+#include "apps/bench_command.h"
 #include "fit/model_file.h"
 #include "fit/sweep_fit.h"
 #include "hdr/exr.h"
@@ -206,6 +210,50 @@ TEST(ModelRender, DrawsTheModelAtAnAngleToExrAndPng) {
     r = model({"render", (dir / "missing.flm").string(), "--angle", "1", "-o", exr});
     EXPECT_EQ(r.code, 1);
     EXPECT_TRUE(contains(r.err, "missing.flm")) << r.err;
+    fs::remove_all(dir);
+}
+
+// --exact draws every pixel the old way; the default fast image stays within the fast path's
+// error of it, and `flarelab bench playback` measures the two (frame time, ghosts, error).
+TEST(ModelRender, ExactIsTheReferenceThatBenchPlaybackMeasuresAgainst) {
+    const fs::path dir =
+        fs::temp_directory_path() / ("flarelab_model_playback_" + std::to_string(::getpid()));
+    fs::create_directories(dir);
+    const std::string path = (dir / "disc.flm").string();
+    ASSERT_TRUE(fit::writeModel(path, discModel()));
+    const std::string fast_exr = (dir / "fast.exr").string(),
+                      exact_exr = (dir / "exact.exr").string();
+    ASSERT_EQ(model({"render", path, "--angle", "1", "-o", fast_exr}).code, 0);
+    ASSERT_EQ(model({"render", path, "--angle", "1", "--exact", "-o", exact_exr}).code, 0);
+    const auto fast = hdr::readExr(fast_exr), exact = hdr::readExr(exact_exr);
+    ASSERT_TRUE(fast && exact);
+    double peak = 0.0, worst = 0.0;
+    for (size_t i = 0; i < exact->image.pixels.size(); ++i) {
+        peak = std::max(peak, static_cast<double>(exact->image.pixels[i]));
+        worst = std::max(
+            worst, static_cast<double>(std::abs(fast->image.pixels[i] - exact->image.pixels[i])));
+    }
+    EXPECT_GT(peak, 2.9);
+    EXPECT_LT(worst, 2e-3 * peak);
+
+    const std::string json_path = (dir / "playback.json").string();
+    const CommandRun run = testing::runCommand(
+        addBenchCommands, {"bench", "playback", path, "--width", "72", "--height", "48", "--frames",
+                           "2", "--json", json_path});
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "frame_ms")) << run.out;
+    std::ifstream file(json_path);
+    const nlohmann::json doc = nlohmann::json::parse(file);
+    EXPECT_EQ(doc.at("ghosts").get<int>(), 1);
+    EXPECT_GT(doc.at("frame_ms").get<double>(), 0.0);
+    EXPECT_GE(doc.at("max_rel_err").get<double>(), 0.0);
+    EXPECT_LT(doc.at("max_rel_err").get<double>(), 2e-3);
+    EXPECT_EQ(doc.at("width").get<int>(), 72);
+
+    const CommandRun missing = testing::runCommand(
+        addBenchCommands, {"bench", "playback", (dir / "missing.flm").string()});
+    EXPECT_EQ(missing.code, 1);
+    EXPECT_TRUE(contains(missing.err, "missing.flm")) << missing.err;
     fs::remove_all(dir);
 }
 

@@ -102,7 +102,9 @@ ImageRGB drawModel(const std::vector<Eigen::Vector2d>& control_points_px, int64_
     GhostShading shading;
     shading.border_rgb = shading.inner_rgb = {1.0, 1.0, 1.0};
     shading.inner_falloff_mm = shading.outer_falloff_mm = 1e-6;  // a step: 1e-5 pixel
-    const auto ghost = prepareGhostPrimitive(loop, shading, m, w, h, FastDistanceOptions{8, 8});
+    GhostDrawOptions draw;  // the default (fast) evaluation, with a finer Newton distance
+    draw.distance = FastDistanceOptions{8, 8};
+    const auto ghost = prepareGhostPrimitive(loop, shading, m, w, h, draw);
     EXPECT_TRUE(ghost.has_value());
     ImageRGB image(w, h);
     if (ghost) {
