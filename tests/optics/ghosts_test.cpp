@@ -19,13 +19,7 @@ namespace {
 using flarelab::testing::kShippedLenses;
 using flarelab::testing::lensPath;
 
-Lens shippedLens(const std::string& file) {
-    auto prescription = loadPrescription(lensPath(file));
-    if (!prescription) std::abort();
-    auto lens = Lens::make(*prescription, CameraDescription{});
-    if (!lens) std::abort();
-    return *lens;
-}
+using testing::shippedLens;
 
 // "# two-reflection ghosts not crossing the stop twice: C(5,2)+C(3,2) = 13 ..."
 int headerGhostCount(const std::string& file) {

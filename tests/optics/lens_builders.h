@@ -1,10 +1,13 @@
 // Small lenses built in code for the optics tests.
 #pragma once
 
+#include <cstdlib>
+#include <string>
 #include <vector>
 
 #include "optics/lens.h"
 #include "optics/prescription.h"
+#include "tests/test_paths.h"
 
 namespace flarelab::optics::testing {
 
@@ -54,6 +57,16 @@ inline Lens lensOf(std::vector<Surface> surfaces, CameraDescription camera = {})
 inline Lens singlet(double coating_nm = 0.0) {
     return lensOf({stop(5.0, 10.0), refracting(100.0, 6.0, 1.5168, 20.0, 64.17, coating_nm),
                    refracting(-100.0, 97.0, 1.0, 20.0, 0.0, coating_nm)});
+}
+
+// A shipped lens (data/lenses/FILE) with the default camera; aborts if it does not load, which
+// the lens tests themselves report.
+inline Lens shippedLens(const std::string& file) {
+    auto prescription = loadPrescription(flarelab::testing::lensPath(file));
+    if (!prescription) std::abort();
+    auto lens = Lens::make(*prescription, CameraDescription{});
+    if (!lens) std::abort();
+    return *lens;
 }
 
 }  // namespace flarelab::optics::testing

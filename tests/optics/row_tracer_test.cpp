@@ -20,13 +20,7 @@ namespace {
 using flarelab::testing::kShippedLenses;
 using flarelab::testing::lensPath;
 
-Lens shippedLens(const std::string& file) {
-    auto prescription = loadPrescription(lensPath(file));
-    if (!prescription) std::abort();
-    auto lens = Lens::make(*prescription, CameraDescription{});
-    if (!lens) std::abort();
-    return *lens;
-}
+using testing::shippedLens;
 
 // The half-diagonal field angle of the lens on its sensor.
 double fieldLimit_rad(const Lens& lens) {
@@ -80,7 +74,8 @@ TEST(FresnelPolynomial, MeetsItsToleranceAgainstTheThinFilmFormulaWhereverItIsUs
 // ---- agreement with PathTracer ----
 
 struct Worst {
-    double position_px = 0.0, stop = 0.0, stop_shift_px = 0.0, throughput = 0.0, power = 0.0, differs = 0.0;
+    double position_px = 0.0, stop = 0.0, stop_shift_px = 0.0, throughput = 0.0, power = 0.0,
+           differs = 0.0;
 };
 
 // Every shipped lens, its imaging path and a spread of its ghosts, on axis, at half the field and
@@ -121,7 +116,8 @@ Worst worstOverShippedLenses(GridTracer tracer, int grid, int ghosts_per_lens) {
         }
     }
     std::printf(
-        "row tracer worst: %.3g px, stop %.3g (%.3g px), throughput %.3g, power %.3g, status %.3g\n",
+        "row tracer worst: %.3g px, stop %.3g (%.3g px), throughput %.3g, power %.3g, status "
+        "%.3g\n",
         worst.position_px, worst.stop, worst.stop_shift_px, worst.throughput, worst.power,
         worst.differs);
     return worst;
