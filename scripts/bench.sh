@@ -23,7 +23,7 @@ fi
 cd "$(dirname "$0")/.."
 out=${FLARELAB_OUT:-out}/bench
 mkdir -p "$out"
-for tool in bench/optics_bench bench/ghost_divergence apps/flarelab; do
+for tool in bench/optics_bench bench/quad_bench bench/model_ghost_bench bench/ghost_divergence apps/flarelab; do
     if [[ ! -x $build/$tool ]]; then
         echo "bench: $build/$tool is missing (a sanitizer build has no benchmarks)" >&2
         exit 1
@@ -38,6 +38,17 @@ echo "bench: optics_bench, $repetitions repetitions of at least $min_time s each
     --benchmark_out="$out/optics_bench.json.tmp" \
     --benchmark_out_format=json
 mv "$out/optics_bench.json.tmp" "$out/optics_bench.json"
+
+# The renderer's kernels (issue 19): quads and the area integration, model playback.
+for kernels in quad_bench model_ghost_bench; do
+    echo "bench: $kernels, $repetitions repetitions of at least $min_time s each"
+    "$build/bench/$kernels" \
+        --benchmark_repetitions="$repetitions" \
+        --benchmark_min_time="$min_time" \
+        --benchmark_out="$out/$kernels.json.tmp" \
+        --benchmark_out_format=json
+    mv "$out/$kernels.json.tmp" "$out/$kernels.json"
+done
 
 python3 - "$out/optics_bench.json" "$out/optics_bench.md" <<'EOF'
 import json, os, sys
