@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <limits>
 #include <map>
 #include <mutex>
 
@@ -16,6 +15,7 @@ namespace flarelab::optics {
 // ---- Fresnel polynomial --------------------------------------------------------------------
 
 double FresnelPolynomial::operator()(double cos_i) const {
+    FLARELAB_CHECK(!coefficients.empty());
     const double x = (2.0 * cos_i - 1.0 - lo) / (1.0 - lo);
     double b1 = 0.0, b2 = 0.0;
     for (size_t k = coefficients.size() - 1; k >= 1; --k) {
