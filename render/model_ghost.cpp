@@ -308,6 +308,23 @@ Vec2 pixelCentreMm(const SensorToImage& m, int64_t x, int64_t y) {
             (static_cast<double>(y) + 0.5 - m.centre_y_px) / m.px_per_mm_y};
 }
 
+// A block's middle pixel, its centre in sensor mm, and the farthest the block's corner pixels'
+// centres lie from it.
+struct BlockMiddle {
+    int64_t x, y;
+    Vec2 centre_mm;
+    double radius_mm;
+};
+BlockMiddle blockMiddle(const GhostPrimitive& g, int64_t x0, int64_t y0, int64_t x1, int64_t y1) {
+    BlockMiddle m{x0 + (x1 - x0) / 2, y0 + (y1 - y0) / 2, {}, 0.0};
+    m.centre_mm = pixelCentreMm(g.mapping, m.x, m.y);
+    for (const int64_t x : {x0, x1})
+        for (const int64_t y : {y0, y1})
+            m.radius_mm =
+                std::max(m.radius_mm, (pixelCentreMm(g.mapping, x, y) - m.centre_mm).norm());
+    return m;
+}
+
 // Eq. 6.4's mean over the pixel centred on q at unsigned distance `distance` from the chords,
 // nearest at `point`, as shadeGhostBlock takes it from the curve.
 std::array<double, 3> shadeFromNearest(
@@ -485,12 +502,10 @@ GhostBlockCover coverGhostBlock(
     const GhostShading& s = g.shading;
     // The signed distance is 1-Lipschitz and a pixel's mean reaches reach_mm beyond its centre,
     // so the value at the block's middle pixel bounds every pixel's within r of it.
-    const int64_t mx = x0 + (x1 - x0) / 2, my = y0 + (y1 - y0) / 2;
-    const Vec2 c = pixelCentreMm(g.mapping, mx, my);
-    double r = 0.0;
-    for (const int64_t x : {x0, x1})
-        for (const int64_t y : {y0, y1})
-            r = std::max(r, (pixelCentreMm(g.mapping, x, y) - c).norm());
+    const BlockMiddle mid = blockMiddle(g, x0, y0, x1, y1);
+    const int64_t mx = mid.x, my = mid.y;
+    const Vec2 c = mid.centre_mm;
+    const double r = mid.radius_mm;
     Nearest nc = nearest(o, c);
     bool in = inside(o, mx, my);
     refineOnCurve(g, c, nc, in);
@@ -567,12 +582,9 @@ void addGhostBlock(const GhostPrimitive& g,
     const GhostOutline& o = *g.outline;
     // The chords that can be nearest to some pixel of the block: within the middle pixel's
     // distance plus twice the block's radius of it.
-    const int64_t mx = x0 + (x1 - x0) / 2, my = y0 + (y1 - y0) / 2;
-    const Vec2 c = pixelCentreMm(g.mapping, mx, my);
-    double r = 0.0;
-    for (const int64_t x : {x0, x1})
-        for (const int64_t y : {y0, y1})
-            r = std::max(r, (pixelCentreMm(g.mapping, x, y) - c).norm());
+    const BlockMiddle mid = blockMiddle(g, x0, y0, x1, y1);
+    const Vec2 c = mid.centre_mm;
+    const double r = mid.radius_mm;
     const double reach = nearest(o, c).distance_mm + 2.0 * r;
     const double reach2 = reach * reach * (1.0 + 1e-12) + 1e-300;
     // The candidates in single precision relative to the block's middle pixel (a few pixels of

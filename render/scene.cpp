@@ -194,7 +194,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         bool lit = false;  // some valid ray, and the footprint touches the image
         int n = 0;         // the full grid's size (eq. 13)
         optics::EntrySquare square;
-        int aimed_again = 0;  // 1: the shared square did not hold this channel's beam
+        int aimed_again = 0;    // 1: the shared square did not hold this channel's beam
         double power = 0.0;     // on the image, in image units summed over pixels
         double area_px = 0.0;   // of the footprint on the image
         double l2_share = 0.0;  // power^2 / area
@@ -207,24 +207,32 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     };
     const double width_px = static_cast<double>(options.width);
     const double height_px = static_cast<double>(options.height);
-    // The probe of one task over `square`, the square aimed at green for its light and path.
-    // Where the probe's outer ring has valid rays and green's had none, dispersion has pushed the
-    // beam past the square: the channel is aimed on its own.
-    const auto probeTask = [&](Task& task, const optics::EntrySquare& square,
-                               bool green_ring_lit) -> Status {
-        const double theta = degToRad(task.light->theta_deg), phi = degToRad(task.light->phi_deg);
-        optics::RayGridOptions probe_options;
-        probe_options.tracer = options.grid_tracer;
-        probe_options.square = square;
-        auto probe = optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
-                                          options.probe_grid, probe_options);
-        if (probe && !green_ring_lit && ringHasValidRays(*probe)) {
-            probe_options.square.reset();
-            probe = optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
+    // The probe of one task: green's own, traced over the square aimed at green for its light and
+    // path, or the channel's over that square. Where the channel's outer ring has valid rays and
+    // green's had none, dispersion has pushed the beam past the square: it is aimed on its own.
+    const auto probeTask = [&](Task& task, const optics::RayGrid& green) -> Status {
+        const optics::RayGrid* probe = &green;
+        std::optional<optics::RayGrid> own;
+        if (kChannel_nm[task.channel] != kLambdaGreen_nm) {
+            const double theta = degToRad(task.light->theta_deg);
+            const double phi = degToRad(task.light->phi_deg);
+            optics::RayGridOptions probe_options;
+            probe_options.tracer = options.grid_tracer;
+            probe_options.square = green.square();
+            auto traced =
+                optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
+                                     options.probe_grid, probe_options);
+            if (traced && !ringHasValidRays(green) && ringHasValidRays(*traced)) {
+                probe_options.square.reset();
+                traced =
+                    optics::traceRayGrid(lens, *task.path, theta, phi, kChannel_nm[task.channel],
                                          options.probe_grid, probe_options);
-            ++task.aimed_again;
+                ++task.aimed_again;
+            }
+            if (!traced) return traced.error();
+            own = std::move(*traced);
+            probe = &*own;
         }
-        if (!probe) return probe.error();
         task.square = probe->square();
         if (probe->validCount() == 0) return Ok{};
         task.n = adaptiveGridSize(options.base_grid, footprintArea(*probe), sensor_area,
@@ -324,9 +332,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
             probe_status[first] = green.error();
             return;
         }
-        const bool green_ring_lit = ringHasValidRays(*green);
-        for (size_t i = first; i < last; ++i)
-            probe_status[i] = probeTask(probed[i], green->square(), green_ring_lit);
+        for (size_t i = first; i < last; ++i) probe_status[i] = probeTask(probed[i], *green);
     });
     for (const Status& status : probe_status)
         if (!status) return status.error();
