@@ -31,6 +31,7 @@ struct SimulateState {
     std::string merge = "none";
     int merge_steps = -1;
     double merge_gamma = std::nan("");
+    bool adaptive_grid = false;
     std::string exr_path;
     std::string png_path;
     double exposure_stops = 0.0;
@@ -84,6 +85,12 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
                                          : render::kNoMerge;
     if (s.merge_steps >= 0) options.merge.steps = s.merge_steps;
     if (!std::isnan(s.merge_gamma)) options.merge.gamma = s.merge_gamma;
+    if (s.adaptive_grid && options.merge.steps == 0) {
+        err << "flarelab: --adaptive-grid refines by the merge's test: give a merge (--merge light "
+               "or heavy, or --merge-steps 1..7)\n";
+        return 1;
+    }
+    options.adaptive_grid = s.adaptive_grid;
     render::SceneStats stats;
     const auto start = std::chrono::steady_clock::now();
     auto image = render::renderScene(*lens, lights, options, &stats);
@@ -142,6 +149,9 @@ void addSimulateCommand(CLI::App& app, std::ostream& out, std::ostream& err, int
     cmd->add_option("--merge-gamma", state->merge_gamma,
                     "sine of the largest angle between merged edges, overrides --merge")
         ->check(CLI::NonNegativeNumber);
+    cmd->add_flag("--adaptive-grid", state->adaptive_grid,
+                  "trace each ray grid in coarse blocks and refine only where the merge's test "
+                  "fails (needs a merge)");
     cmd->add_option("-o,--output", state->exr_path, "output OpenEXR file")->required();
     cmd->add_option("--png", state->png_path, "also a tone-mapped PNG preview");
     cmd->add_option("--exposure-stops", state->exposure_stops, "PNG exposure in stops");

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <sstream>
 
+#include "common/check.h"
 #include "common/units.h"
 #include "optics/paraxial.h"
 #include "optics/row_tracer.h"
@@ -82,13 +83,16 @@ int64_t RayGrid::validCount() const {
                          [](const GridSample& s) { return s.valid; });
 }
 
-Result<RayGrid> traceRayGrid(const Lens& lens,
-                             const GhostPath& path,
-                             double theta_rad,
-                             double phi_rad,
-                             double wavelength_nm,
-                             int n,
-                             const RayGridOptions& options) {
+namespace {
+
+// Checks the arguments and sets up the grid: its square, entry plane and n x n empty samples.
+Result<RayGrid> emptyGrid(const Lens& lens,
+                          const GhostPath& path,
+                          double theta_rad,
+                          double phi_rad,
+                          double wavelength_nm,
+                          int n,
+                          const RayGridOptions& options) {
     const auto invalid = [](const std::string& what) {
         return makeError(ErrorCode::InvalidArgument, "ray grid: " + what);
     };
@@ -101,6 +105,8 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
     if (!lens.isValidPath(path)) return invalid("path " + pathLabel(path) + " is not in this lens");
     if (!(options.margin >= 0.0 && options.margin <= 10.0))
         return invalid("margin must lie in 0..10");
+    if (!(options.float_tolerance_mm >= 0.0))
+        return invalid("float tolerance must be a non-negative length");
 
     RayGrid grid;
     grid.path = path;
@@ -121,64 +127,88 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
             : pupilSquare(lens, path, wavelength_nm, grid.plane, direction, options.margin);
     grid.entry_centre_mm = square.centre;
     grid.entry_half_width_mm = square.half_width;
-
-    // Clear apertures are not clipped but recorded, so a cut ray keeps the geometry it would have
-    // had in a wider lens and carries no light.
     grid.samples.assign(static_cast<size_t>(n) * static_cast<size_t>(n), GridSample{});
-    const auto store = [&](GridSample& s, double x, double y, double throughput, double u, double v,
-                           bool cut_by_aperture, double aperture_ratio) {
-        const bool cut = options.clip_apertures && cut_by_aperture;
-        s.sensor_x_mm = static_cast<float>(x);
-        s.sensor_y_mm = static_cast<float>(y);
-        s.open_throughput = static_cast<float>(throughput);
-        s.throughput = cut ? 0.0f : s.open_throughput;
-        s.aperture_ratio = options.clip_apertures ? static_cast<float>(aperture_ratio) : 0.0f;
-        s.stop_u = static_cast<float>(u);
-        s.stop_v = static_cast<float>(v);
-        s.has_position = std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
-                         std::isfinite(s.stop_u) && std::isfinite(s.stop_v) &&
-                         std::isfinite(s.throughput) && std::isfinite(s.open_throughput) &&
-                         std::isfinite(s.aperture_ratio);
-        s.valid = !cut && s.has_position;
-        if (!s.has_position) s = GridSample{};
-    };
-    if (options.tracer == GridTracer::Exact) {
-        // Ray by ray in double, a row at a time through traceBatch (the same bits as trace()).
-        const PathTracer tracer(
-            lens, path, wavelength_nm,
-            TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = options.fresnel});
-        std::vector<Ray> rays(static_cast<size_t>(n));
-        std::vector<std::optional<TracedRay>> traced(static_cast<size_t>(n));
-        for (int iy = 0; iy < n; ++iy) {
-            for (int ix = 0; ix < n; ++ix)
-                rays[ix] =
-                    rayThroughEntry(grid.plane, grid.entryPoint(ix, iy), direction, wavelength_nm);
-            tracer.traceBatch(rays, traced);
-            for (int ix = 0; ix < n; ++ix) {
-                if (!traced[ix]) continue;  // missed a surface or totally reflected: no geometry
-                const TracedRay& t = *traced[ix];
-                store(grid.samples[static_cast<size_t>(iy) * n + ix], t.ray.position.x(),
-                      t.ray.position.y(), t.ray.throughput, t.stop_u, t.stop_v, t.cut,
-                      t.aperture_ratio);
-            }
-        }
-        return grid;
-    }
+    return grid;
+}
+
+// Clear apertures are not clipped but recorded, so a cut ray keeps the geometry it would have had
+// in a wider lens and carries no light.
+void store(GridSample& s,
+           bool clip_apertures,
+           double x,
+           double y,
+           double throughput,
+           double u,
+           double v,
+           bool cut_by_aperture,
+           double aperture_ratio) {
+    const bool cut = clip_apertures && cut_by_aperture;
+    s.sensor_x_mm = static_cast<float>(x);
+    s.sensor_y_mm = static_cast<float>(y);
+    s.open_throughput = static_cast<float>(throughput);
+    s.throughput = cut ? 0.0f : s.open_throughput;
+    s.aperture_ratio = clip_apertures ? static_cast<float>(aperture_ratio) : 0.0f;
+    s.stop_u = static_cast<float>(u);
+    s.stop_v = static_cast<float>(v);
+    s.has_position = std::isfinite(s.sensor_x_mm) && std::isfinite(s.sensor_y_mm) &&
+                     std::isfinite(s.stop_u) && std::isfinite(s.stop_v) &&
+                     std::isfinite(s.throughput) && std::isfinite(s.open_throughput) &&
+                     std::isfinite(s.aperture_ratio);
+    s.valid = !cut && s.has_position;
+    if (!s.has_position) s = GridSample{};
+}
+
+}  // namespace
+
+struct GridFiller::Impl {
+    RowTracer tracer;
+    Eigen::Vector3d direction;
+    double back = 0.0;  // every ray starts this far behind its entry point, along the light
+    double launch_z = 0.0;
+    bool clip_apertures = true;
+    std::vector<double> xs, ys;
+    std::vector<size_t> at;  // the sample each lane fills
+    TracedRow row;
+};
+
+GridFiller::GridFiller(RayGrid grid, std::unique_ptr<Impl> impl)
+    : grid_(std::move(grid)), traced_(grid_.samples.size(), 0), impl_(std::move(impl)) {}
+GridFiller::GridFiller(GridFiller&&) noexcept = default;
+GridFiller& GridFiller::operator=(GridFiller&&) noexcept = default;
+GridFiller::~GridFiller() = default;
+
+Result<GridFiller> GridFiller::open(const Lens& lens,
+                                    const GhostPath& path,
+                                    double theta_rad,
+                                    double phi_rad,
+                                    double wavelength_nm,
+                                    int n,
+                                    const RayGridOptions& options) {
+    if (options.tracer == GridTracer::Exact)
+        return makeError(ErrorCode::InvalidArgument,
+                         "ray grid: a grid traced point by point uses the row tracer, not Exact");
+    auto grid = emptyGrid(lens, path, theta_rad, phi_rad, wavelength_nm, n, options);
+    if (!grid) return grid.error();
     RowTracer::Options row_options;
     row_options.precision = options.tracer == GridTracer::RowDouble ? RowTracer::Precision::Double
                                                                     : RowTracer::Precision::Float;
     row_options.fresnel = options.fresnel;
-    RowTracer tracer(lens, path, wavelength_nm, row_options);
+    const Eigen::Vector3d direction = lightDirection(theta_rad, phi_rad);
     // Every ray of the grid starts on the launch plane, direction times the same distance behind
     // its entry point.
-    const double back = (grid.plane.entry_z_mm - grid.plane.launch_z_mm) / direction.z();
-    const double launch_z = grid.plane.entry_z_mm - back * direction.z();
-    std::vector<double> xs(static_cast<size_t>(n)), ys(static_cast<size_t>(n));
-    if (!(options.float_tolerance_mm >= 0.0))
-        return invalid("float tolerance must be a non-negative length");
+    const double back = (grid->plane.entry_z_mm - grid->plane.launch_z_mm) / direction.z();
+    auto impl = std::make_unique<Impl>(Impl{RowTracer(lens, path, wavelength_nm, row_options),
+                                            direction,
+                                            back,
+                                            grid->plane.entry_z_mm - back * direction.z(),
+                                            options.clip_apertures,
+                                            {},
+                                            {},
+                                            {},
+                                            {}});
     if (options.tracer == GridTracer::Auto && n <= 32) {
         // A probe would cost as much as tracing the grid in double.
-        tracer.setPrecision(RowTracer::Precision::Double);
+        impl->tracer.setPrecision(RowTracer::Precision::Double);
     } else if (options.tracer == GridTracer::Auto) {
         // The probe: a sub-grid over the whole square, about 2 sqrt(n) rays a side (every ray
         // of a grid up to 4 x 4 ... 16 x 16; 1.6 % of a 256 x 256 grid).
@@ -186,25 +216,89 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
         std::vector<double> px, py;
         for (int iy = 0; iy < n; iy += stride)
             for (int ix = 0; ix < n; ix += stride) {
-                const Eigen::Vector2d e = grid.entryPoint(ix, iy);
+                const Eigen::Vector2d e = grid->entryPoint(ix, iy);
                 px.push_back(e.x() - back * direction.x());
                 py.push_back(e.y() - back * direction.y());
             }
-        tracer.choosePrecision(px, py, launch_z, direction, options.float_tolerance_mm);
+        impl->tracer.choosePrecision(px, py, impl->launch_z, direction, options.float_tolerance_mm);
     }
-    TracedRow row;
-    for (int iy = 0; iy < n; ++iy) {
-        for (int ix = 0; ix < n; ++ix) {
-            const Eigen::Vector2d e = grid.entryPoint(ix, iy);
-            xs[ix] = e.x() - back * direction.x();
-            ys[ix] = e.y() - back * direction.y();
+    return GridFiller(std::move(*grid), std::move(impl));
+}
+
+void GridFiller::trace(std::span<const std::pair<int, int>> points) {
+    // In batches of lanes, like a grid row.
+    constexpr size_t kBatch = 512;
+    Impl& t = *impl_;
+    const size_t n = static_cast<size_t>(grid_.n);
+    const auto flush = [&] {
+        if (t.at.empty()) return;
+        t.tracer.trace(t.xs, t.ys, t.launch_z, t.direction, t.row);
+        for (size_t i = 0; i < t.at.size(); ++i) {
+            if (t.row.status[i] == 0) continue;
+            store(grid_.samples[t.at[i]], t.clip_apertures, t.row.x_mm[i], t.row.y_mm[i],
+                  t.row.throughput[i], t.row.stop_u[i], t.row.stop_v[i], t.row.status[i] == 2,
+                  t.row.aperture_ratio[i]);
         }
-        tracer.trace(xs, ys, launch_z, direction, row);
+        t.xs.clear();
+        t.ys.clear();
+        t.at.clear();
+    };
+    for (const auto& [ix, iy] : points) {
+        FLARELAB_CHECK(ix >= 0 && iy >= 0 && ix < grid_.n && iy < grid_.n);
+        const size_t at = static_cast<size_t>(iy) * n + static_cast<size_t>(ix);
+        if (traced_[at]) continue;
+        traced_[at] = 1;
+        ++traced_count_;
+        const Eigen::Vector2d e = grid_.entryPoint(ix, iy);
+        t.xs.push_back(e.x() - t.back * t.direction.x());
+        t.ys.push_back(e.y() - t.back * t.direction.y());
+        t.at.push_back(at);
+        if (t.at.size() == kBatch) flush();
+    }
+    flush();
+}
+
+void GridFiller::traceAll() {
+    std::vector<std::pair<int, int>> row(static_cast<size_t>(grid_.n));
+    for (int iy = 0; iy < grid_.n; ++iy) {
+        for (int ix = 0; ix < grid_.n; ++ix) row[static_cast<size_t>(ix)] = {ix, iy};
+        trace(row);
+    }
+}
+
+Result<RayGrid> traceRayGrid(const Lens& lens,
+                             const GhostPath& path,
+                             double theta_rad,
+                             double phi_rad,
+                             double wavelength_nm,
+                             int n,
+                             const RayGridOptions& options) {
+    if (options.tracer != GridTracer::Exact) {
+        auto filler = GridFiller::open(lens, path, theta_rad, phi_rad, wavelength_nm, n, options);
+        if (!filler) return filler.error();
+        filler->traceAll();
+        return std::move(*filler).take();
+    }
+    auto grid = emptyGrid(lens, path, theta_rad, phi_rad, wavelength_nm, n, options);
+    if (!grid) return grid.error();
+    // Ray by ray in double, a row at a time through traceBatch (the same bits as trace()).
+    const Eigen::Vector3d direction = lightDirection(theta_rad, phi_rad);
+    const PathTracer tracer(
+        lens, path, wavelength_nm,
+        TraceOptions{.clip_apertures = false, .clip_stop = false, .fresnel = options.fresnel});
+    std::vector<Ray> rays(static_cast<size_t>(n));
+    std::vector<std::optional<TracedRay>> traced(static_cast<size_t>(n));
+    for (int iy = 0; iy < n; ++iy) {
+        for (int ix = 0; ix < n; ++ix)
+            rays[static_cast<size_t>(ix)] =
+                rayThroughEntry(grid->plane, grid->entryPoint(ix, iy), direction, wavelength_nm);
+        tracer.traceBatch(rays, traced);
         for (int ix = 0; ix < n; ++ix) {
-            if (row.status[ix] == 0) continue;
-            store(grid.samples[static_cast<size_t>(iy) * n + ix], row.x_mm[ix], row.y_mm[ix],
-                  row.throughput[ix], row.stop_u[ix], row.stop_v[ix], row.status[ix] == 2,
-                  row.aperture_ratio[ix]);
+            if (!traced[static_cast<size_t>(ix)]) continue;  // missed or totally reflected
+            const TracedRay& t = *traced[static_cast<size_t>(ix)];
+            store(grid->samples[static_cast<size_t>(iy) * n + ix], options.clip_apertures,
+                  t.ray.position.x(), t.ray.position.y(), t.ray.throughput, t.stop_u, t.stop_v,
+                  t.cut, t.aperture_ratio);
         }
     }
     return grid;

@@ -19,7 +19,10 @@
 
 #include <Eigen/Core>
 #include <cstdint>
+#include <memory>
 #include <optional>
+#include <span>
+#include <utility>
 #include <vector>
 
 #include "common/result.h"
@@ -101,6 +104,45 @@ Result<RayGrid> traceRayGrid(const Lens& lens,
                              int n,
                              const RayGridOptions& options = {});
 
+// A grid traced where it is asked to be (adaptive refinement, render/ghost_quads.h): open() sets up
+// the square, the launch plane and the tracer (its precision chosen by the same probe) as
+// traceRayGrid does and traces nothing; trace() fills the samples of the points given, each once.
+// Samples not traced stay GridSample{} (invalid, without position). Row tracer only: an Exact
+// tracer is refused.
+class GridFiller {
+public:
+    static Result<GridFiller> open(const Lens& lens,
+                                   const GhostPath& path,
+                                   double theta_rad,
+                                   double phi_rad,
+                                   double wavelength_nm,
+                                   int n,
+                                   const RayGridOptions& options = {});
+    GridFiller(GridFiller&&) noexcept;
+    GridFiller& operator=(GridFiller&&) noexcept;
+    ~GridFiller();
+
+    const RayGrid& grid() const { return grid_; }
+    bool traced(int ix, int iy) const {
+        return traced_[static_cast<size_t>(iy) * static_cast<size_t>(grid_.n) +
+                       static_cast<size_t>(ix)] != 0;
+    }
+    // Grid points (ix, iy) with 0 <= ix, iy < n (checked: another is a programming error); those
+    // traced already are skipped.
+    void trace(std::span<const std::pair<int, int>> points);
+    void traceAll();
+    int64_t tracedCount() const { return traced_count_; }
+    RayGrid take() && { return std::move(grid_); }
+
+private:
+    struct Impl;
+    GridFiller(RayGrid grid, std::unique_ptr<Impl> impl);
+    RayGrid grid_;
+    std::vector<uint8_t> traced_;
+    int64_t traced_count_ = 0;
+    std::unique_ptr<Impl> impl_;
+};
+
 // How far a grid traced with `options` lands from the reference grid (GridTracer::Exact) over the
 // same entry square. Samples whose validity differs (a ray grazing a surface or a clear aperture's
 // rim, where rounding decides) are counted, not compared.
@@ -108,7 +150,7 @@ struct GridAgreement {
     int64_t samples = 0;  // valid in both
     int64_t validity_differs = 0;
     double max_position_error_mm = 0.0;
-    double max_stop_error = 0.0;            // in stop semi-apertures
+    double max_stop_error = 0.0;     // in stop semi-apertures
     double max_stop_shift_mm = 0.0;  // that times the footprint's half-size: the stop edge's shift
     double max_throughput_rel_error = 0.0;  // over samples carrying >= 1e-3 of the largest
     double power_rel_error = 0.0;           // of the sum of throughput over valid samples

@@ -125,6 +125,19 @@ Quad quadFrom(const optics::RayGrid& grid, const SensorToImage& mapping, int ix,
     return q;
 }
 
+// A single cell becomes a quad when one of its corners is a valid ray and all four have a
+// position.
+bool cellHasQuad(const optics::RayGrid& grid, int ix, int iy) {
+    const optics::GridSample* s[4] = {&grid.at(ix, iy), &grid.at(ix + 1, iy),
+                                      &grid.at(ix + 1, iy + 1), &grid.at(ix, iy + 1)};
+    bool any_valid = false, all_placed = true;
+    for (const optics::GridSample* c : s) {
+        any_valid = any_valid || c->valid;
+        all_placed = all_placed && c->has_position;
+    }
+    return any_valid && all_placed;
+}
+
 }  // namespace
 
 GhostQuads quadsFromGrid(const optics::RayGrid& grid,
@@ -202,19 +215,114 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                 out.cells.back() = static_cast<uint16_t>(size * size);
                 continue;
             }
-            const optics::GridSample* s[4] = {&grid.at(ix, iy), &grid.at(ix + 1, iy),
-                                              &grid.at(ix + 1, iy + 1), &grid.at(ix, iy + 1)};
-            bool any_valid = false, all_placed = true;
-            for (const optics::GridSample* c : s) {
-                any_valid = any_valid || c->valid;
-                all_placed = all_placed && c->has_position;
-            }
-            if (!any_valid || !all_placed) continue;
+            if (!cellHasQuad(grid, ix, iy)) continue;
             out.quads.push_back(quadFrom(grid, mapping, ix, iy, 1));
             if (!out.cells.empty()) out.cells.push_back(1);
         }
     }
     if (!out.cells.empty()) out.cells.resize(out.quads.size(), 1);
+    return out;
+}
+
+Result<AdaptiveQuads> adaptiveQuads(const optics::Lens& lens,
+                                    const optics::GhostPath& path,
+                                    double theta_rad,
+                                    double phi_rad,
+                                    double wavelength_nm,
+                                    int n,
+                                    const optics::RayGridOptions& options,
+                                    const SensorToImage& mapping,
+                                    const MergeOptions& merge) {
+    auto filler =
+        optics::GridFiller::open(lens, path, theta_rad, phi_rad, wavelength_nm, n, options);
+    if (!filler) return filler.error();
+    AdaptiveQuads out;
+    const int steps = std::clamp(merge.steps, 0, 7);  // as quadsFromGrid
+    if (steps == 0 || n < 3) {
+        filler->traceAll();
+        out.quads = quadsFromGrid(filler->grid(), mapping, merge);
+        out.rays = filler->tracedCount();
+        return out;
+    }
+    const optics::RayGrid& grid = filler->grid();
+    const int cells = n - 1;
+    out.quads.cell_area_mm2 = std::pow(2.0 * grid.entry_half_width_mm / cells, 2);
+    const auto pixel = [&](int ix, int iy) {
+        const optics::GridSample& s = grid.at(ix, iy);
+        return mapping.toPixels(s.sensor_x_mm, s.sensor_y_mm);
+    };
+    const auto stop = [&](int ix, int iy) {
+        const optics::GridSample& s = grid.at(ix, iy);
+        return Eigen::Vector2d(s.stop_u, s.stop_v);
+    };
+    struct Block {
+        int x0, y0, size;
+    };
+    // A block of `size` cells at (x0, y0), inside the grid, with its nine rays traced.
+    const auto mergeable = [&](const Block& b) {
+        const int half = b.size / 2;
+        for (int j = 0; j <= 2; ++j)
+            for (int i = 0; i <= 2; ++i)
+                if (!grid.at(b.x0 + i * half, b.y0 + j * half).valid) return false;
+        // The six lines, each through three rays, on the sensor or in stop coordinates.
+        const auto straight = [&](const auto& at) {
+            for (int line = 0; line < 3; ++line) {
+                const int x = b.x0 + line * half, y = b.y0 + line * half;
+                if (!sameDirection(at(b.x0, y), at(b.x0 + half, y), at(b.x0 + half, y),
+                                   at(b.x0 + b.size, y), merge.gamma) ||
+                    !sameDirection(at(x, b.y0), at(x, b.y0 + half), at(x, b.y0 + half),
+                                   at(x, b.y0 + b.size), merge.gamma))
+                    return false;
+            }
+            return true;
+        };
+        if (!straight(pixel) || !straight(stop)) return false;
+        if (!quadIsConvex(quadFrom(grid, mapping, b.x0, b.y0, b.size))) return false;
+        for (int j = 0; j < 2; ++j)
+            for (int i = 0; i < 2; ++i)
+                if (!quadIsConvex(quadFrom(grid, mapping, b.x0 + i * half, b.y0 + j * half, half)))
+                    return false;
+        return true;
+    };
+    // Level by level, so that each level's rays are traced together, in long batches.
+    const int top = 1 << steps;
+    std::vector<Block> level, next;
+    for (int y0 = 0; y0 < cells; y0 += top)
+        for (int x0 = 0; x0 < cells; x0 += top) level.push_back({x0, y0, top});
+    std::vector<std::pair<int, int>> points;
+    while (!level.empty()) {
+        points.clear();
+        for (const Block& b : level) {
+            if (b.x0 + b.size > cells || b.y0 + b.size > cells) continue;  // split untraced
+            const int half = std::max(1, b.size / 2);
+            for (int j = 0; j <= b.size; j += half)
+                for (int i = 0; i <= b.size; i += half) points.emplace_back(b.x0 + i, b.y0 + j);
+        }
+        filler->trace(points);
+        next.clear();
+        for (const Block& b : level) {
+            const bool inside = b.x0 + b.size <= cells && b.y0 + b.size <= cells;
+            if (b.size == 1) {
+                if (!cellHasQuad(grid, b.x0, b.y0)) continue;
+                out.quads.quads.push_back(quadFrom(grid, mapping, b.x0, b.y0, 1));
+                out.quads.cells.push_back(1);
+                continue;
+            }
+            if (inside && mergeable(b)) {
+                out.quads.quads.push_back(quadFrom(grid, mapping, b.x0, b.y0, b.size));
+                out.quads.cells.push_back(static_cast<uint16_t>(b.size * b.size));
+                continue;
+            }
+            const int half = b.size / 2;
+            for (int j = 0; j < 2; ++j)
+                for (int i = 0; i < 2; ++i) {
+                    const Block c{b.x0 + i * half, b.y0 + j * half, half};
+                    if (c.x0 < cells && c.y0 < cells) next.push_back(c);
+                }
+        }
+        level.swap(next);
+    }
+    out.rays = filler->tracedCount();
     return out;
 }
 

@@ -39,6 +39,7 @@
 #include <vector>
 
 #include "common/image.h"
+#include "common/result.h"
 #include "optics/aperture.h"
 #include "optics/prescription.h"
 #include "optics/ray_grid.h"
@@ -107,6 +108,32 @@ struct GhostQuads {
 GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                          const SensorToImage& mapping,
                          const MergeOptions& merge = {});
+
+// Adaptive grids: the merged quads of quadsFromGrid without tracing the whole grid. The grid is
+// looked at in blocks of 2^steps cells, each traced at its corners, side middles and centre (nine
+// rays). A block whose nine rays are all valid, whose six lines (sides and midlines) keep their
+// direction within gamma both on the sensor and in stop coordinates, and whose quad and four
+// half-size quads are convex is one merged quad; any other block is split in four and looked at
+// again the same way, down to blocks of one cell, which become quads as quadsFromGrid makes them
+// (all four corners traced). Where the grid is not lit at all it is therefore traced whole, as
+// it must be to find what light there is.
+// It sees less than tracing the grid and merging: a block whose lines stay straight at half its
+// size while its quarters bend is merged here and not there (bench/adaptive_grid_bench.cpp
+// measures what that costs in the image). With merge.steps = 0 it traces the whole grid.
+// The tracer is GridFiller's (the row tracer; options.tracer Exact is refused).
+struct AdaptiveQuads {
+    GhostQuads quads;
+    int64_t rays = 0;  // traced
+};
+Result<AdaptiveQuads> adaptiveQuads(const optics::Lens& lens,
+                                    const optics::GhostPath& path,
+                                    double theta_rad,
+                                    double phi_rad,
+                                    double wavelength_nm,
+                                    int n,
+                                    const optics::RayGridOptions& options,
+                                    const SensorToImage& mapping,
+                                    const MergeOptions& merge);
 
 struct RasterOptions {
     // Quads that are not convex and below this area (px^2) are added whole to the pixel under

@@ -282,6 +282,18 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         optics::RayGridOptions grid_options;
         grid_options.square = task.square;
         grid_options.tracer = options.grid_tracer;
+        if (options.adaptive_grid && options.grid_tracer != optics::GridTracer::Exact) {
+            auto adaptive = adaptiveQuads(lens, *task.path, theta, phi, kChannel_nm[task.channel],
+                                          task.n, grid_options, mapping, options.merge);
+            if (!adaptive) {
+                out.status = adaptive.error();
+                return out;
+            }
+            out.quads = std::move(adaptive->quads);
+            out.quad_count = static_cast<int64_t>(out.quads.quads.size());
+            out.rays = adaptive->rays;
+            return out;
+        }
         const auto grid = optics::traceRayGrid(lens, *task.path, theta, phi,
                                                kChannel_nm[task.channel], task.n, grid_options);
         if (!grid) {

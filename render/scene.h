@@ -71,6 +71,10 @@ struct SceneOptions {
     // How the ray grids are traced (ray_grid.h): Auto (float lanes where a probe allows) for
     // speed, Exact for a reference image.
     optics::GridTracer grid_tracer = optics::GridTracer::Auto;
+    // Adaptive grids (ghost_quads.h adaptiveQuads): with a merge, trace coarse blocks first and
+    // refine only those the merge's test fails, instead of the whole grid. Not with the Exact
+    // tracer (which always traces the whole grid).
+    bool adaptive_grid = false;
 };
 
 struct SceneStats {

@@ -45,5 +45,25 @@ TEST(Simulate, BadLightAndMissingLightAreClearErrors) {
     EXPECT_NE(run.err.find("needs --angle"), std::string::npos);
 }
 
+TEST(Simulate, AdaptiveGridNeedsAMergeAndDrawsWithOne) {
+    const std::string lens = flarelab::testing::lensPath("heliar-tronnier.csv");
+    CommandRun run = simulate({"--lens", lens, "--angle", "4", "--adaptive-grid", "-o",
+                               "/tmp/unused.exr", "--width", "32", "--height", "24"});
+    EXPECT_EQ(run.code, 1);
+    EXPECT_NE(run.err.find("--adaptive-grid refines by the merge's test"), std::string::npos)
+        << run.err;
+    const auto dir = std::filesystem::temp_directory_path() / "flarelab_simulate_adaptive_test";
+    std::filesystem::create_directories(dir);
+    const std::string exr = (dir / "flare.exr").string();
+    run =
+        simulate({"--lens", lens, "--angle", "4", "--adaptive-grid", "--merge", "light",
+                  "--no-starburst", "--width", "64", "--height", "48", "--grid", "64", "-o", exr});
+    ASSERT_EQ(run.code, 0) << run.err;
+    const auto image = hdr::readExr(exr);
+    ASSERT_TRUE(image) << image.error().message;
+    EXPECT_EQ(image->image.width, 64);
+    std::filesystem::remove_all(dir);
+}
+
 }  // namespace
 }  // namespace flarelab::apps
