@@ -23,7 +23,8 @@ fi
 cd "$(dirname "$0")/.."
 out=${FLARELAB_OUT:-out}/bench
 mkdir -p "$out"
-for tool in bench/optics_bench bench/quad_bench bench/model_ghost_bench bench/ghost_divergence apps/flarelab; do
+for tool in bench/optics_bench bench/quad_bench bench/model_ghost_bench bench/ghost_divergence \
+    bench/adaptive_grid_bench apps/flarelab; do
     if [[ ! -x $build/$tool ]]; then
         echo "bench: $build/$tool is missing (a sanitizer build has no benchmarks)" >&2
         exit 1
@@ -97,6 +98,21 @@ sed -n '/^## Acceptance/,/^\(PASS\|FAIL\)/p' "$out/ghost_divergence.md"
 
 scripts/plot_divergence.sh "$out/ghost_divergence.csv" "$out/ghost_divergence.png"
 echo "bench: wrote $out/optics_bench.{json,md} and $out/ghost_divergence.{md,csv,json,png}"
+
+# Adaptive ray grids against the whole grid, every shipped lens (about 20 minutes on 2 cores;
+# --quick: two lenses at 640x360, one run each).
+echo "bench: adaptive_grid_bench"
+if [[ ${2:-} == --quick ]]; then
+    adaptive_args=(--width 640 --height 360 --repeat 1 data/lenses/heliar-tronnier.csv
+        data/lenses/lensbaby-toy.csv)
+else
+    adaptive_args=(--repeat 3)
+fi
+"$build/bench/adaptive_grid_bench" "${adaptive_args[@]}" --json "$out/adaptive_grid.json.tmp" \
+    >"$out/adaptive_grid.md.tmp"
+mv "$out/adaptive_grid.json.tmp" "$out/adaptive_grid.json"
+mv "$out/adaptive_grid.md.tmp" "$out/adaptive_grid.md"
+echo "bench: wrote $out/adaptive_grid.{md,json}"
 
 echo
 echo "bench: flarelab bench render${2:+ $2} (progress on stderr)"
