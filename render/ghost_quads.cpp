@@ -679,6 +679,69 @@ double primitiveValueAt(const Primitive& primitive, int64_t x, int64_t y, const 
     return convexAreaValue(primitive, x, y, stop);
 }
 
+void addPrimitiveRow(
+    const Primitive& p, int64_t x0, int64_t x1, int64_t y, const StopMask& stop, float* out) {
+    if (p.splat || p.supersample > 0 || !p.convex) {
+        for (int64_t x = x0; x <= x1; ++x)
+            out[(x - x0) * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
+        return;
+    }
+    // As convexAreaValue decides: outside when an edge function at the centre is at or below
+    // -reach, wholly inside when every one is at least its reach (then the pixel's part is the
+    // whole square, its centroid the centre, and unmasked primitives need no more than the
+    // throughput there, which is what the loop below computes, in convexAreaValue's order).
+    const bool masked = !(p.stop_radius <= stop.inscribedRadius()) || !p.vignette_clear;
+    const double cy = static_cast<double>(y) + 0.5;
+    constexpr int64_t kChunk = 64;
+    double a[4][kChunk], value[kChunk];
+    uint8_t outside[kChunk], inside[kChunk];
+    const auto& c = p.quad.corners;
+    const double t[4] = {c[0].throughput, c[1].throughput, c[2].throughput, c[3].throughput};
+    const double area[4] = {p.corner_area[0], p.corner_area[1], p.corner_area[2], p.corner_area[3]};
+    for (int64_t start = x0; start <= x1; start += kChunk) {
+        const int64_t n = std::min(kChunk, x1 - start + 1);
+        for (size_t i = 0; i < 4; ++i) {
+            const EdgeFunction& e = p.edge[i];
+            for (int64_t k = 0; k < n; ++k)
+                a[i][k] = e.at(static_cast<double>(start + k) + 0.5, cy);
+        }
+        for (int64_t k = 0; k < n; ++k) {
+            bool out_k = false, in_k = true;
+            for (size_t i = 0; i < 4; ++i) {
+                out_k = out_k || !(a[i][k] > -p.edge[i].reach);
+                in_k = in_k && a[i][k] >= p.edge[i].reach;
+            }
+            outside[k] = out_k;
+            inside[k] = in_k && !out_k && !masked;
+        }
+        if (!masked) {
+            for (int64_t k = 0; k < n; ++k) {
+                const double a0 = std::max(0.0, a[0][k]), a1 = std::max(0.0, a[1][k]);
+                const double a2 = std::max(0.0, a[2][k]), a3 = std::max(0.0, a[3][k]);
+                const double w0 = area[0] * a1 * a2, w1 = area[1] * a2 * a3;
+                const double w2 = area[2] * a3 * a0, w3 = area[3] * a0 * a1;
+                const double total = w0 + w1 + w2 + w3;
+                double sum = 0.0;
+                sum += w0 * t[0];
+                sum += w1 * t[1];
+                sum += w2 * t[2];
+                sum += w3 * t[3];
+                const double v = p.scale * std::max(0.0, sum / total) * 1.0;  // area 1: all
+                value[k] = total > 0.0 && std::isfinite(v) ? v : 0.0;
+            }
+        }
+        for (int64_t k = 0; k < n; ++k) {
+            float& pixel = out[(start - x0 + k) * 3];
+            if (outside[k])
+                pixel += 0.0f;
+            else if (inside[k])
+                pixel += static_cast<float>(value[k]);
+            else
+                pixel += static_cast<float>(convexAreaValue(p, start + k, y, stop));
+        }
+    }
+}
+
 void rasterizeReference(ImageRGB& image,
                         const GhostQuads& ghost,
                         int channel,

@@ -221,6 +221,13 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           int64_t height,
                                           const RasterOptions& options = {});
 
+// Adds static_cast<float>(primitiveValueAt(p, x, y, stop)) to out[3 * (x - x0)] for x in x0..x1
+// (one channel of an interleaved RGB row): the same values, bit for bit, with the pixels that lie
+// wholly inside a convex primitive no stop edge or clear aperture can cut (the common pixel of a
+// ghost) evaluated a row at a time in a loop the compiler vectorizes.
+void addPrimitiveRow(
+    const Primitive& p, int64_t x0, int64_t x1, int64_t y, const StopMask& stop, float* out);
+
 // The light of a convex primitive at the point (px, py), per pixel area: 0 outside the quad, the
 // stop shape or a clear aperture; a point exactly on an edge shared by two quads belongs to one
 // of them (EdgeFunction::closed). What RasterOptions::supersample samples.

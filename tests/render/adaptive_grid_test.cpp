@@ -132,8 +132,9 @@ TEST(AdaptiveQuads, DrawWhatTheWholeMergedGridDrawsWithFewerRays) {
                     EXPECT_GE(*db, 45.0) << file << " ghost " << g << " at " << fraction;
                 }
             }
-            if (merge.gamma > kLightMerge.gamma)
+            if (merge.gamma > kLightMerge.gamma) {
                 EXPECT_LT(rays, rays_whole / 2) << file << ": the heavy merge's blocks";
+            }
         }
     }
 }
