@@ -284,9 +284,8 @@ SimCamera::SimCamera(Key,
             (sensor.sensor_height_mm / static_cast<double>(options_.height_px));
         const double to_e_s = options_.quantum_scale / pixel_area_mm2;
         const double t = options_.max_exposure_s;
-        const double noise_e = std::sqrt(
-            (options_.background_e_s + options_.dark_current_e_s) * t +
-            options_.read_noise_e * options_.read_noise_e);
+        const double noise_e = std::sqrt((options_.background_e_s + options_.dark_current_e_s) * t +
+                                         options_.read_noise_e * options_.read_noise_e);
         options_.render.cull_relative_l2 = 0.0;
         options_.render.cull_mean_below =
             to_e_s > 0.0 && t > 0.0 && std::isfinite(to_e_s) ? 0.01 * noise_e / (t * to_e_s) : 0.0;

@@ -15,9 +15,9 @@
 //      Blobs whose energy does not rise above the noise are dropped.
 // A black frame, pure noise or a saturated frame gives no candidates, not an error.
 // Details (fit/detect.cpp): the background is the lowest mode rather than the median because
-// broad ghosts may cover most of the frame; the threshold applies to the smoothed noise (sigma times the kernel's sum of squares); ghosts that
-// overlap form one component, which the circle detector (DetectOptions::circles) splits into the
-// circles it finds inside it.
+// broad ghosts may cover most of the frame; the threshold applies to the smoothed noise (sigma
+// times the kernel's sum of squares); ghosts that overlap form one component, which the circle
+// detector (DetectOptions::circles) splits into the circles it finds inside it.
 #pragma once
 
 #include <Eigen/Core>

@@ -14,16 +14,16 @@
 #include <cstdint>
 #include <string>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "hdr/sweep.h"
 #include "render/ghost_quads.h"
 #include "render/ghost_shape.h"
-#include "common/image.h"
 
 namespace flarelab::fit {
 
 struct FitFrame {
-    ImageRGB image;  // linear, finite, >= 0 (loadFitFrame checks)
+    ImageRGB image;          // linear, finite, >= 0 (loadFitFrame checks)
     double angle_deg = 0.0;  // the head angle the frame was captured at
     render::SensorToImage mapping;
     int channels = 3;  // 1 when R = G = B everywhere: fitted in channel 0 only

@@ -884,9 +884,9 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
 }
 
 ImageRGB drawFrameModel(const FitFrame& frame,
-                                const FrameDetection& detection,
-                                const std::vector<GhostState>& ghosts,
-                                const render::FastDistanceOptions& distance) {
+                        const FrameDetection& detection,
+                        const std::vector<GhostState>& ghosts,
+                        const render::FastDistanceOptions& distance) {
     ModelRenderOptions options;
     options.distance = distance;
     ImageRGB image =

@@ -145,8 +145,8 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
 // The frame's model: the ghosts drawn as pixel means (through the tile engine) plus the
 // background, in the frame's unit, with the frame's channel count.
 ImageRGB drawFrameModel(const FitFrame& frame,
-                                const FrameDetection& detection,
-                                const std::vector<GhostState>& ghosts,
-                                const render::FastDistanceOptions& distance = {});
+                        const FrameDetection& detection,
+                        const std::vector<GhostState>& ghosts,
+                        const render::FastDistanceOptions& distance = {});
 
 }  // namespace flarelab::fit

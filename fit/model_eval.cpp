@@ -203,19 +203,19 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
 }
 
 ImageRGB renderGhostStates(std::span<const GhostState> ghosts,
-                                   const render::SensorToImage& mapping,
-                                   int64_t width,
-                                   int64_t height,
-                                   const ModelRenderOptions& options) {
+                           const render::SensorToImage& mapping,
+                           int64_t width,
+                           int64_t height,
+                           const ModelRenderOptions& options) {
     return renderRotatedGhostStates(ghosts, 0.0, mapping, width, height, options);
 }
 
 ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
-                                          double rotation_deg,
-                                          const render::SensorToImage& mapping,
-                                          int64_t width,
-                                          int64_t height,
-                                          const ModelRenderOptions& options) {
+                                  double rotation_deg,
+                                  const render::SensorToImage& mapping,
+                                  int64_t width,
+                                  int64_t height,
+                                  const ModelRenderOptions& options) {
     ImageRGB image(width, height);
     std::vector<render::GhostPrimitive> primitives;
     primitives.reserve(ghosts.size());
@@ -242,11 +242,11 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
 }
 
 Result<ImageRGB> renderModel(const FlareModel& model,
-                                     double angle_deg,
-                                     double roll_deg,
-                                     int64_t width,
-                                     int64_t height,
-                                     const ModelRenderOptions& options) {
+                             double angle_deg,
+                             double roll_deg,
+                             int64_t width,
+                             int64_t height,
+                             const ModelRenderOptions& options) {
     if (width < 1 || height < 1 || width > kModelMaxSide || height > kModelMaxSide)
         return makeError(ErrorCode::InvalidArgument,
                          "render model: the image size must be 1..32768 pixels per side");

@@ -40,10 +40,10 @@
 #include <utility>
 #include <vector>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "fit/frame.h"
 #include "fit/model_file.h"
-#include "common/image.h"
 #include "render/tiles.h"
 
 namespace flarelab::fit {
@@ -93,24 +93,24 @@ struct ModelRenderOptions {
 // The model's ghosts at (angle_deg, roll_deg) drawn by the tile engine into a width x height image
 // of the model's sensor (ModelLens sensor size), in the frame unit of the sweep it was fitted to.
 Result<ImageRGB> renderModel(const FlareModel& model,
-                                     double angle_deg,
-                                     double roll_deg,
-                                     int64_t width,
-                                     int64_t height,
-                                     const ModelRenderOptions& options = {});
+                             double angle_deg,
+                             double roll_deg,
+                             int64_t width,
+                             int64_t height,
+                             const ModelRenderOptions& options = {});
 
 // The same for states already evaluated: each ghost prepared as a tile-engine primitive.
 ImageRGB renderGhostStates(std::span<const GhostState> ghosts,
-                                   const render::SensorToImage& mapping,
-                                   int64_t width,
-                                   int64_t height,
-                                   const ModelRenderOptions& options = {});
+                           const render::SensorToImage& mapping,
+                           int64_t width,
+                           int64_t height,
+                           const ModelRenderOptions& options = {});
 // ... with every ghost's loop rotated by rotation_deg about the optical axis.
 ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
-                                          double rotation_deg,
-                                          const render::SensorToImage& mapping,
-                                          int64_t width,
-                                          int64_t height,
-                                          const ModelRenderOptions& options = {});
+                                  double rotation_deg,
+                                  const render::SensorToImage& mapping,
+                                  int64_t width,
+                                  int64_t height,
+                                  const ModelRenderOptions& options = {});
 
 }  // namespace flarelab::fit

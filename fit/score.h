@@ -20,15 +20,15 @@
 #include <optional>
 #include <vector>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "fit/model_eval.h"
 #include "fit/model_file.h"
-#include "common/image.h"
 
 namespace flarelab::fit {
 
 struct TruthFrame {
-    ImageRGB image;                   // ghosts only, the model's frame unit
+    ImageRGB image;                           // ghosts only, the model's frame unit
     std::optional<Eigen::Vector2d> light_px;  // where the light's own image is, if in view
 };
 using TruthSource = std::function<Result<TruthFrame>(double angle_deg)>;

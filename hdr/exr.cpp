@@ -840,9 +840,7 @@ std::string halfMisfit(float value, double half_min_abs) {
     return out.str();
 }
 
-Status writeFile(const std::string& temporary,
-                 const ImageRGB& image,
-                 const Imf::Header& header) {
+Status writeFile(const std::string& temporary, const ImageRGB& image, const Imf::Header& header) {
     FileDescriptor fd(
         ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0666));
     if (!fd.valid())

@@ -59,8 +59,8 @@
 #include <string>
 #include <vector>
 
-#include "common/result.h"
 #include "common/image.h"
+#include "common/result.h"
 
 namespace flarelab::hdr {
 

@@ -55,9 +55,9 @@
 #include <string>
 #include <vector>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "hdr/raw_frame.h"
-#include "common/image.h"
 
 namespace flarelab::hdr {
 

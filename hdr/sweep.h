@@ -75,9 +75,9 @@
 #include <string_view>
 #include <vector>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "hdr/exr.h"
-#include "common/image.h"
 
 namespace flarelab::hdr {
 

@@ -64,15 +64,15 @@ Result<Lens> Lens::make(const Prescription& prescription, const CameraDescriptio
     // camera description accepts is an error naming it, never a silent substitute.
     const auto label_error = [&](const std::string& key, double value) {
         std::ostringstream msg;
-        msg << prescription.source << ": header label " << key << ": " << value
-            << " is outside " << (key == "f_number" ? "0.5..10000" : "0.01..1e6 mm")
+        msg << prescription.source << ": header label " << key << ": " << value << " is outside "
+            << (key == "f_number" ? "0.5..10000" : "0.01..1e6 mm")
             << "; give the camera's value explicitly (--"
             << (key == "f_number" ? "f-number" : "focal-mm") << ")";
         return makeError(ErrorCode::InvalidArgument, msg.str());
     };
     if (lens.camera_.focal_length_mm == 0.0) {
-        if (lens.label_focal_mm_ > 0.0 && !(lens.label_focal_mm_ >= 0.01 &&
-                                            lens.label_focal_mm_ <= kMaxFocalLength_mm))
+        if (lens.label_focal_mm_ > 0.0 &&
+            !(lens.label_focal_mm_ >= 0.01 && lens.label_focal_mm_ <= kMaxFocalLength_mm))
             return label_error("focal_length_mm", lens.label_focal_mm_);
         lens.camera_.focal_length_mm =
             lens.label_focal_mm_ > 0.0 ? lens.label_focal_mm_ : std::abs(paraxial->efl_mm);

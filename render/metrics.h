@@ -8,8 +8,8 @@
 // the starburst when the ghosts are what is measured (its peak would dwarf them).
 #pragma once
 
-#include "common/result.h"
 #include "common/image.h"
+#include "common/result.h"
 
 namespace flarelab::render {
 

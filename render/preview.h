@@ -18,8 +18,8 @@
 #include <string>
 #include <vector>
 
-#include "common/result.h"
 #include "common/image.h"
+#include "common/result.h"
 
 namespace flarelab::render {
 

@@ -367,8 +367,7 @@ void addStarburst(ImageRGB& image,
                         const double xi = fx + dx;
                         if (xi < 0.0 || xi > static_cast<double>(image.width - 1)) continue;
                         const double w = (dx ? tx : 1.0 - tx) * (dy ? ty : 1.0 - ty);
-                        float* out =
-                            image.at(static_cast<int64_t>(xi), static_cast<int64_t>(yi));
+                        float* out = image.at(static_cast<int64_t>(xi), static_cast<int64_t>(yi));
                         for (int c = 0; c < 3; ++c)
                             out[c] += static_cast<float>(w * p[c] * rgb_intensity[c]);
                     }

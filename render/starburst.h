@@ -24,10 +24,10 @@
 #include <array>
 #include <cstdint>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "common/units.h"
 #include "optics/aperture.h"
-#include "common/image.h"
 
 namespace flarelab::render {
 

@@ -25,17 +25,17 @@
 // are built: from the blocks of the coarse tile down to single dense tiles, a block the ghost
 // misses is dropped, a block where it is constant or biquadratic is added to its tiles' node values
 // (3 x 3 per tile, summed over ghosts, drawn first, before the quads), and only dense tiles an edge
-// crosses go to the lists and are drawn per pixel. Their sum is in a fixed order too, so the image still does
-// not depend on the number of threads, but it is not the order of the input array.
+// crosses go to the lists and are drawn per pixel. Their sum is in a fixed order too, so the image
+// still does not depend on the number of threads, but it is not the order of the input array.
 #pragma once
 
 #include <cstdint>
 #include <span>
 
+#include "common/image.h"
 #include "common/result.h"
 #include "optics/aperture.h"
 #include "render/ghost_quads.h"
-#include "common/image.h"
 #include "render/model_ghost.h"
 
 namespace flarelab::render {
@@ -48,9 +48,9 @@ struct TileOptions {
 
 struct TileStats {
     int64_t primitives = 0;
-    int64_t coarse_entries = 0;  // primitive references in coarse tiles
-    int64_t dense_entries = 0;   // primitive references in dense tiles
-    int64_t memory_bytes = 0;    // of the tile lists and the primitive array
+    int64_t coarse_entries = 0;      // primitive references in coarse tiles
+    int64_t dense_entries = 0;       // primitive references in dense tiles
+    int64_t memory_bytes = 0;        // of the tile lists and the primitive array
     int64_t ghost_tiles_smooth = 0;  // dense tiles x fast model ghosts interpolated
     int64_t ghost_tiles_edge = 0;    // dense tiles x fast model ghosts drawn per pixel
     double build_ms = 0.0;           // tile building (and fast model ghosts' classification)

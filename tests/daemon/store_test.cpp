@@ -217,8 +217,12 @@ TEST(Journal, AChangeTheJournalCannotRecordIsRefusedAndAnAcceptedCancelSurvivesA
             EXPECT_EQ(pause.error_code(), grpc::StatusCode::UNAVAILABLE);
         }
         for (const v1::Job& j : daemon.manager().list()) {
-            if (j.id() == queued) EXPECT_EQ(j.state(), v1::QUEUED);
-            if (j.id() == running) EXPECT_EQ(j.state(), v1::RUNNING);
+            if (j.id() == queued) {
+                EXPECT_EQ(j.state(), v1::QUEUED);
+            }
+            if (j.id() == running) {
+                EXPECT_EQ(j.state(), v1::RUNNING);
+            }
         }
         // Accepted: on disk before the job has even stopped.
         ASSERT_TRUE(control(daemon.manager(), &JobManager::cancel, running).ok());
@@ -232,8 +236,11 @@ TEST(Journal, AChangeTheJournalCannotRecordIsRefusedAndAnAcceptedCancelSurvivesA
     options.resume = true;
     Daemon again(dir.path, options);
     std::this_thread::sleep_for(std::chrono::milliseconds(200));
-    for (const v1::Job& j : again.manager().list())
-        if (j.id() == running) EXPECT_EQ(j.state(), v1::CANCELLED) << "it would run again";
+    for (const v1::Job& j : again.manager().list()) {
+        if (j.id() == running) {
+            EXPECT_EQ(j.state(), v1::CANCELLED) << "it would run again";
+        }
+    }
     EXPECT_NE(again.manager().runningJob(), running);
 }
 

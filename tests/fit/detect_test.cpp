@@ -23,14 +23,14 @@ struct Disc {
 
 // A synthetic frame: background + Gaussian noise (fixed seed) + discs + a bright Gaussian light.
 ImageRGB syntheticImage(int64_t width,
-                                int64_t height,
-                                const std::vector<Disc>& discs,
-                                double light_x,
-                                double light_y,
-                                double light_peak,
-                                double background = 10.0,
-                                double noise = 1.0,
-                                unsigned seed = 7) {
+                        int64_t height,
+                        const std::vector<Disc>& discs,
+                        double light_x,
+                        double light_y,
+                        double light_peak,
+                        double background = 10.0,
+                        double noise = 1.0,
+                        unsigned seed = 7) {
     ImageRGB image(width, height);
     std::mt19937 rng(seed);
     std::normal_distribution<double> gauss(0.0, noise);

@@ -71,9 +71,9 @@ render::SensorToImage testMapping() {
 // monochrome frame, fitted in one channel) and, unless `light` is off, the light's small
 // saturated spot at the left edge.
 ImageRGB drawFrame(const std::vector<TrueGhost>& truth,
-                           double angle,
-                           uint64_t seed,
-                           bool light = true) {
+                   double angle,
+                   uint64_t seed,
+                   bool light = true) {
     std::vector<GhostState> states;
     for (const auto& g : truth)
         if (present(g, angle)) states.push_back(trueState(g, angle));

@@ -298,7 +298,7 @@ TEST(SweepWriter, FramesReachTheDiskBeforeTheRecordThatListsThem) {
 }
 
 TEST(SweepWriter, AFailedFlushClosesTheWriterForGoodAndKeepsTheFramesBefore) {
-    for (const std::string failing : {std::string(kSweepFrameLogFile), std::string(".exr.tmp-")}) {
+    for (const std::string& failing : {std::string(kSweepFrameLogFile), std::string(".exr.tmp-")}) {
         TempDir dir;
         SweepWriter writer = writeFrames(dir.path(), 3);
         int calls = 0;
@@ -328,7 +328,7 @@ TEST(SweepWriter, AFailedFlushClosesTheWriterForGoodAndKeepsTheFramesBefore) {
 }
 
 TEST(SweepWriter, AFullDiskLeavesTheSweepAsItWasAndTheWriterGoesOnOnceThereIsRoom) {
-    for (const std::string failing : {std::string(kSweepFrameLogFile), std::string(".exr.tmp-")}) {
+    for (const std::string& failing : {std::string(kSweepFrameLogFile), std::string(".exr.tmp-")}) {
         TempDir dir;
         SweepWriter writer = writeFrames(dir.path(), 2);
         {

@@ -94,8 +94,7 @@ TEST(LensMake, RejectsHeaderLabelsOutsideTheCameraRangeAndNamesThem) {
 }
 
 TEST(LensMake, RejectsAnFNumberWhoseStopWouldBeAbsurd) {
-    const auto prescription =
-        loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv"));
+    const auto prescription = loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv"));
     CameraDescription camera;
     camera.f_number = 9000.0;
     camera.focal_length_mm = 0.02;
