@@ -170,6 +170,17 @@ TEST(AdaptiveQuads, ExtremeGridsAndLights) {
     auto dark = adaptiveQuads(lens, path, degToRad(80.0), 0.0, 550.0, 65, {}, mapping, kLightMerge);
     ASSERT_TRUE(dark);
     EXPECT_TRUE(dark->quads.quads.empty());
+    // A 1 x 1 image: the scene with adaptive grids draws it, finite.
+    SceneOptions tiny;
+    tiny.width = tiny.height = 1;
+    tiny.base_grid = 64;
+    tiny.starburst = false;
+    tiny.merge = kLightMerge;
+    tiny.adaptive_grid = true;
+    const Light light{2.0, 0.0, {1.0f, 1.0f, 1.0f}};
+    const auto one = renderScene(lens, std::span(&light, 1), tiny);
+    ASSERT_TRUE(one);
+    for (const float v : one->pixels) EXPECT_TRUE(std::isfinite(v));
     // Bad arguments are the grid's errors.
     EXPECT_FALSE(adaptiveQuads(lens, path, std::nan(""), 0.0, 550.0, 65, {}, mapping, kLightMerge));
     EXPECT_FALSE(adaptiveQuads(lens, optics::GhostPath{2, 99}, 0.0, 0.0, 550.0, 65, {}, mapping,
