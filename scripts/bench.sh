@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# The optics benchmarks, the paraxial-versus-exact ghost report, the renderer benchmark
+# The optics benchmarks, the paraxial-versus-exact ghost report, adaptive grids against whole ones,
+# the renderer benchmark
 # (flarelab bench render) and the bracket merge benchmark (flarelab bench merge), written under
 # out/bench/.
 #   scripts/bench.sh BUILD_DIR [--quick]
-# The renderer benchmark takes about an hour on 2 cores; --quick runs its smoke version.
+# The renderer benchmark takes about an hour on 2 cores and the adaptive-grid one about 20 minutes;
+# --quick runs their smoke versions.
 # optics_bench runs every benchmark five times and the summary keeps the fastest repetition of
 # each: on a shared machine noise only ever slows a run down, so the best one is the closest to
 # what the code costs. Ratios are to the textbook sphere intersection of the same run.
