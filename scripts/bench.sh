@@ -1,8 +1,7 @@
 #!/usr/bin/env bash
 # The optics benchmarks, the paraxial-versus-exact ghost report, adaptive grids against whole ones,
-# the renderer benchmark
-# (flarelab bench render) and the bracket merge benchmark (flarelab bench merge), written under
-# out/bench/.
+# the renderer benchmark (flarelab bench render) and the bracket merge benchmark (flarelab bench
+# merge), written under out/bench/.
 #   scripts/bench.sh BUILD_DIR [--quick]
 # The renderer benchmark takes about an hour on 2 cores and the adaptive-grid one about 20 minutes;
 # --quick runs their smoke versions.
