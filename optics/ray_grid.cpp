@@ -166,9 +166,10 @@ struct GridFiller::Impl {
     double back = 0.0;  // every ray starts this far behind its entry point, along the light
     double launch_z = 0.0;
     bool clip_apertures = true;
-    std::vector<double> xs, ys;
-    std::vector<size_t> at;  // the sample each lane fills
-    TracedRow row;
+    // Lanes waiting to be traced, reused from batch to batch.
+    std::vector<double> xs{}, ys{};
+    std::vector<size_t> at{};  // the sample each lane fills
+    TracedRow row{};
 };
 
 GridFiller::GridFiller(RayGrid grid, std::unique_ptr<Impl> impl)
@@ -197,15 +198,13 @@ Result<GridFiller> GridFiller::open(const Lens& lens,
     // Every ray of the grid starts on the launch plane, direction times the same distance behind
     // its entry point.
     const double back = (grid->plane.entry_z_mm - grid->plane.launch_z_mm) / direction.z();
-    auto impl = std::make_unique<Impl>(Impl{RowTracer(lens, path, wavelength_nm, row_options),
-                                            direction,
-                                            back,
-                                            grid->plane.entry_z_mm - back * direction.z(),
-                                            options.clip_apertures,
-                                            {},
-                                            {},
-                                            {},
-                                            {}});
+    auto impl = std::make_unique<Impl>(Impl{
+        .tracer = RowTracer(lens, path, wavelength_nm, row_options),
+        .direction = direction,
+        .back = back,
+        .launch_z = grid->plane.entry_z_mm - back * direction.z(),
+        .clip_apertures = options.clip_apertures,
+    });
     if (options.tracer == GridTracer::Auto && n <= 32) {
         // A probe would cost as much as tracing the grid in double.
         impl->tracer.setPrecision(RowTracer::Precision::Double);

@@ -125,6 +125,21 @@ Quad quadFrom(const optics::RayGrid& grid, const SensorToImage& mapping, int ix,
     return q;
 }
 
+// Whether the six lines of the block of `size` cells at (x0, y0) (its four sides and two midlines,
+// three grid points each) keep their direction within gamma, in the coordinates at(ix, iy) gives.
+template <typename At>
+bool linesStraight(const At& at, int x0, int y0, int size, double gamma) {
+    const int half = size / 2;
+    for (int line = 0; line < 3; ++line) {
+        const int x = x0 + line * half, y = y0 + line * half;
+        if (!sameDirection(at(x0, y), at(x0 + half, y), at(x0 + half, y), at(x0 + size, y),
+                           gamma) ||
+            !sameDirection(at(x, y0), at(x, y0 + half), at(x, y0 + half), at(x, y0 + size), gamma))
+            return false;
+    }
+    return true;
+}
+
 // A single cell becomes a quad when one of its corners is a valid ray and all four have a
 // position.
 bool cellHasQuad(const optics::RayGrid& grid, int ix, int iy) {
@@ -165,8 +180,7 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                     lit && quadIsConvex(quadFrom(grid, mapping, ix, iy, 1));
             }
         for (int k = 1; k <= steps; ++k) {
-            const int side = cells >> k, child_side = cells >> (k - 1), size = 1 << k,
-                      half = size / 2;
+            const int side = cells >> k, child_side = cells >> (k - 1), size = 1 << k;
             if (side < 1) break;
             whole.emplace_back(static_cast<size_t>(side) * side, 0);
             for (int by = 0; by < side; ++by)
@@ -177,17 +191,8 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                     };
                     if (!(child(0, 0) && child(1, 0) && child(0, 1) && child(1, 1))) continue;
                     const int x0 = bx * size, y0 = by * size;
-                    // Three grid points along each of the six lines of the block.
-                    bool straight = true;
-                    for (int line = 0; line < 3 && straight; ++line) {
-                        const int x = x0 + line * half, y = y0 + line * half;
-                        straight =
-                            sameDirection(pixel(x0, y), pixel(x0 + half, y), pixel(x0 + half, y),
-                                          pixel(x0 + size, y), merge.gamma) &&
-                            sameDirection(pixel(x, y0), pixel(x, y0 + half), pixel(x, y0 + half),
-                                          pixel(x, y0 + size), merge.gamma);
-                    }
-                    if (straight && quadIsConvex(quadFrom(grid, mapping, x0, y0, size)))
+                    if (linesStraight(pixel, x0, y0, size, merge.gamma) &&
+                        quadIsConvex(quadFrom(grid, mapping, x0, y0, size)))
                         whole[k][static_cast<size_t>(by) * side + bx] = 1;
                 }
         }
@@ -259,30 +264,23 @@ Result<AdaptiveQuads> adaptiveQuads(const optics::Lens& lens,
         int x0, y0, size;
     };
     // A block of `size` cells at (x0, y0), inside the grid, with its nine rays traced.
-    const auto mergeable = [&](const Block& b) {
+    // The block's merged quad, when its nine rays are valid, its six lines straight on the sensor
+    // and in stop coordinates, and its quad and four half-size quads convex.
+    const auto merged = [&](const Block& b) -> std::optional<Quad> {
         const int half = b.size / 2;
         for (int j = 0; j <= 2; ++j)
             for (int i = 0; i <= 2; ++i)
-                if (!grid.at(b.x0 + i * half, b.y0 + j * half).valid) return false;
-        // The six lines, each through three rays, on the sensor or in stop coordinates.
-        const auto straight = [&](const auto& at) {
-            for (int line = 0; line < 3; ++line) {
-                const int x = b.x0 + line * half, y = b.y0 + line * half;
-                if (!sameDirection(at(b.x0, y), at(b.x0 + half, y), at(b.x0 + half, y),
-                                   at(b.x0 + b.size, y), merge.gamma) ||
-                    !sameDirection(at(x, b.y0), at(x, b.y0 + half), at(x, b.y0 + half),
-                                   at(x, b.y0 + b.size), merge.gamma))
-                    return false;
-            }
-            return true;
-        };
-        if (!straight(pixel) || !straight(stop)) return false;
-        if (!quadIsConvex(quadFrom(grid, mapping, b.x0, b.y0, b.size))) return false;
+                if (!grid.at(b.x0 + i * half, b.y0 + j * half).valid) return std::nullopt;
+        if (!linesStraight(pixel, b.x0, b.y0, b.size, merge.gamma) ||
+            !linesStraight(stop, b.x0, b.y0, b.size, merge.gamma))
+            return std::nullopt;
+        Quad quad = quadFrom(grid, mapping, b.x0, b.y0, b.size);
+        if (!quadIsConvex(quad)) return std::nullopt;
         for (int j = 0; j < 2; ++j)
             for (int i = 0; i < 2; ++i)
                 if (!quadIsConvex(quadFrom(grid, mapping, b.x0 + i * half, b.y0 + j * half, half)))
-                    return false;
-        return true;
+                    return std::nullopt;
+        return quad;
     };
     // Level by level, so that each level's rays are traced together, in long batches.
     const int top = 1 << steps;
@@ -308,8 +306,8 @@ Result<AdaptiveQuads> adaptiveQuads(const optics::Lens& lens,
                 out.quads.cells.push_back(1);
                 continue;
             }
-            if (inside && mergeable(b)) {
-                out.quads.quads.push_back(quadFrom(grid, mapping, b.x0, b.y0, b.size));
+            if (auto quad = inside ? merged(b) : std::nullopt) {
+                out.quads.quads.push_back(*quad);
                 out.quads.cells.push_back(static_cast<uint16_t>(b.size * b.size));
                 continue;
             }
