@@ -1,8 +1,11 @@
 #include "fit/model_eval.h"
 
+#include <tbb/parallel_for.h>
+
 #include <algorithm>
 #include <cmath>
 #include <numbers>
+#include <optional>
 #include <string>
 
 #include "fit/polyfit.h"
@@ -217,10 +220,12 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
                                   int64_t height,
                                   const ModelRenderOptions& options) {
     ImageRGB image(width, height);
-    std::vector<render::GhostPrimitive> primitives;
-    primitives.reserve(ghosts.size());
+    // Each ghost is flattened and its row spans built on its own (prepareGhostPrimitive), so
+    // they are prepared on every core; the array keeps the ghosts' order.
+    std::vector<std::optional<render::GhostPrimitive>> prepared(ghosts.size());
     const double angle = rotation_deg * std::numbers::pi / 180.0;
-    for (const GhostState& g : ghosts) {
+    tbb::parallel_for(size_t{0}, ghosts.size(), [&](size_t i) {
+        const GhostState& g = ghosts[i];
         render::GhostShading shading = g.shading;
         for (int c = 0; c < 3; ++c) {
             shading.border_rgb[c] *= options.intensity_scale;
@@ -230,10 +235,13 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
         draw.distance = options.distance;
         draw.evaluation = options.evaluation;
         draw.smooth_tolerance = options.smooth_tolerance;
-        auto p = render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width,
-                                               height, draw);
+        prepared[i] = render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width,
+                                                    height, draw);
+    });
+    std::vector<render::GhostPrimitive> primitives;
+    primitives.reserve(ghosts.size());
+    for (auto& p : prepared)
         if (p) primitives.push_back(std::move(*p));
-    }
     const Status drawn =
         render::renderTiled(image, {}, primitives, optics::ApertureShape{}, options.tiles);
     FLARELAB_CHECK(

@@ -12,6 +12,56 @@ using Vec2 = Eigen::Vector2d;
 using Cubic = std::array<Vec2, 4>;
 
 constexpr int kChunkChords = 8;
+
+// The squared distances of the point (qx, qy) to chords a + t e, t in [0, 1], given relative to
+// one origin in single precision (addGhostBlock's candidates). Plain selects, not std::clamp
+// (whose NaN order keeps it scalar): one SIMD lane per chord. AVX2 where the processor has it,
+// chosen at run time like the row tracer's kernels; both give the same bits (no fused
+// multiply-adds: -ffp-contract=off).
+struct ChordArrays {
+    const float* ax;
+    const float* ay;
+    const float* ex;
+    const float* ey;
+    const float* inv;  // 1 / |e|^2, or 0 for a chord of no length
+};
+[[gnu::always_inline]] inline void chordDistances(
+    const ChordArrays& c, size_t n, float qx, float qy, float* __restrict d2) {
+    const float* __restrict pax = c.ax;
+    const float* __restrict pay = c.ay;
+    const float* __restrict pex = c.ex;
+    const float* __restrict pey = c.ey;
+    const float* __restrict pinv = c.inv;
+    for (size_t k = 0; k < n; ++k) {
+        const float px = qx - pax[k], py = qy - pay[k];
+        float t = (px * pex[k] + py * pey[k]) * pinv[k];
+        t = t > 0.0f ? t : 0.0f;
+        t = t < 1.0f ? t : 1.0f;
+        const float dx = px - t * pex[k], dy = py - t * pey[k];
+        d2[k] = dx * dx + dy * dy;
+    }
+}
+using ChordKernel = void (*)(const ChordArrays&, size_t, float, float, float*);
+void chordDistancesSse2(const ChordArrays& c, size_t n, float qx, float qy, float* d2) {
+    chordDistances(c, n, qx, qy, d2);
+}
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+[[gnu::target("avx2")]] void chordDistancesAvx2(
+    const ChordArrays& c, size_t n, float qx, float qy, float* d2) {
+    chordDistances(c, n, qx, qy, d2);
+}
+#endif
+ChordKernel chordKernel() {
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+    static const ChordKernel kernel = [] {
+        __builtin_cpu_init();
+        return __builtin_cpu_supports("avx2") != 0 ? &chordDistancesAvx2 : &chordDistancesSse2;
+    }();
+    return kernel;
+#else
+    return &chordDistancesSse2;
+#endif
+}
 // Past these the fast evaluation is not worth its memory (a pathological loop); the ghost is
 // drawn exactly instead.
 constexpr size_t kMaxChords = size_t{1} << 22;
@@ -168,6 +218,18 @@ std::shared_ptr<const GhostOutline> buildOutline(const BezierLoop& loop,
     if (f.overflow) return nullptr;
     o->vertices_mm.back() = o->vertices_mm.front();  // closed exactly
     const int32_t chords = static_cast<int32_t>(o->vertices_mm.size() - 1);
+    o->edges_mm.resize(static_cast<size_t>(chords));
+    o->inverse_length2.resize(static_cast<size_t>(chords));
+    for (size_t i = 0; i < static_cast<size_t>(chords); ++i) {
+        o->edges_mm[i] = o->vertices_mm[i + 1] - o->vertices_mm[i];
+        const double len2 = o->edges_mm[i].squaredNorm();
+        o->inverse_length2[i] = len2 > 0.0 ? 1.0 / len2 : 0.0;
+    }
+    for (int s = 0; s < loop.segmentCount(); ++s) {
+        const auto c = loop.segment(s);
+        o->segment_power.push_back({c[3] - 3.0 * c[2] + 3.0 * c[1] - c[0],
+                                    3.0 * (c[2] - 2.0 * c[1] + c[0]), 3.0 * (c[1] - c[0]), c[0]});
+    }
     for (int32_t begin = 0; begin < chords; begin += kChunkChords) {
         GhostOutline::Chunk chunk;
         chunk.begin = begin;
@@ -219,10 +281,10 @@ void scanChunk(const GhostOutline& o,
                double& best2,
                Nearest& best) {
     for (int32_t i = c.begin; i < c.end; ++i) {
-        const Vec2& a = o.vertices_mm[static_cast<size_t>(i)];
-        const Vec2 e = o.vertices_mm[static_cast<size_t>(i) + 1] - a;
-        const double len2 = e.squaredNorm();
-        const double t = len2 > 0.0 ? std::clamp((q - a).dot(e) / len2, 0.0, 1.0) : 0.0;
+        const size_t k = static_cast<size_t>(i);
+        const Vec2& a = o.vertices_mm[k];
+        const Vec2& e = o.edges_mm[k];
+        const double t = std::clamp((q - a).dot(e) * o.inverse_length2[k], 0.0, 1.0);
         const Vec2 p = a + t * e;
         const double d2 = (p - q).squaredNorm();
         if (d2 < best2) {
@@ -243,14 +305,19 @@ double boxDistance2(const std::array<Vec2, 2>& box, const Vec2& q) {
 // The nearest chord point to q: best first down the box levels, never into a box farther than
 // the best so far. `bound`, when finite, is known to be at least the distance (the distance is
 // 1-Lipschitz, so a neighbour's distance plus the way to it is one) and prunes from the start.
+// `hint`, when not negative, is a chunk to scan first (a neighbour's nearest): its distance, often
+// near the answer, prunes the rest.
 Nearest nearest(const GhostOutline& o,
                 const Vec2& q,
-                double bound = std::numeric_limits<double>::infinity()) {
+                double bound = std::numeric_limits<double>::infinity(),
+                int32_t hint = -1) {
     const double start2 = std::isfinite(bound) ? bound * bound * (1.0 + 1e-9) + 1e-300
                                                : std::numeric_limits<double>::infinity();
     double best2 = start2;
     Nearest best;
     best.point_mm = q;
+    if (hint >= 0 && static_cast<size_t>(hint) < o.chunks.size())
+        scanChunk(o, o.chunks[static_cast<size_t>(hint)], q, best2, best);
     struct Item {
         int level;  // -1: a chunk
         size_t index;
@@ -359,6 +426,23 @@ std::array<double, 3> shadeFromNearest(
     return out;
 }
 
+// Two Newton steps on the segment with power-basis coefficients c from t, kept in [0, 1]; the
+// point reached.
+Vec2 newtonOnSegment(const std::array<Vec2, 4>& c, const Vec2& q, double& t) {
+    for (int step = 0; step < 2; ++step) {
+        const Vec2 p = ((c[0] * t + c[1]) * t + c[2]) * t + c[3];
+        const Vec2 d1 = (3.0 * t * c[0] + 2.0 * c[1]) * t + c[2];
+        const Vec2 d2 = 6.0 * t * c[0] + 2.0 * c[1];
+        const Vec2 r = p - q;
+        const double gn = d1.squaredNorm();
+        const double h = gn + r.dot(d2);
+        const double curvature = h > 0.0 ? h : gn;
+        if (!(curvature > 0.0)) break;
+        t = std::clamp(t - r.dot(d1) / curvature, 0.0, 1.0);
+    }
+    return ((c[0] * t + c[1]) * t + c[2]) * t + c[3];
+}
+
 // The curve's own distance near the chord's: Newton on (C(t) - q) . C'(t) = 0 from the chord
 // point's parameter, two steps (the start is within the sagitta, so they converge far below it).
 // The chords put the distance within their sagitta of the curve's, which at an edge sharper than
@@ -369,27 +453,24 @@ std::array<double, 3> shadeFromNearest(
 void refineOnCurve(const GhostPrimitive& g, const Vec2& q, Nearest& n, bool& in) {
     const GhostOutline& o = *g.outline;
     const size_t i = static_cast<size_t>(n.chord);
-    const auto c = g.loop_mm.segment(o.chord_segment[i]);
+    const int segment = o.chord_segment[i];
     double t = o.chord_t[i][0] + n.u * (o.chord_t[i][1] - o.chord_t[i][0]);
-    for (int step = 0; step < 2; ++step) {
-        const double s = 1.0 - t;
-        const Vec2 p = (s * s * s) * c[0] + (3.0 * s * s * t) * c[1] + (3.0 * s * t * t) * c[2] +
-                       (t * t * t) * c[3];
-        const Vec2 d1 = (3.0 * s * s) * (c[1] - c[0]) + (6.0 * s * t) * (c[2] - c[1]) +
-                        (3.0 * t * t) * (c[3] - c[2]);
-        const Vec2 d2 =
-            (6.0 * s) * (c[2] - 2.0 * c[1] + c[0]) + (6.0 * t) * (c[3] - 2.0 * c[2] + c[1]);
-        const Vec2 r = p - q;
-        const double gn = d1.squaredNorm();
-        const double h = gn + r.dot(d2);
-        const double curvature = h > 0.0 ? h : gn;
-        if (!(curvature > 0.0)) break;
-        t = std::clamp(t - r.dot(d1) / curvature, 0.0, 1.0);
+    Vec2 p = newtonOnSegment(o.segment_power[static_cast<size_t>(segment)], q, t);
+    double d = (p - q).norm();
+    // Stopped at a joint: the nearest point may lie just across it, on the neighbouring segment
+    // (the chords on both sides of a joint are equally near a point whose foot is the joint, and
+    // either may be the one found).
+    const int segments = static_cast<int>(o.segment_power.size());
+    if (segments > 1 && (t == 0.0 || t == 1.0)) {
+        const int other = t == 0.0 ? (segment + segments - 1) % segments : (segment + 1) % segments;
+        double u = t == 0.0 ? 1.0 : 0.0;
+        const Vec2 p2 = newtonOnSegment(o.segment_power[static_cast<size_t>(other)], q, u);
+        const double d2 = (p2 - q).norm();
+        if (d2 < d) {
+            d = d2;
+            p = p2;
+        }
     }
-    const double s = 1.0 - t;
-    const Vec2 p = (s * s * s) * c[0] + (3.0 * s * s * t) * c[1] + (3.0 * s * t * t) * c[2] +
-                   (t * t * t) * c[3];
-    const double d = (p - q).norm();
     if (d <= n.distance_mm + o.tolerance_mm) {
         n.distance_mm = d;
         n.point_mm = p;
@@ -490,9 +571,59 @@ std::array<double, 3> ghostPixelValue(const GhostPrimitive& g, int64_t x, int64_
     return shadeGhostBlock(g.loop_mm, g.shading, pixelCentreMm(g.mapping, x, y), half, g.distance);
 }
 
-GhostBlockCover coverGhostBlock(
-    const GhostPrimitive& g, int64_t x0, int64_t y0, int64_t x1, int64_t y1, bool finest) {
+void GhostSampleMemo::reset(const GhostPrimitive* ghost,
+                            int64_t origin_x,
+                            int64_t origin_y,
+                            int64_t cells_x,
+                            int64_t cells_y,
+                            int64_t spacing_px) {
+    ghost_ = ghost;
+    origin_x_ = origin_x;
+    origin_y_ = origin_y;
+    cells_x_ = std::max<int64_t>(0, cells_x);
+    cells_y_ = std::max<int64_t>(0, cells_y);
+    spacing_ = std::max<int64_t>(1, spacing_px);
+    const size_t n = static_cast<size_t>((cells_x_ + 1) * (cells_y_ + 1));
+    if (slots_.size() < n) slots_.resize(n);  // new slots carry stamp 0, never current
+    if (++stamp_ == 0) {
+        for (auto& slot : slots_) slot.stamp = 0;
+        stamp_ = 1;
+    }
+}
+
+GhostSampleMemo::Entry* GhostSampleMemo::find(const GhostPrimitive& ghost, double x, double y) {
+    if (&ghost != ghost_) return nullptr;
+    const double fx = (x + 0.5 - static_cast<double>(origin_x_)) / static_cast<double>(spacing_);
+    const double fy = (y + 0.5 - static_cast<double>(origin_y_)) / static_cast<double>(spacing_);
+    const double ix = std::nearbyint(fx), iy = std::nearbyint(fy);
+    if (!(std::abs(fx - ix) <= 1e-9 && std::abs(fy - iy) <= 1e-9)) return nullptr;
+    if (ix < 0.0 || iy < 0.0 || ix > static_cast<double>(cells_x_) ||
+        iy > static_cast<double>(cells_y_))
+        return nullptr;
+    Slot& slot = slots_[static_cast<size_t>(static_cast<int64_t>(iy) * (cells_x_ + 1) +
+                                            static_cast<int64_t>(ix))];
+    if (slot.stamp != stamp_) {
+        slot.stamp = stamp_;
+        slot.entry = Entry{};
+        ++misses;
+    } else {
+        ++hits;
+    }
+    return &slot.entry;
+}
+
+GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
+                                int64_t x0,
+                                int64_t y0,
+                                int64_t x1,
+                                int64_t y1,
+                                bool finest,
+                                GhostSampleMemo* memo) {
     GhostBlockCover cover;
+    const auto fx0 = static_cast<double>(x0), fx1 = static_cast<double>(x1);
+    const auto fy0 = static_cast<double>(y0), fy1 = static_cast<double>(y1);
+    cover.node_x = {fx0 - 0.5, 0.5 * (fx0 + fx1), fx1 + 0.5};
+    cover.node_y = {fy0 - 0.5, 0.5 * (fy0 + fy1), fy1 + 0.5};
     if (x1 < g.x0 || x0 > g.x1 || y1 < g.y0 || y0 > g.y1) {
         cover.kind = GhostBlockKind::Outside;
         return cover;
@@ -500,19 +631,44 @@ GhostBlockCover coverGhostBlock(
     if (!g.outline) return cover;  // Edge: every pixel exactly
     const GhostOutline& o = *g.outline;
     const GhostShading& s = g.shading;
+    const SensorToImage& m = g.mapping;
+    const auto point = [&](double x, double y) {
+        return Vec2((x + 0.5 - m.centre_x_px) / m.px_per_mm_x,
+                    (y + 0.5 - m.centre_y_px) / m.px_per_mm_y);
+    };
+    const auto entryAt = [&](double x, double y, GhostSampleMemo::Entry& local) {
+        GhostSampleMemo::Entry* e = memo ? memo->find(g, x, y) : nullptr;
+        return e ? e : &local;
+    };
     // The signed distance is 1-Lipschitz and a pixel's mean reaches reach_mm beyond its centre,
-    // so the value at the block's middle pixel bounds every pixel's within r of it.
-    const BlockMiddle mid = blockMiddle(g, x0, y0, x1, y1);
-    const int64_t mx = mid.x, my = mid.y;
-    const Vec2 c = mid.centre_mm;
-    const double r = mid.radius_mm;
-    Nearest nc = nearest(o, c);
-    bool in = inside(o, mx, my);
-    refineOnCurve(g, c, nc, in);
-    const double d = in ? -nc.distance_mm : nc.distance_mm;
+    // so the value at the block's middle bounds every pixel's within r of it (r: to the
+    // corner nodes, which lie farther than any pixel centre of the block).
+    const Vec2 c = point(cover.node_x[1], cover.node_y[1]);
+    const double r = std::hypot(0.5 * (fx1 - fx0 + 1.0) / m.px_per_mm_x,
+                                0.5 * (fy1 - fy0 + 1.0) / m.px_per_mm_y);
     // Pixels take the curve's distance where Newton finds it, the chords' (within a sagitta)
     // where not: two sagittas of slack on the bound.
     const double h = o.reach_mm + 2.0 * o.tolerance_mm;
+    GhostSampleMemo::Entry local_mid;
+    GhostSampleMemo::Entry& mid = *entryAt(cover.node_x[1], cover.node_y[1], local_mid);
+    if (!mid.has_distance) {
+        // The middle is a pixel centre, a pixel edge or a corner; its side is that of the
+        // nearest pixel centre (from the spans) unless the outline passes between them, which
+        // it can only within half a pixel's diagonal (and the chords' sagitta) of the middle.
+        Nearest n = nearest(o, c);
+        bool in = inside(o, static_cast<int64_t>(std::floor(cover.node_x[1] + 0.5)),
+                         static_cast<int64_t>(std::floor(cover.node_y[1] + 0.5)));
+        refineOnCurve(g, c, n, in);
+        mid.has_distance = true;
+        mid.chord = n.chord;
+        mid.side_known = n.distance_mm > h || n.distance_mm <= 2.0 * o.tolerance_mm;
+        mid.signed_distance_mm = in ? -n.distance_mm : n.distance_mm;
+        if (mid.side_known) mid.value = shadeFromNearest(g, c, n.distance_mm, n.point_mm, in);
+    }
+    // Unknown side: the middle lies within h of the outline, where no block is Outside or
+    // inside the inner falloff (r is at least the half pixel diagonal) and every block is Edge.
+    if (!mid.side_known) return cover;
+    const double d = mid.signed_distance_mm;
     if (d - r >= s.outer_falloff_mm + h) {
         cover.kind = GhostBlockKind::Outside;
         return cover;
@@ -529,41 +685,51 @@ GhostBlockCover coverGhostBlock(
     // The edge, where a pixel's mean bends the value within a pixel, is drawn per pixel; so are
     // the ends of the falloffs, where eq. 6.4's slope jumps, except in the smallest blocks.
     if (std::abs(d) - r <= 2.0 * h) return cover;
+    const bool in = d < 0.0;
     if (!finest) {
         const double f = in ? s.inner_falloff_mm : s.outer_falloff_mm;
         if (std::abs(d) - r <= f + h && std::abs(d) + r >= f - h) return cover;
     }
-    // Nine nodes carry the block, four points between them check it.
-    const int64_t xs[3] = {x0, mx, x1}, ys[3] = {y0, my, y1};
-    const auto sample = [&](int64_t x, int64_t y) {
-        return fastValue(
-            g, x, y, nc.distance_mm + o.tolerance_mm + (pixelCentreMm(g.mapping, x, y) - c).norm());
+    // Nine nodes carry the block, four points between them check it. Every one lies on the
+    // middle's side, more than 2 h from the outline.
+    const double bound = std::abs(d) + o.tolerance_mm;
+    const auto sample = [&](double x, double y) {
+        GhostSampleMemo::Entry local;
+        GhostSampleMemo::Entry& e = *entryAt(x, y, local);
+        if (!e.has_distance || !e.side_known) {
+            const Vec2 q = point(x, y);
+            Nearest n = nearest(o, q, bound + (q - c).norm(), mid.chord / kChunkChords);
+            bool side = in;
+            refineOnCurve(g, q, n, side);
+            e.has_distance = e.side_known = true;
+            e.chord = n.chord;
+            e.signed_distance_mm = side ? -n.distance_mm : n.distance_mm;
+            e.value = shadeFromNearest(g, q, n.distance_mm, n.point_mm, side);
+        }
+        return e.value;
     };
     std::array<double, 3> v[3][3];
-    for (int j = 0; j < 3; ++j)
-        for (int i = 0; i < 3; ++i)
-            v[j][i] = (i == 1 && j == 1) ? shadeFromNearest(g, c, nc.distance_mm, nc.point_mm, in)
-                                         : sample(xs[i], ys[j]);
-    const int64_t check_x[2] = {midPixel(x0, mx), midPixel(mx, x1)};
-    const int64_t check_y[2] = {midPixel(y0, my), midPixel(my, y1)};
-    for (const int64_t y : check_y) {
-        const auto wy = quadraticWeights(static_cast<double>(y0), static_cast<double>(my),
-                                         static_cast<double>(y1), static_cast<double>(y));
-        for (const int64_t x : check_x) {
-            const auto wx = quadraticWeights(static_cast<double>(x0), static_cast<double>(mx),
-                                             static_cast<double>(x1), static_cast<double>(x));
+    for (size_t j = 0; j < 3; ++j)
+        for (size_t i = 0; i < 3; ++i)
+            v[j][i] = (i == 1 && j == 1) ? mid.value : sample(cover.node_x[i], cover.node_y[j]);
+    for (const double y :
+         {0.5 * (cover.node_y[0] + cover.node_y[1]), 0.5 * (cover.node_y[1] + cover.node_y[2])}) {
+        const auto wy = quadraticWeights(cover.node_y[0], cover.node_y[1], cover.node_y[2], y);
+        for (const double x : {0.5 * (cover.node_x[0] + cover.node_x[1]),
+                               0.5 * (cover.node_x[1] + cover.node_x[2])}) {
+            const auto wx = quadraticWeights(cover.node_x[0], cover.node_x[1], cover.node_x[2], x);
             const std::array<double, 3> truth = sample(x, y);
             for (size_t k = 0; k < 3; ++k) {
                 double interpolated = 0.0;
-                for (int j = 0; j < 3; ++j)
-                    for (int i = 0; i < 3; ++i) interpolated += wy[j] * wx[i] * v[j][i][k];
+                for (size_t j = 0; j < 3; ++j)
+                    for (size_t i = 0; i < 3; ++i) interpolated += wy[j] * wx[i] * v[j][i][k];
                 if (!(std::abs(interpolated - truth[k]) <= o.tolerance)) return cover;
             }
         }
     }
     cover.kind = GhostBlockKind::Smooth;
-    for (int j = 0; j < 3; ++j)
-        for (int i = 0; i < 3; ++i)
+    for (size_t j = 0; j < 3; ++j)
+        for (size_t i = 0; i < 3; ++i)
             for (size_t k = 0; k < 3; ++k) cover.nodes[j][i][k] = static_cast<float>(v[j][i][k]);
     return cover;
 }
@@ -597,9 +763,9 @@ void addGhostBlock(const GhostPrimitive& g,
         if (boxDistance2(chunk, c) > reach2) continue;
         for (int32_t i = chunk.begin; i < chunk.end; ++i) {
             const Vec2& a = o.vertices_mm[static_cast<size_t>(i)];
-            const Vec2 e = o.vertices_mm[static_cast<size_t>(i) + 1] - a;
-            const double len2 = e.squaredNorm();
-            const double t = len2 > 0.0 ? std::clamp((c - a).dot(e) / len2, 0.0, 1.0) : 0.0;
+            const Vec2& e = o.edges_mm[static_cast<size_t>(i)];
+            const double t =
+                std::clamp((c - a).dot(e) * o.inverse_length2[static_cast<size_t>(i)], 0.0, 1.0);
             if ((a + t * e - c).squaredNorm() > reach2) continue;
             ax.push_back(static_cast<float>(a.x() - c.x()));
             ay.push_back(static_cast<float>(a.y() - c.y()));
@@ -612,30 +778,14 @@ void addGhostBlock(const GhostPrimitive& g,
     }
     const size_t count = index.size();
     d2.resize(count);
+    const ChordKernel kernel = chordKernel();
+    const ChordArrays chords{ax.data(), ay.data(), ex.data(), ey.data(), inv.data()};
     for (int64_t y = y0; y <= y1; ++y) {
         float* row = rgb + (y - y0) * row_stride;
         for (int64_t x = x0; x <= x1; ++x, row += 3) {
             const Vec2 q = pixelCentreMm(g.mapping, x, y);
-            const float qx = static_cast<float>(q.x() - c.x());
-            const float qy = static_cast<float>(q.y() - c.y());
-            {
-                // Plain selects, not std::clamp (whose NaN order keeps it scalar): one SIMD lane
-                // per chord.
-                const float* __restrict pax = ax.data();
-                const float* __restrict pay = ay.data();
-                const float* __restrict pex = ex.data();
-                const float* __restrict pey = ey.data();
-                const float* __restrict pinv = inv.data();
-                float* __restrict pd2 = d2.data();
-                for (size_t k = 0; k < count; ++k) {
-                    const float px = qx - pax[k], py = qy - pay[k];
-                    float t = (px * pex[k] + py * pey[k]) * pinv[k];
-                    t = t > 0.0f ? t : 0.0f;
-                    t = t < 1.0f ? t : 1.0f;
-                    const float dx = px - t * pex[k], dy = py - t * pey[k];
-                    pd2[k] = dx * dx + dy * dy;
-                }
-            }
+            kernel(chords, count, static_cast<float>(q.x() - c.x()),
+                   static_cast<float>(q.y() - c.y()), d2.data());
             size_t best = 0;
             float best_d2 = d2[0];
             for (size_t k = 1; k < count; ++k)
@@ -643,9 +793,9 @@ void addGhostBlock(const GhostPrimitive& g,
             Nearest n;
             n.chord = index[best];
             const Vec2& a = o.vertices_mm[static_cast<size_t>(n.chord)];
-            const Vec2 e = o.vertices_mm[static_cast<size_t>(n.chord) + 1] - a;
-            const double len2 = e.squaredNorm();
-            n.u = len2 > 0.0 ? std::clamp((q - a).dot(e) / len2, 0.0, 1.0) : 0.0;
+            const Vec2& e = o.edges_mm[static_cast<size_t>(n.chord)];
+            n.u = std::clamp((q - a).dot(e) * o.inverse_length2[static_cast<size_t>(n.chord)], 0.0,
+                             1.0);
             n.point_mm = a + n.u * e;
             n.distance_mm = (n.point_mm - q).norm();
             bool in = inside(o, x, y);

@@ -58,6 +58,11 @@ struct GhostOutline {
         int32_t begin = 0, end = 0;    // chords begin..end-1; chord i runs vertex i -> i + 1
     };
     std::vector<Eigen::Vector2d> vertices_mm;  // closed: the last vertex repeats the first
+    std::vector<Eigen::Vector2d> edges_mm;     // chord i: vertex i + 1 minus vertex i
+    std::vector<double> inverse_length2;       // 1 / |edge i|^2, 0 for a chord of no length
+    // The loop's segments in the power basis, C(t) = ((a t + b) t + c) t + d as {a, b, c, d},
+    // for Newton's steps on the curve.
+    std::vector<std::array<Eigen::Vector2d, 4>> segment_power;
     // Chord i replaces segment chord_segment[i] of the loop from t = chord_t[i][0] to [1]: where
     // a pixel needs the distance to the curve itself, Newton starts there.
     std::vector<int32_t> chord_segment;
@@ -105,7 +110,8 @@ enum class GhostBlockKind {
     Smooth,   // the biquadratic through `nodes` (constant inside the inner falloff)
     Edge,     // neither: smaller blocks, or per pixel
 };
-// A block's nodes are the pixels {x0, midPixel(x0, x1), x1} x {y0, midPixel(y0, y1), y1}.
+// Pixel x of a row has its centre at x in the coordinates below (pixel-centre coordinates); a
+// block of pixels x0..x1 spans x0 - 0.5 .. x1 + 0.5.
 inline int64_t midPixel(int64_t a, int64_t b) { return a + (b - a) / 2; }
 // The weights of the quadratic through nodes n0 <= n1 <= n2 at x (Lagrange); linear between n0
 // and n2 when the middle node coincides with one of them, constant when all do.
@@ -121,13 +127,64 @@ inline std::array<double, 3> quadraticWeights(double n0, double n1, double n2, d
 }
 struct GhostBlockCover {
     GhostBlockKind kind = GhostBlockKind::Edge;
-    // RGB at the nodes when Smooth: nodes[j][i] at (x node i, y node j)
+    // The nodes, in pixel-centre coordinates: the block's outer edges and its middle,
+    // {x0 - 0.5, (x0 + x1) / 2, x1 + 0.5} (and the same in y). Nodes on the block's edges are
+    // shared with its neighbours and its halves, so a GhostSampleMemo serves them once.
+    std::array<double, 3> node_x{}, node_y{};
+    // RGB at the nodes when Smooth: nodes[j][i] at (node_x[i], node_y[j])
     std::array<std::array<std::array<float, 3>, 3>, 3> nodes{};
 };
+
+// The fast evaluation's values at points of a lattice, kept while one thread classifies one
+// ghost over one region: every node and check point of the blocks coverGhostBlock is asked about
+// there, when the blocks are whole dense tiles of a size divisible by 4 (their edges, middles and
+// quarter points fall on a lattice of a quarter tile), is evaluated once. Values are what
+// coverGhostBlock would compute without it, to rounding (where two chords are equally near a
+// point, the searches may meet either first). Forgetting is O(1) (a stamp per slot).
+class GhostSampleMemo {
+public:
+    // Forget everything; remember points of the lattice of `spacing_px` (> 0) pixels whose
+    // origin is the pixel edge (origin_x, origin_y) (pixel-centre coordinate origin - 0.5),
+    // `cells_x` x `cells_y` cells, for `ghost`.
+    void reset(const GhostPrimitive* ghost,
+               int64_t origin_x,
+               int64_t origin_y,
+               int64_t cells_x,
+               int64_t cells_y,
+               int64_t spacing_px);
+    struct Entry {
+        bool has_distance = false;
+        bool side_known = false;  // false: too near the outline to take the side from a pixel
+        int32_t chord = 0;        // the nearest chord of the outline
+        double signed_distance_mm = 0.0;
+        std::array<double, 3> value{};  // when side_known
+    };
+    // The entry of the point at pixel-centre coordinates (x, y), or null when it is not on the
+    // lattice or `ghost` is not the one set.
+    Entry* find(const GhostPrimitive& ghost, double x, double y);
+    int64_t hits = 0, misses = 0;  // lookups of a known point and of a new one, ever
+
+private:
+    struct Slot {
+        uint32_t stamp = 0;
+        Entry entry;
+    };
+    const GhostPrimitive* ghost_ = nullptr;
+    int64_t origin_x_ = 0, origin_y_ = 0, cells_x_ = 0, cells_y_ = 0, spacing_ = 1;
+    uint32_t stamp_ = 0;
+    std::vector<Slot> slots_;
+};
+
 // `finest`: the caller cannot split the block further, so it may be interpolated although the
 // outer or inner falloff's end crosses it (checked all the same). An exact ghost is never Smooth.
-GhostBlockCover coverGhostBlock(
-    const GhostPrimitive& ghost, int64_t x0, int64_t y0, int64_t x1, int64_t y1, bool finest);
+// `memo`, when given, is set for this ghost (else ignored) and shares samples between calls.
+GhostBlockCover coverGhostBlock(const GhostPrimitive& ghost,
+                                int64_t x0,
+                                int64_t y0,
+                                int64_t x1,
+                                int64_t y1,
+                                bool finest,
+                                GhostSampleMemo* memo = nullptr);
 
 // Adds the ghost's mean over the pixels x0..x1, y0..y1 (inside the ghost's range) to rgb: pixel
 // (x, y) at rgb + (y - y0) * row_stride + (x - x0) * 3. Fast or exact as the ghost was prepared.

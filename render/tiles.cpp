@@ -98,12 +98,10 @@ Status renderTiled(ImageRGB& image,
     };
     // Adds a smooth block to the nodes of the dense tiles ax..bx, ay..by: a biquadratic restricted
     // to a tile is the biquadratic through its values at the tile's nodes.
-    const auto addSmooth = [&](const GhostBlockCover& cover, const Range& block, int64_t ax,
-                               int64_t ay, int64_t bx, int64_t by) {
-        const double bx0 = static_cast<double>(block.x0), bx1 = static_cast<double>(block.x1);
-        const double by0 = static_cast<double>(block.y0), by1 = static_cast<double>(block.y1);
-        const double bxm = static_cast<double>(midPixel(block.x0, block.x1));
-        const double bym = static_cast<double>(midPixel(block.y0, block.y1));
+    const auto addSmooth = [&](const GhostBlockCover& cover, int64_t ax, int64_t ay, int64_t bx,
+                               int64_t by) {
+        const auto& nx = cover.node_x;
+        const auto& ny = cover.node_y;
         for (int64_t ty = ay; ty <= by; ++ty)
             for (int64_t tx = ax; tx <= bx; ++tx) {
                 const Range t = tilePixels(tx, ty, tx, ty);
@@ -112,9 +110,11 @@ Status renderTiled(ImageRGB& image,
                 const int64_t xs[3] = {t.x0, midPixel(t.x0, t.x1), t.x1};
                 const int64_t ys[3] = {t.y0, midPixel(t.y0, t.y1), t.y1};
                 for (size_t j = 0; j < 3; ++j) {
-                    const auto wy = quadraticWeights(by0, bym, by1, static_cast<double>(ys[j]));
+                    const auto wy =
+                        quadraticWeights(ny[0], ny[1], ny[2], static_cast<double>(ys[j]));
                     for (size_t i = 0; i < 3; ++i) {
-                        const auto wx = quadraticWeights(bx0, bxm, bx1, static_cast<double>(xs[i]));
+                        const auto wx =
+                            quadraticWeights(nx[0], nx[1], nx[2], static_cast<double>(xs[i]));
                         for (size_t k = 0; k < 3; ++k) {
                             double v = 0.0;
                             for (size_t q = 0; q < 3; ++q)
@@ -132,14 +132,14 @@ Status renderTiled(ImageRGB& image,
     // the lists and are drawn per pixel.
     const auto classify = [&](const auto& self, const GhostPrimitive& g, uint32_t index, int64_t ax,
                               int64_t ay, int64_t bx, int64_t by, int64_t& smooth_count,
-                              int64_t& edge_count) -> void {
+                              int64_t& edge_count, GhostSampleMemo* memo) -> void {
         const Range block = tilePixels(ax, ay, bx, by);
         const bool finest = ax == bx && ay == by;
         const GhostBlockCover cover =
-            coverGhostBlock(g, block.x0, block.y0, block.x1, block.y1, finest);
+            coverGhostBlock(g, block.x0, block.y0, block.x1, block.y1, finest, memo);
         if (cover.kind == GhostBlockKind::Outside) return;
         if (cover.kind == GhostBlockKind::Smooth) {
-            addSmooth(cover, block, ax, ay, bx, by);
+            addSmooth(cover, ax, ay, bx, by);
             smooth_count += (bx - ax + 1) * (by - ay + 1);
             return;
         }
@@ -150,12 +150,12 @@ Status renderTiled(ImageRGB& image,
         }
         if (bx - ax >= by - ay) {
             const int64_t mid = ax + (bx - ax) / 2;
-            self(self, g, index, ax, ay, mid, by, smooth_count, edge_count);
-            self(self, g, index, mid + 1, ay, bx, by, smooth_count, edge_count);
+            self(self, g, index, ax, ay, mid, by, smooth_count, edge_count, memo);
+            self(self, g, index, mid + 1, ay, bx, by, smooth_count, edge_count, memo);
         } else {
             const int64_t mid = ay + (by - ay) / 2;
-            self(self, g, index, ax, ay, bx, mid, smooth_count, edge_count);
-            self(self, g, index, ax, mid + 1, bx, by, smooth_count, edge_count);
+            self(self, g, index, ax, ay, bx, mid, smooth_count, edge_count, memo);
+            self(self, g, index, ax, mid + 1, bx, by, smooth_count, edge_count, memo);
         }
     };
     const bool any_fast = std::any_of(ghosts.begin(), ghosts.end(),
@@ -172,8 +172,16 @@ Status renderTiled(ImageRGB& image,
         if (ax > bx || ay > by) return;
         if (index >= quad_count && ghosts[index - quad_count].outline) {
             int64_t smooth_count = 0, edge_count = 0;
-            classify(classify, ghosts[index - quad_count], index, ax, ay, bx, by, smooth_count,
-                     edge_count);
+            // The blocks' nodes and check points fall on a lattice of a quarter dense tile:
+            // each is evaluated once per ghost and coarse tile.
+            thread_local GhostSampleMemo memo;
+            const GhostPrimitive& g = ghosts[index - quad_count];
+            const bool lattice = dense % 4 == 0;
+            if (lattice)
+                memo.reset(&g, ax * dense, ay * dense, (bx - ax + 1) * 4, (by - ay + 1) * 4,
+                           dense / 4);
+            classify(classify, g, index, ax, ay, bx, by, smooth_count, edge_count,
+                     lattice ? &memo : nullptr);
             smooth_tiles += smooth_count;
             edge_tiles += edge_count;
             return;

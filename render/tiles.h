@@ -25,8 +25,11 @@
 // are built: from the blocks of the coarse tile down to single dense tiles, a block the ghost
 // misses is dropped, a block where it is constant or biquadratic is added to its tiles' node values
 // (3 x 3 per tile, summed over ghosts, drawn first, before the quads), and only dense tiles an edge
-// crosses go to the lists and are drawn per pixel. Their sum is in a fixed order too, so the image
-// still does not depend on the number of threads, but it is not the order of the input array.
+// crosses go to the lists and are drawn per pixel. A block's nodes and check points lie on a
+// lattice of a quarter dense tile; one GhostSampleMemo per ghost and coarse tile evaluates each
+// point once for all the blocks that share it. The per-pixel ghosts and the node values are summed
+// in a fixed order too, so the image still does not depend on the number of threads, but it is not
+// the order of the input array.
 #pragma once
 
 #include <cstdint>

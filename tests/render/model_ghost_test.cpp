@@ -291,6 +291,66 @@ TEST(ModelGhostFast, MatchesTheExactEvaluationOnRandomFrames) {
     RecordProperty("max_rel_err", std::to_string(worst));
 }
 
+// The memo of samples changes no block's answer, only how often a point is evaluated: blocks of
+// whole 8-pixel tiles halved as renderTiled halves them, asked once with a memo shared by the
+// whole region and once without, give the same kind and the same node values (to rounding, where
+// a search meets one of two equally near chords first), and
+// the memo answers a large share of the lookups (nodes shared by neighbours and halves).
+TEST(ModelGhostFast, TheSampleMemoChangesNoBlockAndServesSharedNodes) {
+    const int64_t w = 640, h = 384;  // 17.8 px per mm
+    const SensorToImage m = mappingFor(w, h);
+    std::mt19937_64 rng(5);
+    std::uniform_real_distribution<double> u(-1.0, 1.0);
+    GhostSampleMemo memo;
+    int64_t compared = 0, smooth = 0;
+    for (int i = 0; i < 8; ++i) {
+        const BezierLoop loop =
+            toBezierLoop(randomShape(rng, 12.0 * u(rng), 8.0 * u(rng), 4.0 + 2.0 * u(rng)));
+        const auto g = prepareGhostPrimitive(loop, randomShading(rng), m, w, h);
+        if (!g) continue;
+        // The whole image as one region of 80 x 48 tiles, split like the tile engine splits.
+        memo.reset(&*g, 0, 0, 80 * 4, 48 * 4, 2);
+        const auto visit = [&](const auto& self, int64_t ax, int64_t ay, int64_t bx,
+                               int64_t by) -> void {
+            const bool finest = ax == bx && ay == by;
+            const int64_t x0 = ax * 8, y0 = ay * 8, x1 = bx * 8 + 7, y1 = by * 8 + 7;
+            const GhostBlockCover with = coverGhostBlock(*g, x0, y0, x1, y1, finest, &memo);
+            const GhostBlockCover without = coverGhostBlock(*g, x0, y0, x1, y1, finest);
+            ++compared;
+            ASSERT_EQ(with.kind, without.kind) << "block " << x0 << "," << y0;
+            for (size_t j = 0; j < 3; ++j)
+                for (size_t k = 0; k < 3; ++k)
+                    for (size_t c = 0; c < 3; ++c)  // equal but where two chords tie
+                        ASSERT_NEAR(with.nodes[j][k][c], without.nodes[j][k][c],
+                                    1e-5 * (1.0 + std::abs(without.nodes[j][k][c])));
+            if (with.kind == GhostBlockKind::Smooth) ++smooth;
+            if (with.kind != GhostBlockKind::Edge || finest) return;
+            if (bx - ax >= by - ay) {
+                const int64_t mid = ax + (bx - ax) / 2;
+                self(self, ax, ay, mid, by);
+                self(self, mid + 1, ay, bx, by);
+            } else {
+                const int64_t mid = ay + (by - ay) / 2;
+                self(self, ax, ay, bx, mid);
+                self(self, ax, mid + 1, bx, by);
+            }
+        };
+        visit(visit, 0, 0, 79, 47);
+    }
+    EXPECT_GT(compared, 200);
+    EXPECT_GT(smooth, 20);
+    // Every block evaluates its nine nodes and four check points, through the memo or not.
+    EXPECT_GT(memo.hits, memo.misses / 2);
+    // A ghost the memo was not set for is evaluated directly.
+    const auto other = prepareGhostPrimitive(toBezierLoop(circleGhostShape(0.0, 0.0, 5.0)),
+                                             shading(1.0, 2.0), m, w, h);
+    ASSERT_TRUE(other.has_value());
+    EXPECT_EQ(memo.find(*other, 3.5, 3.5), nullptr);
+    const GhostBlockCover a = coverGhostBlock(*other, 0, 0, 15, 15, false, &memo);
+    const GhostBlockCover b = coverGhostBlock(*other, 0, 0, 15, 15, false);
+    EXPECT_EQ(a.kind, b.kind);
+}
+
 // A shape whose falloffs are far below a pixel is drawn per pixel along its whole edge: the error
 // there is the chords' (0.01 px) and rounding, far below the interpolation's.
 TEST(ModelGhostFast, SharpEdgesMatchTheExactEvaluationClosely) {
