@@ -102,30 +102,44 @@ Status renderTiled(ImageRGB& image,
                                int64_t by) {
         const auto& nx = cover.node_x;
         const auto& ny = cover.node_y;
-        for (int64_t ty = ay; ty <= by; ++ty)
+        // The block's weights at each tile column's and row's three nodes, once per block;
+        // then per tile the nodes interpolated in y, then in x.
+        using Weights = std::array<std::array<double, 3>, 3>;  // [tile node][block node]
+        thread_local std::vector<Weights> column_weights;
+        column_weights.resize(static_cast<size_t>(bx - ax + 1));
+        for (int64_t tx = ax; tx <= bx; ++tx) {
+            const Range t = tilePixels(tx, ay, tx, ay);
+            const int64_t xs[3] = {t.x0, midPixel(t.x0, t.x1), t.x1};
+            for (size_t i = 0; i < 3; ++i)
+                column_weights[static_cast<size_t>(tx - ax)][i] =
+                    quadraticWeights(nx[0], nx[1], nx[2], static_cast<double>(xs[i]));
+        }
+        for (int64_t ty = ay; ty <= by; ++ty) {
+            const Range row = tilePixels(ax, ty, ax, ty);
+            const int64_t ys[3] = {row.y0, midPixel(row.y0, row.y1), row.y1};
+            // Down the block's node columns p at the tile row's nodes j: [j][p][channel].
+            double in_y[3][3][3];
+            for (size_t j = 0; j < 3; ++j) {
+                const auto wy = quadraticWeights(ny[0], ny[1], ny[2], static_cast<double>(ys[j]));
+                for (size_t p = 0; p < 3; ++p)
+                    for (size_t k = 0; k < 3; ++k)
+                        in_y[j][p][k] = wy[0] * cover.nodes[0][p][k] +
+                                        wy[1] * cover.nodes[1][p][k] +
+                                        wy[2] * cover.nodes[2][p][k];
+            }
             for (int64_t tx = ax; tx <= bx; ++tx) {
-                const Range t = tilePixels(tx, ty, tx, ty);
                 const size_t index = static_cast<size_t>(ty * dense_x + tx);
                 Nodes& nodes = smooth_nodes[index];
-                const int64_t xs[3] = {t.x0, midPixel(t.x0, t.x1), t.x1};
-                const int64_t ys[3] = {t.y0, midPixel(t.y0, t.y1), t.y1};
-                for (size_t j = 0; j < 3; ++j) {
-                    const auto wy =
-                        quadraticWeights(ny[0], ny[1], ny[2], static_cast<double>(ys[j]));
-                    for (size_t i = 0; i < 3; ++i) {
-                        const auto wx =
-                            quadraticWeights(nx[0], nx[1], nx[2], static_cast<double>(xs[i]));
-                        for (size_t k = 0; k < 3; ++k) {
-                            double v = 0.0;
-                            for (size_t q = 0; q < 3; ++q)
-                                for (size_t p = 0; p < 3; ++p)
-                                    v += wy[q] * wx[p] * cover.nodes[q][p][k];
-                            nodes[(j * 3 + i) * 3 + k] += static_cast<float>(v);
-                        }
-                    }
-                }
+                const Weights& wx = column_weights[static_cast<size_t>(tx - ax)];
+                for (size_t j = 0; j < 3; ++j)
+                    for (size_t i = 0; i < 3; ++i)
+                        for (size_t k = 0; k < 3; ++k)
+                            nodes[(j * 3 + i) * 3 + k] += static_cast<float>(
+                                wx[i][0] * in_y[j][0][k] + wx[i][1] * in_y[j][1][k] +
+                                wx[i][2] * in_y[j][2][k]);
                 has_smooth[index] = 1;
             }
+        }
     };
     // A fast ghost over the dense tiles ax..bx, ay..by: blocks the ghost misses are dropped,
     // smooth ones go to the node sums, the rest are halved down to single tiles, which go to
