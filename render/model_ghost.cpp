@@ -14,10 +14,12 @@ using Cubic = std::array<Vec2, 4>;
 constexpr int kChunkChords = 8;
 
 // The squared distances of the point (qx, qy) to chords a + t e, t in [0, 1], given relative to
-// one origin in single precision (addGhostBlock's candidates). Plain selects, not std::clamp
-// (whose NaN order keeps it scalar): one SIMD lane per chord. AVX2 where the processor has it,
-// chosen at run time like the row tracer's kernels; both give the same bits (no fused
-// multiply-adds: -ffp-contract=off).
+// one origin in single precision (addGhostBlock's candidates), and the smallest of them. n is a
+// multiple of kLanes (the candidates are padded with chords far away), so the loop runs in whole
+// vectors; plain selects, not std::clamp or std::min (whose NaN order keeps them scalar): one
+// SIMD lane per chord. AVX2 where the processor has it, chosen at run time like the row
+// tracer's kernels; both give the same bits (no fused multiply-adds: -ffp-contract=off).
+constexpr size_t kLanes = 8;
 struct ChordArrays {
     const float* ax;
     const float* ay;
@@ -25,30 +27,40 @@ struct ChordArrays {
     const float* ey;
     const float* inv;  // 1 / |e|^2, or 0 for a chord of no length
 };
-[[gnu::always_inline]] inline void chordDistances(
+using Float8 = float __attribute__((vector_size(32)));  // GCC's and Clang's vector extension
+[[gnu::always_inline]] inline float chordDistances(
     const ChordArrays& c, size_t n, float qx, float qy, float* __restrict d2) {
-    const float* __restrict pax = c.ax;
-    const float* __restrict pay = c.ay;
-    const float* __restrict pex = c.ex;
-    const float* __restrict pey = c.ey;
-    const float* __restrict pinv = c.inv;
-    for (size_t k = 0; k < n; ++k) {
-        const float px = qx - pax[k], py = qy - pay[k];
-        float t = (px * pex[k] + py * pey[k]) * pinv[k];
-        t = t > 0.0f ? t : 0.0f;
-        t = t < 1.0f ? t : 1.0f;
-        const float dx = px - t * pex[k], dy = py - t * pey[k];
-        d2[k] = dx * dx + dy * dy;
+    const Float8 zero = {}, one = zero + 1.0f;
+    const Float8 x = zero + qx, y = zero + qy;
+    Float8 lowest = zero + std::numeric_limits<float>::max();
+    for (size_t k = 0; k < n; k += kLanes) {
+        Float8 ax, ay, ex, ey, inv;
+        __builtin_memcpy(&ax, c.ax + k, sizeof ax);
+        __builtin_memcpy(&ay, c.ay + k, sizeof ay);
+        __builtin_memcpy(&ex, c.ex + k, sizeof ex);
+        __builtin_memcpy(&ey, c.ey + k, sizeof ey);
+        __builtin_memcpy(&inv, c.inv + k, sizeof inv);
+        const Float8 px = x - ax, py = y - ay;
+        Float8 t = (px * ex + py * ey) * inv;
+        t = t > zero ? t : zero;
+        t = t < one ? t : one;
+        const Float8 dx = px - t * ex, dy = py - t * ey;
+        const Float8 v = dx * dx + dy * dy;
+        __builtin_memcpy(d2 + k, &v, sizeof v);
+        lowest = v < lowest ? v : lowest;
     }
+    float m = lowest[0];
+    for (size_t j = 1; j < kLanes; ++j) m = lowest[j] < m ? lowest[j] : m;
+    return m;
 }
-using ChordKernel = void (*)(const ChordArrays&, size_t, float, float, float*);
-void chordDistancesSse2(const ChordArrays& c, size_t n, float qx, float qy, float* d2) {
-    chordDistances(c, n, qx, qy, d2);
+using ChordKernel = float (*)(const ChordArrays&, size_t, float, float, float*);
+float chordDistancesSse2(const ChordArrays& c, size_t n, float qx, float qy, float* d2) {
+    return chordDistances(c, n, qx, qy, d2);
 }
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-[[gnu::target("avx2")]] void chordDistancesAvx2(
+[[gnu::target("avx2")]] float chordDistancesAvx2(
     const ChordArrays& c, size_t n, float qx, float qy, float* d2) {
-    chordDistances(c, n, qx, qy, d2);
+    return chordDistances(c, n, qx, qy, d2);
 }
 #endif
 ChordKernel chordKernel() {
@@ -777,19 +789,22 @@ void addGhostBlock(const GhostPrimitive& g,
         }
     }
     const size_t count = index.size();
-    d2.resize(count);
+    // Padded to whole vectors with chords of no length far away (squared distance about 1e36,
+    // finite, never the nearest).
+    const size_t padded = (count + kLanes - 1) / kLanes * kLanes;
+    ax.resize(padded, 1e18f), ay.resize(padded, 1e18f), ex.resize(padded, 0.0f);
+    ey.resize(padded, 0.0f), inv.resize(padded, 0.0f);
+    d2.resize(padded);
     const ChordKernel kernel = chordKernel();
     const ChordArrays chords{ax.data(), ay.data(), ex.data(), ey.data(), inv.data()};
     for (int64_t y = y0; y <= y1; ++y) {
         float* row = rgb + (y - y0) * row_stride;
         for (int64_t x = x0; x <= x1; ++x, row += 3) {
             const Vec2 q = pixelCentreMm(g.mapping, x, y);
-            kernel(chords, count, static_cast<float>(q.x() - c.x()),
-                   static_cast<float>(q.y() - c.y()), d2.data());
-            size_t best = 0;
-            float best_d2 = d2[0];
-            for (size_t k = 1; k < count; ++k)
-                if (d2[k] < best_d2) best_d2 = d2[best = k];
+            const float lowest = kernel(chords, padded, static_cast<float>(q.x() - c.x()),
+                                        static_cast<float>(q.y() - c.y()), d2.data());
+            size_t best = 0;  // the first that is the nearest
+            while (best + 1 < count && d2[best] != lowest) ++best;
             Nearest n;
             n.chord = index[best];
             const Vec2& a = o.vertices_mm[static_cast<size_t>(n.chord)];

@@ -124,8 +124,7 @@ Status renderTiled(ImageRGB& image,
                 for (size_t p = 0; p < 3; ++p)
                     for (size_t k = 0; k < 3; ++k)
                         in_y[j][p][k] = wy[0] * cover.nodes[0][p][k] +
-                                        wy[1] * cover.nodes[1][p][k] +
-                                        wy[2] * cover.nodes[2][p][k];
+                                        wy[1] * cover.nodes[1][p][k] + wy[2] * cover.nodes[2][p][k];
             }
             for (int64_t tx = ax; tx <= bx; ++tx) {
                 const size_t index = static_cast<size_t>(ty * dense_x + tx);
