@@ -281,10 +281,13 @@ struct Nearest {
     double u = 0.0;  // where on the chord, in [0, 1]
 };
 
-double boxDistance2(const GhostOutline::Chunk& c, const Vec2& q) {
-    const double dx = std::max({c.lo_mm.x() - q.x(), 0.0, q.x() - c.hi_mm.x()});
-    const double dy = std::max({c.lo_mm.y() - q.y(), 0.0, q.y() - c.hi_mm.y()});
+double boxDistance2(const Vec2& lo, const Vec2& hi, const Vec2& q) {
+    const double dx = std::max(std::max(lo.x() - q.x(), q.x() - hi.x()), 0.0);
+    const double dy = std::max(std::max(lo.y() - q.y(), q.y() - hi.y()), 0.0);
     return dx * dx + dy * dy;
+}
+double boxDistance2(const GhostOutline::Chunk& c, const Vec2& q) {
+    return boxDistance2(c.lo_mm, c.hi_mm, q);
 }
 
 void scanChunk(const GhostOutline& o,
@@ -309,9 +312,7 @@ void scanChunk(const GhostOutline& o,
 }
 
 double boxDistance2(const std::array<Vec2, 2>& box, const Vec2& q) {
-    const double dx = std::max({box[0].x() - q.x(), 0.0, q.x() - box[1].x()});
-    const double dy = std::max({box[0].y() - q.y(), 0.0, q.y() - box[1].y()});
-    return dx * dx + dy * dy;
+    return boxDistance2(box[0], box[1], q);
 }
 
 // The nearest chord point to q: best first down the box levels, never into a box farther than
@@ -333,21 +334,19 @@ Nearest nearest(const GhostOutline& o,
     struct Item {
         int level;  // -1: a chunk
         size_t index;
+        double distance2;  // of its box from q, computed when it was pushed
+    };
+    const auto distance2 = [&](int level, size_t index) {
+        return level < 0 ? boxDistance2(o.chunks[index], q)
+                         : boxDistance2(o.levels[static_cast<size_t>(level)][index], q);
     };
     Item stack[160];
     int top = 0;
-    if (o.levels.empty())
-        stack[top++] = {-1, 0};
-    else
-        stack[top++] = {static_cast<int>(o.levels.size()) - 1, 0};
-    const auto distance2 = [&](const Item& item) {
-        return item.level < 0
-                   ? boxDistance2(o.chunks[item.index], q)
-                   : boxDistance2(o.levels[static_cast<size_t>(item.level)][item.index], q);
-    };
+    const int root = o.levels.empty() ? -1 : static_cast<int>(o.levels.size()) - 1;
+    stack[top++] = {root, 0, distance2(root, 0)};
     while (top > 0) {
         const Item item = stack[--top];
-        if (distance2(item) > best2) continue;
+        if (item.distance2 > best2) continue;
         if (item.level < 0) {
             scanChunk(o, o.chunks[item.index], q, best2, best);
             continue;
@@ -355,14 +354,15 @@ Nearest nearest(const GhostOutline& o,
         const int child_level = item.level - 1;
         const size_t count =
             child_level < 0 ? o.chunks.size() : o.levels[static_cast<size_t>(child_level)].size();
-        Item a{child_level, 2 * item.index}, b{child_level, 2 * item.index + 1};
-        if (b.index >= count) {
-            stack[top++] = a;
+        Item a{child_level, 2 * item.index, distance2(child_level, 2 * item.index)};
+        if (2 * item.index + 1 >= count) {
+            if (a.distance2 <= best2) stack[top++] = a;
             continue;
         }
-        if (distance2(a) < distance2(b)) std::swap(a, b);  // the nearer one is popped first
-        stack[top++] = a;
-        stack[top++] = b;
+        Item b{child_level, 2 * item.index + 1, distance2(child_level, 2 * item.index + 1)};
+        if (a.distance2 < b.distance2) std::swap(a, b);  // the nearer one is popped first
+        if (a.distance2 <= best2) stack[top++] = a;
+        if (b.distance2 <= best2) stack[top++] = b;
     }
     if (best2 == start2 && std::isfinite(bound)) return nearest(o, q);  // rounding: search all
     best.distance_mm = std::sqrt(best2);
