@@ -186,13 +186,13 @@ Status renderTiled(ImageRGB& image,
         if (index >= quad_count && ghosts[index - quad_count].outline) {
             int64_t smooth_count = 0, edge_count = 0;
             // The blocks' nodes and check points fall on a lattice of a quarter dense tile:
-            // each is evaluated once per ghost and coarse tile.
+            // each is evaluated once per ghost and coarse tile. Not for regions whose lattice
+            // would take more than a few megabytes a thread (huge coarse tiles, or none).
             thread_local GhostSampleMemo memo;
             const GhostPrimitive& g = ghosts[index - quad_count];
-            const bool lattice = dense % 4 == 0;
-            if (lattice)
-                memo.reset(&g, ax * dense, ay * dense, (bx - ax + 1) * 4, (by - ay + 1) * 4,
-                           dense / 4);
+            const int64_t cells_x = (bx - ax + 1) * 4, cells_y = (by - ay + 1) * 4;
+            const bool lattice = dense % 4 == 0 && (cells_x + 1) * (cells_y + 1) <= (1 << 17);
+            if (lattice) memo.reset(&g, ax * dense, ay * dense, cells_x, cells_y, dense / 4);
             classify(classify, g, index, ax, ay, bx, by, smooth_count, edge_count,
                      lattice ? &memo : nullptr);
             smooth_tiles += smooth_count;
