@@ -490,12 +490,9 @@ void refineOnCurve(const GhostPrimitive& g, const Vec2& q, Nearest& n, bool& in)
     if (n.distance_mm <= 2.0 * o.tolerance_mm) in = windingNumber(g.loop_mm, q) != 0;
 }
 
-std::array<double, 3> fastValue(const GhostPrimitive& g,
-                                int64_t x,
-                                int64_t y,
-                                double bound = std::numeric_limits<double>::infinity()) {
+std::array<double, 3> fastValue(const GhostPrimitive& g, int64_t x, int64_t y) {
     const Vec2 q = pixelCentreMm(g.mapping, x, y);
-    Nearest n = nearest(*g.outline, q, bound);
+    Nearest n = nearest(*g.outline, q);
     bool in = inside(*g.outline, x, y);
     refineOnCurve(g, q, n, in);
     return shadeFromNearest(g, q, n.distance_mm, n.point_mm, in);
