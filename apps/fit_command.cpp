@@ -2,8 +2,10 @@
 
 #include <openssl/evp.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <iomanip>
 #include <memory>
@@ -15,6 +17,7 @@
 #include "drivers/sim_truth.h"
 #include "fit/sweep_fit.h"
 #include "hdr/sweep.h"
+#include "render/preview.h"
 
 namespace flarelab::apps {
 namespace {
@@ -31,16 +34,21 @@ struct FitState {
     int samples = fit::CostOptions{}.max_samples;
     int distance_iterations = fit::CostOptions{}.distance.iterations;
     int degree = -1;
+    int every = 1;
     bool quiet = false;
 };
 
 struct ScoreState {
     std::string model;
     std::string lens_file;
+    std::string sweep;
+    std::string images;
     std::vector<double> angles;
-    int halfway = 16;
-    int random = 4;
-    int fit_angles = 16;
+    int halfway = fit::ScoreOptions{}.halfway_angles;
+    int random = fit::ScoreOptions{}.random_angles;
+    int fit_angles = fit::ScoreOptions{}.fit_angles;
+    int left_out = fit::ScoreOptions{}.left_out_angles;
+    double log_scale = fit::ScoreOptions{}.log_scale;
     uint64_t seed = 1;
     bool json = false;
 };
@@ -91,9 +99,19 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
             return 1;
         }
         sha = *digest;
+        // The sensor the sweep records (its pixel pitch times the frame size), not the flags
+        // default; the default (36 x 24 mm) where the two agree to a pixel, since the pitch
+        // carries the width's rounding into the height.
         if (!have_sensor) {
             sensor = {lens->camera().sensor_width_mm, lens->camera().sensor_height_mm};
             have_sensor = true;
+            if (auto recorded = fit::sweepSensorSize(*sweep, nullptr)) {
+                const double pitch = (*recorded)[0] /
+                                     static_cast<double>(sweep->header.capture.width_px);
+                if (std::abs((*recorded)[0] - sensor[0]) > pitch ||
+                    std::abs((*recorded)[1] - sensor[1]) > pitch)
+                    sensor = *recorded;
+            }
         }
     }
     auto size = fit::sweepSensorSize(*sweep, have_sensor ? &sensor : nullptr);
@@ -115,6 +133,7 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.frame.cost.max_samples = s.samples;
     options.frame.cost.distance.iterations = s.distance_iterations;
     options.poly.fixed_degree = s.degree;
+    options.frame_stride = s.every;
     if (Status ok = fit::checkSweepFitOptions(options); !ok) {
         err << "flarelab: fit: " << ok.error().message << "\n";
         return 2;
@@ -142,18 +161,23 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: fit: " << written.error().message << "\n";
         return 1;
     }
-    out << "fit: " << model->ghosts.size() << " ghosts from " << sweep->frames.size() << " frames ("
-        << result.frames_fitted << " frame fits, " << result.evaluations << " cost evaluations) in "
-        << std::fixed << std::setprecision(1) << result.time_ms / 1000.0 << " s -> " << s.output
-        << "\n";
+    out << "fit: " << model->ghosts.size() << " ghosts from "
+        << (sweep->frames.size() + static_cast<size_t>(s.every) - 1) / static_cast<size_t>(s.every)
+        << " frames" << (s.every > 1 ? " (one in every " + std::to_string(s.every) + ")" : "")
+        << " (" << result.frames_fitted << " frame fits, " << result.evaluations
+        << " cost evaluations) in " << std::fixed << std::setprecision(1) << result.time_ms / 1000.0
+        << " s -> " << s.output << "\n";
     return 0;
 }
 
-void printSummary(const char* name, const fit::ScoreSummary& s, std::ostream& out) {
+void printSummary(const std::string& name, const fit::ScoreSummary& s, std::ostream& out) {
     out << name << ": " << s.count << " angles, relative L2 median " << std::fixed
         << std::setprecision(4) << s.median << ", worst " << s.worst << " at "
-        << std::setprecision(3) << s.worst_angle_deg << " deg, median PSNR " << std::setprecision(1)
-        << s.median_psnr_db << " dB\n"
+        << std::setprecision(3) << s.worst_angle_deg << " deg; |energy error| median "
+        << std::setprecision(2) << 100.0 * s.median_abs_energy_error << " %, worst "
+        << 100.0 * s.worst_abs_energy_error << " %; log relative L2 median " << std::setprecision(4)
+        << s.median_log_rel_l2 << "; median PSNR " << std::setprecision(1) << s.median_psnr_db
+        << " dB\n"
         << std::defaultfloat;
 }
 
@@ -162,7 +186,99 @@ nlohmann::json summaryJson(const fit::ScoreSummary& s) {
             {"median", s.median},
             {"worst", s.worst},
             {"worst_angle_deg", s.worst_angle_deg},
-            {"median_psnr_db", s.median_psnr_db}};
+            {"median_psnr_db", s.median_psnr_db},
+            {"median_abs_energy_error", s.median_abs_energy_error},
+            {"worst_abs_energy_error", s.worst_abs_energy_error},
+            {"median_log_rel_l2", s.median_log_rel_l2},
+            {"worst_log_rel_l2", s.worst_log_rel_l2},
+            {"median_masked_energy_fraction", s.median_masked_energy_fraction}};
+}
+
+// The lens of the capture: the prescription with the f-number, focal length and sensor size the
+// model recorded (what the sweep's camera used), not the command line's defaults.
+std::optional<optics::Lens> captureLens(const std::string& path,
+                                        const fit::FlareModel& model,
+                                        std::ostream& err) {
+    CameraFlags flags;
+    if (model.lens.f_number) flags.f_number = *model.lens.f_number;
+    if (model.lens.focal_length_mm) flags.focal_mm = *model.lens.focal_length_mm;
+    std::ostringstream sensor;
+    sensor << std::setprecision(17) << model.lens.sensor_width_mm << "x"
+           << model.lens.sensor_height_mm;
+    flags.sensor = sensor.str();
+    return loadLens(path, flags, err);
+}
+
+// The sweep's frames the model was not fitted to: inside its valid range and off its capture
+// grid (a sparse fit, `fit --every K`). Refused when the sweep is not the model's.
+Result<std::vector<double>> leftOutAngles(const std::string& directory,
+                                          const fit::FlareModel& model) {
+    auto sweep = hdr::readSweepManifest(directory);
+    if (!sweep) return sweep.error();
+    const auto& c = sweep->header.capture;
+    if (c.width_px != model.capture.width_px || c.height_px != model.capture.height_px ||
+        sweep->header.lens.description != model.lens.description)
+        return makeError(ErrorCode::InvalidArgument,
+                         directory + " is not the sweep the model was fitted to: it holds " +
+                             std::to_string(c.width_px) + " x " + std::to_string(c.height_px) +
+                             " frames of \"" + sweep->header.lens.description + "\", the model " +
+                             std::to_string(model.capture.width_px) + " x " +
+                             std::to_string(model.capture.height_px) + " of \"" +
+                             model.lens.description + "\"");
+    const double step = model.capture.step_deg;
+    std::vector<double> out;
+    for (const auto& frame : sweep->frames) {
+        const double a = frame.angle_deg;
+        if (a < model.valid_from_deg - 1e-9 || a > model.valid_to_deg + 1e-9) continue;
+        const double k = std::round((a - model.capture.from_deg) / step);
+        if (std::abs(a - (model.capture.from_deg + k * step)) <= 1e-6 * std::max(1.0, step))
+            continue;  // a fitted frame
+        out.push_back(a);
+    }
+    return out;
+}
+
+// truth | model | model - truth, 4 px apart, on one log tone curve: 0 at the truth's peak times
+// log_scale... up to the peak (ToneCurve::Log over log2(1 / log_scale) stops, clamped). The
+// difference is red where the model is brighter, blue where it is darker; the light's disc is
+// outlined in green.
+Status writeScoreImages(const fit::ScoreImages& v, double log_scale, const std::string& path) {
+    const int64_t w = v.truth.width, h = v.truth.height, gap = 4;
+    ImageRGB out(3 * w + 2 * gap, h);
+    double peak = 0.0;
+    for (float t : v.truth.pixels) peak = std::max(peak, static_cast<double>(t));
+    if (!(peak > 0.0)) peak = 1.0;
+    for (int64_t y = 0; y < h; ++y) {
+        for (int64_t x = 0; x < w; ++x) {
+            const float* t = v.truth.at(x, y);
+            const float* m = v.model.at(x, y);
+            float* a = out.at(x, y);
+            float* b = out.at(w + gap + x, y);
+            float* d = out.at(2 * (w + gap) + x, y);
+            double diff = 0.0;
+            for (int c = 0; c < 3; ++c) {
+                a[c] = t[c];
+                b[c] = m[c];
+                diff += (static_cast<double>(m[c]) - t[c]) / 3.0;
+            }
+            d[0] = static_cast<float>(std::max(diff, 0.0));
+            d[2] = static_cast<float>(std::max(-diff, 0.0));
+            if (v.light_px) {
+                const double r = std::hypot(static_cast<double>(x) + 0.5 - v.light_px->x(),
+                                            static_cast<double>(y) + 0.5 - v.light_px->y());
+                if (std::abs(r - v.light_mask_px) < 0.5)
+                    for (float* p : {a, b, d}) {
+                        p[0] = p[2] = 0.0f;
+                        p[1] = static_cast<float>(peak);
+                    }
+            }
+        }
+    }
+    render::ToneMapOptions tone;
+    tone.curve = render::ToneCurve::Log;
+    tone.exposure_stops = std::clamp(-std::log2(peak), -64.0, 64.0);
+    tone.log_range_stops = std::clamp(std::log2(1.0 / log_scale), 1.0, 64.0);
+    return render::writePng(out, path, tone);
 }
 
 int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
@@ -171,7 +287,7 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: score: " << model.error().message << "\n";
         return 1;
     }
-    auto lens = loadLens(s.lens_file, CameraFlags{}, err);
+    auto lens = captureLens(s.lens_file, *model, err);
     if (!lens) return 1;
     if (!model->lens.prescription_sha256.empty()) {
         auto digest = sha256Hex(s.lens_file);
@@ -191,16 +307,51 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
     options.halfway_angles = s.halfway;
     options.random_angles = s.random;
     options.fit_angles = s.fit_angles;
+    options.left_out_angles = s.left_out;
+    options.log_scale = s.log_scale;
     options.seed = s.seed;
+    if (!(s.log_scale > 0.0 && s.log_scale < 1.0)) {
+        err << "flarelab: score: --log-scale must lie in (0, 1)\n";
+        return 2;
+    }
+    if (!s.sweep.empty()) {
+        auto left = leftOutAngles(s.sweep, *model);
+        if (!left) {
+            err << "flarelab: score: " << left.error().message << "\n";
+            return 2;
+        }
+        if (left->empty())
+            err << "flarelab: score: note: the model was fitted to every frame of " << s.sweep
+                << " in its range: no frame is left out (fit --every K leaves some)\n";
+        options.left_out_deg = std::move(*left);
+    }
+    if (!s.images.empty()) {
+        std::error_code ec;
+        std::filesystem::create_directories(s.images, ec);
+        if (ec) {
+            err << "flarelab: score: --images " << s.images << ": " << ec.message() << "\n";
+            return 1;
+        }
+    }
     auto truth =
         drivers::simulatedGhostTruth(*lens, model->capture.width_px, model->capture.height_px);
     if (!truth) {
         err << "flarelab: score: " << truth.error().message << "\n";
         return 1;
     }
-    auto report = fit::scoreModel(*model, *truth, options, [&](int done, int total) {
-        if (!s.json) err << "\rscore: " << done << "/" << total << std::flush;
-    });
+    const auto images = [&](const fit::ScoreImages& v) -> Status {
+        if (s.images.empty()) return Ok{};
+        char name[96];
+        std::snprintf(name, sizeof name, "score-%08.3f-%s.png", v.score.angle_deg,
+                      fit::angleKindName(v.score.kind));
+        return writeScoreImages(v, s.log_scale, (std::filesystem::path(s.images) / name).string());
+    };
+    auto report = fit::scoreModel(
+        *model, *truth, options,
+        [&](int done, int total) {
+            if (!s.json) err << "\rscore: " << done << "/" << total << std::flush;
+        },
+        images);
     if (!s.json) err << "\n";
     if (!report) {
         err << "flarelab: score: " << report.error().message << "\n";
@@ -211,27 +362,42 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
         j["model"] = s.model;
         j["heldout_rel_l2"] = summaryJson(report->heldout_rel_l2);
         j["fit_rel_l2"] = summaryJson(report->fit_rel_l2);
+        nlohmann::json kinds = nlohmann::json::object();
+        for (const auto& [kind, summary] : report->by_kind)
+            kinds[fit::angleKindName(kind)] = summaryJson(summary);
+        j["by_kind"] = kinds;
+        j["log_scale"] = s.log_scale;
         nlohmann::json angles = nlohmann::json::array();
         for (const auto& a : report->angles)
             angles.push_back({{"angle_deg", a.angle_deg},
+                              {"kind", fit::angleKindName(a.kind)},
                               {"held_out", a.held_out},
                               {"rel_l2", a.rel_l2},
-                              {"psnr_db", a.psnr_db}});
+                              {"psnr_db", a.psnr_db},
+                              {"truth_energy", a.truth_energy},
+                              {"model_energy", a.model_energy},
+                              {"energy_error", a.energy_error},
+                              {"log_rel_l2", a.log_rel_l2},
+                              {"masked_energy_fraction", a.masked_energy_fraction}});
         j["angles"] = angles;
         out << j.dump(2) << "\n";
         return 0;
     }
     out << "score: " << s.model << " against " << s.lens_file << " (simulated, ghosts only, "
         << "light neighbourhood masked)\n";
-    out << "  angle_deg  kind      rel_L2   PSNR_dB\n";
+    out << "  angle_deg  kind      rel_L2  energy_err  log_rel_L2  masked  PSNR_dB\n";
     for (const auto& a : report->angles)
         out << "  " << std::setw(9) << std::fixed << std::setprecision(3) << a.angle_deg << "  "
-            << (a.held_out ? "held-out" : "fitted  ") << "  " << std::setw(7)
-            << std::setprecision(4) << a.rel_l2 << "  " << std::setw(7) << std::setprecision(1)
+            << std::left << std::setw(8) << fit::angleKindName(a.kind) << std::right << "  "
+            << std::setw(6) << std::setprecision(4) << a.rel_l2 << "  " << std::setw(9)
+            << std::setprecision(2) << 100.0 * a.energy_error << "%  " << std::setw(10)
+            << std::setprecision(4) << a.log_rel_l2 << "  " << std::setw(5) << std::setprecision(1)
+            << 100.0 * a.masked_energy_fraction << "%  " << std::setw(7) << std::setprecision(1)
             << a.psnr_db << "\n"
             << std::defaultfloat;
-    printSummary("fitted angles", report->fit_rel_l2, out);
-    printSummary("held-out angles", report->heldout_rel_l2, out);
+    for (const auto& [kind, summary] : report->by_kind)
+        printSummary(std::string(fit::angleKindName(kind)) + " angles", summary, out);
+    printSummary("held-out angles (all kinds)", report->heldout_rel_l2, out);
     return 0;
 }
 
@@ -282,6 +448,11 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_option("--degree", fs->degree,
                     "fixed polynomial degree of every parameter (-1: chosen by cross-validation)")
         ->capture_default_str();
+    fit->add_option("--every", fs->every,
+                    "fit one frame in every K (the first, then every K-th): a sparse fit whose "
+                    "other frames `score --sweep` holds out")
+        ->capture_default_str()
+        ->check(CLI::Range(1, 1000));
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 
@@ -299,6 +470,17 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     score->add_option("--random", ss->random, "random angles scored when --angles is not given")
         ->capture_default_str();
     score->add_option("--fitted", ss->fit_angles, "captured angles scored")->capture_default_str();
+    score->add_option("--sweep", ss->sweep,
+                      "the sweep the model was fitted from: its frames the fit left out (fit "
+                      "--every K) are scored as held out");
+    score->add_option("--left-out", ss->left_out, "left-out frames scored at most")
+        ->capture_default_str();
+    score
+        ->add_option("--log-scale", ss->log_scale,
+                     "the log image's scale, relative to the truth's peak: log(1 + v / s)")
+        ->capture_default_str();
+    score->add_option("--images", ss->images,
+                      "write truth | model | difference per angle as PNG into this directory");
     score->add_option("--seed", ss->seed, "seed of the random angles")->capture_default_str();
     score->add_flag("--json", ss->json, "print the scores as JSON");
     score->callback([ss, &out, &err, &exit_code] { exit_code = runScore(*ss, out, err); });

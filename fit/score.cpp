@@ -9,27 +9,38 @@
 namespace flarelab::fit {
 namespace {
 
-ScoreSummary summarize(const std::vector<AngleScore>& scores, bool held_out) {
-    std::vector<double> values, psnr;
+double median(std::vector<double> v) {
+    if (v.empty()) return 0.0;
+    std::sort(v.begin(), v.end());
+    const size_t n = v.size();
+    return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+// The scores that `keep` selects, summarized.
+template <typename Keep>
+ScoreSummary summarize(const std::vector<AngleScore>& scores, Keep keep) {
+    std::vector<double> values, psnr, energy, log_l2, masked;
     ScoreSummary s;
     for (const AngleScore& a : scores) {
-        if (a.held_out != held_out) continue;
+        if (!keep(a)) continue;
         values.push_back(a.rel_l2);
         psnr.push_back(a.psnr_db);
+        energy.push_back(std::abs(a.energy_error));
+        log_l2.push_back(a.log_rel_l2);
+        masked.push_back(a.masked_energy_fraction);
         if (s.count == 0 || a.rel_l2 > s.worst) {
             s.worst = a.rel_l2;
             s.worst_angle_deg = a.angle_deg;
         }
+        s.worst_abs_energy_error = std::max(s.worst_abs_energy_error, std::abs(a.energy_error));
+        s.worst_log_rel_l2 = std::max(s.worst_log_rel_l2, a.log_rel_l2);
         ++s.count;
     }
-    if (values.empty()) return s;
-    const auto median = [](std::vector<double> v) {
-        std::sort(v.begin(), v.end());
-        const size_t n = v.size();
-        return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-    };
     s.median = median(values);
     s.median_psnr_db = median(psnr);
+    s.median_abs_energy_error = median(energy);
+    s.median_log_rel_l2 = median(log_l2);
+    s.median_masked_energy_fraction = median(masked);
     return s;
 }
 
@@ -51,75 +62,162 @@ std::vector<double> spread(const std::vector<double>& v, int count) {
 
 }  // namespace
 
-Result<std::pair<std::vector<double>, std::vector<double>>> scoreAngles(
-    const FlareModel& model, const ScoreOptions& options) {
-    if (options.halfway_angles < 0 || options.random_angles < 0 || options.fit_angles < 0)
+const char* angleKindName(AngleKind kind) {
+    switch (kind) {
+        case AngleKind::Fitted:
+            return "fitted";
+        case AngleKind::LeftOut:
+            return "left-out";
+        case AngleKind::Halfway:
+            return "half-way";
+        case AngleKind::Random:
+            return "random";
+        case AngleKind::Given:
+            return "given";
+    }
+    return "?";
+}
+
+Result<std::vector<ScoredAngle>> scoreAngles(const FlareModel& model, const ScoreOptions& options) {
+    if (options.halfway_angles < 0 || options.random_angles < 0 || options.fit_angles < 0 ||
+        options.left_out_angles < 0)
         return makeError(ErrorCode::InvalidArgument, "score: angle counts must be >= 0");
     const double from = model.valid_from_deg, to = model.valid_to_deg;
     const double step = model.capture.step_deg;
     if (!(step > 0.0))
         return makeError(ErrorCode::InvalidArgument, "score: the model's step is not > 0");
+    const auto inside = [&](double a, const char* what) -> Status {
+        if (!std::isfinite(a) || a < from - 1e-9 || a > to + 1e-9)
+            return makeError(ErrorCode::InvalidArgument,
+                             std::string("score: ") + what + " angle " + std::to_string(a) +
+                                 " deg lies outside the model's valid range " +
+                                 std::to_string(from) + " to " + std::to_string(to) + " deg");
+        return Ok{};
+    };
     std::vector<double> captured;
     for (int64_t i = 0;; ++i) {
         const double a = model.capture.from_deg + static_cast<double>(i) * step;
         if (a > to + 1e-9 || i > 1'000'000) break;
         if (a >= from - 1e-9) captured.push_back(std::clamp(a, from, to));
     }
-    std::vector<double> held;
+    std::vector<ScoredAngle> out;
+    for (double a : spread(captured, options.fit_angles)) out.push_back({a, AngleKind::Fitted});
+    std::vector<ScoredAngle> held;
+    // An angle within this of one already taken is not scored twice.
+    constexpr double kSameDeg = 1e-6;
+    const auto add = [&](double a, AngleKind kind) {
+        for (const ScoredAngle& h : held)
+            if (std::abs(h.angle_deg - a) <= kSameDeg) return;
+        held.push_back({a, kind});
+    };
+    std::vector<double> left_out;
+    for (double a : options.left_out_deg) {
+        if (Status ok = inside(a, "left-out"); !ok) return ok.error();
+        left_out.push_back(std::clamp(a, from, to));
+    }
+    std::sort(left_out.begin(), left_out.end());
+    for (double a : spread(left_out, options.left_out_angles)) add(a, AngleKind::LeftOut);
     if (!options.angles_deg.empty()) {
         for (double a : options.angles_deg) {
-            if (!std::isfinite(a) || a < from || a > to)
-                return makeError(ErrorCode::InvalidArgument,
-                                 "score: angle " + std::to_string(a) +
-                                     " deg lies outside the model's valid range");
-            held.push_back(a);
+            if (Status ok = inside(a, "given"); !ok) return ok.error();
+            add(std::clamp(a, from, to), AngleKind::Given);
         }
     } else {
+        // Half-way angles that are frames the fit left out are that kind's, scored or not.
         std::vector<double> halfway;
-        for (size_t i = 0; i + 1 < captured.size(); ++i)
-            halfway.push_back(0.5 * (captured[i] + captured[i + 1]));
-        held = spread(halfway, options.halfway_angles);
+        for (size_t i = 0; i + 1 < captured.size(); ++i) {
+            const double a = 0.5 * (captured[i] + captured[i + 1]);
+            if (std::none_of(left_out.begin(), left_out.end(),
+                             [&](double l) { return std::abs(l - a) <= kSameDeg; }))
+                halfway.push_back(a);
+        }
+        for (double a : spread(halfway, options.halfway_angles)) add(a, AngleKind::Halfway);
         std::mt19937_64 rng(options.seed);
         std::uniform_real_distribution<double> uniform(from, to);
-        for (int i = 0; i < options.random_angles; ++i) held.push_back(uniform(rng));
+        for (int i = 0; i < options.random_angles; ++i) add(uniform(rng), AngleKind::Random);
     }
-    std::sort(held.begin(), held.end());
-    return std::make_pair(spread(captured, options.fit_angles), held);
+    std::sort(held.begin(), held.end(),
+              [](const ScoredAngle& a, const ScoredAngle& b) { return a.angle_deg < b.angle_deg; });
+    out.insert(out.end(), held.begin(), held.end());
+    return out;
+}
+
+double toneMapScore(double v, double peak, double log_scale) {
+    if (!(peak > 0.0) || !(log_scale > 0.0)) return 0.0;
+    const double s = log_scale * peak;
+    return std::log1p(std::max(v, 0.0) / s) / std::log1p(peak / s);
 }
 
 Result<AngleScore> compareImages(const ImageRGB& model,
                                  const ImageRGB& truth,
                                  std::optional<Eigen::Vector2d> light_px,
-                                 double light_mask_px) {
+                                 double light_mask_px,
+                                 double log_scale) {
     if (model.width != truth.width || model.height != truth.height)
         return makeError(ErrorCode::InvalidArgument, "score: model and truth differ in size");
-    double num = 0.0, den = 0.0, peak = 0.0, energy = 0.0;
-    int64_t count = 0;
+    if (!(log_scale > 0.0) || !std::isfinite(log_scale))
+        return makeError(ErrorCode::InvalidArgument, "score: log_scale must be > 0");
+    // Pass 1: the plain sums and the peak; pass 2 the log image, which needs the peak.
     const double r2 = light_mask_px * light_mask_px;
+    const auto masked = [&](int64_t x, int64_t y) {
+        if (!light_px) return false;
+        const double dx = static_cast<double>(x) + 0.5 - light_px->x();
+        const double dy = static_cast<double>(y) + 0.5 - light_px->y();
+        return dx * dx + dy * dy <= r2;
+    };
+    double num = 0.0, den = 0.0, peak = 0.0, energy = 0.0, model_energy = 0.0, in_mask = 0.0;
+    int64_t count = 0;
     for (int64_t y = 0; y < truth.height; ++y) {
         for (int64_t x = 0; x < truth.width; ++x) {
-            if (light_px) {
-                const double dx = static_cast<double>(x) + 0.5 - light_px->x();
-                const double dy = static_cast<double>(y) + 0.5 - light_px->y();
-                if (dx * dx + dy * dy <= r2) continue;
-            }
             const float* m = model.at(x, y);
             const float* t = truth.at(x, y);
+            if (masked(x, y)) {
+                for (int c = 0; c < 3; ++c) in_mask += t[c];
+                continue;
+            }
             for (int c = 0; c < 3; ++c) {
                 const double d = static_cast<double>(m[c]) - t[c];
                 num += d * d;
                 den += static_cast<double>(t[c]) * t[c];
                 peak = std::max(peak, static_cast<double>(t[c]));
                 energy += t[c];
+                model_energy += m[c];
             }
             count += 3;
         }
     }
+    if (!std::isfinite(num) || !std::isfinite(den) || !std::isfinite(model_energy) ||
+        !std::isfinite(in_mask))
+        return makeError(ErrorCode::Internal, "score: the images hold non-finite values");
+    double log_num = 0.0, log_den = 0.0;
+    if (peak > 0.0) {
+        const double s = log_scale * peak;
+        const double norm = 1.0 / std::log1p(peak / s);
+        for (int64_t y = 0; y < truth.height; ++y) {
+            for (int64_t x = 0; x < truth.width; ++x) {
+                if (masked(x, y)) continue;
+                const float* m = model.at(x, y);
+                const float* t = truth.at(x, y);
+                for (int c = 0; c < 3; ++c) {
+                    const double lt =
+                        norm * std::log1p(std::max(0.0, static_cast<double>(t[c])) / s);
+                    const double lm =
+                        norm * std::log1p(std::max(0.0, static_cast<double>(m[c])) / s);
+                    log_num += (lm - lt) * (lm - lt);
+                    log_den += lt * lt;
+                }
+            }
+        }
+    }
     AngleScore s;
     s.truth_energy = energy;
-    if (!std::isfinite(num) || !std::isfinite(den))
-        return makeError(ErrorCode::Internal, "score: the images hold non-finite values");
+    s.model_energy = model_energy;
     s.rel_l2 = den > 0.0 ? std::sqrt(num / den) : (num > 0.0 ? 1.0 : 0.0);
+    s.energy_error =
+        energy > 0.0 ? (model_energy - energy) / energy : (model_energy > 0.0 ? 1.0 : 0.0);
+    // A black truth: anything the model draws is all error, as for rel_l2.
+    s.log_rel_l2 = log_den > 0.0 ? std::sqrt(log_num / log_den) : (num > 0.0 ? 1.0 : 0.0);
+    s.masked_energy_fraction = energy + in_mask > 0.0 ? in_mask / (energy + in_mask) : 0.0;
     const double mse = count > 0 ? num / static_cast<double>(count) : 0.0;
     s.psnr_db = mse > 0.0 && peak > 0.0 ? 10.0 * std::log10(peak * peak / mse)
                                         : std::numeric_limits<double>::infinity();
@@ -130,7 +228,10 @@ Result<AngleScore> compareImages(const ImageRGB& model,
 Result<ScoreReport> scoreModel(const FlareModel& model,
                                const TruthSource& truth,
                                const ScoreOptions& options,
-                               const std::function<void(int, int)>& progress) {
+                               const std::function<void(int, int)>& progress,
+                               const std::function<Status(const ScoreImages&)>& images) {
+    if (!(options.log_scale > 0.0) || !std::isfinite(options.log_scale))
+        return makeError(ErrorCode::InvalidArgument, "score: log_scale must be > 0");
     auto angles = scoreAngles(model, options);
     if (!angles) return angles.error();
     const int64_t w = model.capture.width_px, h = model.capture.height_px;
@@ -138,28 +239,39 @@ Result<ScoreReport> scoreModel(const FlareModel& model,
                             ? options.light_mask_px
                             : 0.03 * std::hypot(static_cast<double>(w), static_cast<double>(h));
     ScoreReport report;
-    const int total = static_cast<int>(angles->first.size() + angles->second.size());
+    const int total = static_cast<int>(angles->size());
     int done = 0;
-    for (int pass = 0; pass < 2; ++pass) {
-        const auto& list = pass == 0 ? angles->first : angles->second;
-        for (double angle : list) {
-            auto t = truth(angle);
-            if (!t)
-                return t.error().withContext("score: truth at " + std::to_string(angle) + " deg");
-            if (t->image.width != w || t->image.height != h)
-                return makeError(ErrorCode::Internal, "score: the truth is not the capture's size");
-            auto drawn = renderModel(model, angle, model.capture.roll_deg, w, h, options.render);
-            if (!drawn) return drawn.error();
-            auto s = compareImages(*drawn, t->image, t->light_px, mask);
-            if (!s) return s.error();
-            s->angle_deg = angle;
-            s->held_out = pass == 1;
-            report.angles.push_back(*s);
-            if (progress) progress(++done, total);
+    for (const ScoredAngle& angle : *angles) {
+        auto t = truth(angle.angle_deg);
+        if (!t)
+            return t.error().withContext("score: truth at " + std::to_string(angle.angle_deg) +
+                                         " deg");
+        if (t->image.width != w || t->image.height != h)
+            return makeError(ErrorCode::Internal, "score: the truth is not the capture's size");
+        auto drawn =
+            renderModel(model, angle.angle_deg, model.capture.roll_deg, w, h, options.render);
+        if (!drawn) return drawn.error();
+        auto s = compareImages(*drawn, t->image, t->light_px, mask, options.log_scale);
+        if (!s) return s.error();
+        s->angle_deg = angle.angle_deg;
+        s->kind = angle.kind;
+        s->held_out = angle.kind != AngleKind::Fitted;
+        report.angles.push_back(*s);
+        if (images) {
+            if (Status ok = images({report.angles.back(), *drawn, t->image, t->light_px, mask});
+                !ok)
+                return ok.error();
         }
+        if (progress) progress(++done, total);
     }
-    report.fit_rel_l2 = summarize(report.angles, false);
-    report.heldout_rel_l2 = summarize(report.angles, true);
+    report.fit_rel_l2 = summarize(report.angles, [](const AngleScore& a) { return !a.held_out; });
+    report.heldout_rel_l2 =
+        summarize(report.angles, [](const AngleScore& a) { return a.held_out; });
+    for (AngleKind kind : kAngleKinds) {
+        ScoreSummary s =
+            summarize(report.angles, [kind](const AngleScore& a) { return a.kind == kind; });
+        if (s.count > 0) report.by_kind.emplace_back(kind, s);
+    }
     return report;
 }
 

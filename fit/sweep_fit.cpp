@@ -627,6 +627,7 @@ Status checkSweepFitOptions(const SweepFitOptions& options) {
         return invalid("min_energy_fraction must lie in [0, 1)");
     if (options.detect_every < 1) return invalid("detect_every must be >= 1");
     if (options.max_extension_frames < 0) return invalid("max_extension_frames must be >= 0");
+    if (options.frame_stride < 1) return invalid("frame_stride must be >= 1");
     if (auto status = checkFrameFitOptions(options.frame); !status)
         return status.error().withContext("sweep fit: frame");
     if (auto status = checkPolyFitOptions(options.poly); !status)
@@ -830,9 +831,19 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
                             const SweepFitOptions& options,
                             const std::function<void(const SweepFitProgress&)>& progress,
                             SweepFitResult* result) {
-    if (sweep.frames.empty() || !(sweep.frames.back().angle_deg > sweep.frames.front().angle_deg))
+    if (auto status = checkSweepFitOptions(options); !status) return status.error();
+    std::vector<size_t> used;  // the sweep's frames fitted
+    for (size_t i = 0; i < sweep.frames.size(); i += static_cast<size_t>(options.frame_stride))
+        used.push_back(i);
+    if (used.empty() ||
+        !(sweep.frames[used.back()].angle_deg > sweep.frames[used.front()].angle_deg))
         return invalid("sweep " + sweep.directory + " has " + std::to_string(sweep.frames.size()) +
-                       " frame(s) at one angle; a model needs at least two angles");
+                       " frame(s)" +
+                       (options.frame_stride > 1
+                            ? " (fitting one in every " + std::to_string(options.frame_stride) +
+                                  ": " + std::to_string(used.size()) + ")"
+                            : std::string()) +
+                       " at one angle; a model needs at least two angles");
     std::array<double, 2> given{sensor_width_mm, sensor_height_mm};
     auto sensor =
         sweepSensorSize(sweep, sensor_width_mm > 0.0 || sensor_height_mm > 0.0 ? &given : nullptr);
@@ -840,8 +851,10 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     const double width_mm = (*sensor)[0], height_mm = (*sensor)[1];
 
     FrameSource source;
-    for (const auto& frame : sweep.frames) source.angles_deg.push_back(frame.angle_deg);
-    source.load = [&](size_t index) { return loadFitFrame(sweep, index, width_mm, height_mm); };
+    for (size_t i : used) source.angles_deg.push_back(sweep.frames[i].angle_deg);
+    source.load = [&](size_t index) {
+        return loadFitFrame(sweep, used[index], width_mm, height_mm);
+    };
     auto fitted = fitSweepFrames(source, options, progress);
     if (!fitted) return fitted.error();
 
@@ -854,16 +867,17 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     model.lens.focal_length_mm = header.lens.focal_length_mm;
     model.lens.sensor_width_mm = width_mm;
     model.lens.sensor_height_mm = height_mm;
-    model.capture.from_deg = std::min(header.capture.from_deg, sweep.frames.front().angle_deg);
-    model.capture.to_deg = std::max(header.capture.to_deg, sweep.frames.back().angle_deg);
-    model.capture.step_deg = header.capture.step_deg;
+    const double first = source.angles_deg.front(), last = source.angles_deg.back();
+    model.capture.from_deg = std::min(header.capture.from_deg, first);
+    model.capture.to_deg = std::max(header.capture.to_deg, last);
+    model.capture.step_deg = header.capture.step_deg * options.frame_stride;
     model.capture.roll_deg = header.capture.roll_deg;
     model.capture.exposure_times_s = header.capture.exposure_times_s;
     model.capture.width_px = header.capture.width_px;
     model.capture.height_px = header.capture.height_px;
     model.capture.camera = header.camera.description;
-    model.valid_from_deg = sweep.frames.front().angle_deg;
-    model.valid_to_deg = sweep.frames.back().angle_deg;
+    model.valid_from_deg = first;
+    model.valid_to_deg = last;
     auto built = buildModel(*fitted, std::move(model), options);
     if (!built) return built.error();
     auto refit = refitShading(*built, source, fitted->sky, options.detect, options.frame.cost,

@@ -76,6 +76,10 @@ struct SweepFitOptions {
     int max_extension_frames = 3;
     // Step 5 (fitSweep): the compressed shading series refitted to the frames.
     ShadingRefitOptions shading;
+    // fitSweep fits every this many frames of the sweep (the first, then every k-th), >= 1: a
+    // sparse fit, whose left-out frames the score holds out (`fit --every K`, `score --sweep`).
+    // The model's capture step is the sweep's times k.
+    int frame_stride = 1;
     // When set and it becomes true, the fit stops before its next frame with an Unsupported
     // error "sweep fit: cancelled" (a daemon's job being cancelled or the daemon stopping).
     const std::atomic<bool>* cancel = nullptr;
@@ -133,7 +137,8 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
 // All of it (steps 1 to 5) for a sweep on disk: frames loaded one at a time, the metadata from the
 // manifest (lens, capture, sensor size, camera), the valid range the sweep's angles. The sensor
 // size is the one given; both <= 0 means the manifest's pixel pitch (sweepSensorSize).
-// InvalidArgument for a sweep whose frames do not span two angles (a model needs at least two).
+// InvalidArgument for a sweep whose frames (every frame_stride-th) do not span two angles (a model
+// needs at least two).
 Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
                             double sensor_width_mm,
                             double sensor_height_mm,

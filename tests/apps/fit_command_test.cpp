@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "fit/model_file.h"
+#include "render/preview.h"
 #include "tests/apps/command_runner.h"
 #include "tests/test_paths.h"
 
@@ -68,6 +69,68 @@ TEST(FitCommand, FitsARecordedSweepAndScoresTheModel) {
     EXPECT_NE(outside.err.find("outside the model's valid range"), std::string::npos)
         << outside.err;
     fs::remove(model);
+}
+
+// The sparse protocol: a fit of every other frame (0, 1 and 2 deg) scored with its sweep holds
+// the frames it left out (0.5 and 1.5 deg) out, reports every figure per kind, and draws truth,
+// model and difference side by side for each angle.
+TEST(FitCommand, ASparseFitIsScoredOnTheFramesItLeftOut) {
+    const fs::path model = tempPath("sparse.flm");
+    const fs::path images = tempPath("score-images");
+    const CommandRun fitted = run(
+        {"fit", sweepDir(), "--lens", lensFile(), "--every", "2", "-o", model.string(), "--quiet"});
+    ASSERT_EQ(fitted.code, 0) << fitted.err;
+    EXPECT_NE(fitted.out.find("ghosts from 3 frames (one in every 2)"), std::string::npos)
+        << fitted.out;
+    auto read = fit::readModel(model.string());
+    ASSERT_TRUE(read.has_value()) << read.error().message;
+    EXPECT_EQ(read->capture.step_deg, 1.0);
+    EXPECT_EQ(read->valid_to_deg, 2.0);
+
+    const CommandRun scored =
+        run({"score", model.string(), "--lens", lensFile(), "--sweep", sweepDir(), "--json",
+             "--halfway", "0", "--random", "1", "--fitted", "1", "--images", images.string()});
+    ASSERT_EQ(scored.code, 0) << scored.err;
+    const auto json = nlohmann::json::parse(scored.out);
+    ASSERT_TRUE(json["by_kind"].contains("left-out")) << scored.out;
+    EXPECT_EQ(json["by_kind"]["left-out"]["count"].get<int>(), 2);
+    std::vector<double> left;
+    for (const auto& a : json["angles"]) {
+        for (const char* key : {"rel_l2", "energy_error", "log_rel_l2", "masked_energy_fraction"})
+            EXPECT_TRUE(std::isfinite(a[key].get<double>())) << key;
+        if (a["kind"] == "left-out") left.push_back(a["angle_deg"].get<double>());
+    }
+    EXPECT_EQ(left, (std::vector<double>{0.5, 1.5}));
+    // One image per angle, three frames wide.
+    int pngs = 0;
+    for (const auto& entry : fs::directory_iterator(images)) {
+        auto png = render::readPng(entry.path().string());
+        ASSERT_TRUE(png) << png.error().message;
+        EXPECT_EQ(png->width, 3 * 160 + 8);
+        EXPECT_EQ(png->height, 107);
+        ++pngs;
+    }
+    EXPECT_EQ(pngs, static_cast<int>(json["angles"].size()));
+
+    // A sweep that is not the model's is refused by what differs.
+    const CommandRun other = run({"score", model.string(), "--lens", lensFile(), "--sweep",
+                                  flarelab::testing::sourcePath("tests/data/sweeps/nikon-hdr")});
+    EXPECT_EQ(other.code, 2);
+    EXPECT_NE(other.err.find("not the sweep the model was fitted to"), std::string::npos)
+        << other.err;
+    // Every frame fitted: nothing is left out, and the score says so.
+    EXPECT_EQ(run({"fit", sweepDir(), "--lens", lensFile(), "-o", model.string(), "--quiet"}).code,
+              0);
+    const CommandRun dense = run({"score", model.string(), "--lens", lensFile(), "--sweep",
+                                  sweepDir(), "--halfway", "1", "--random", "0", "--fitted", "1"});
+    EXPECT_EQ(dense.code, 0) << dense.err;
+    EXPECT_NE(dense.err.find("no frame is left out"), std::string::npos) << dense.err;
+    EXPECT_EQ(run({"fit", sweepDir(), "--lens", lensFile(), "--every", "9", "-o", model.string(),
+                   "--quiet"})
+                  .code,
+              1);
+    fs::remove(model);
+    fs::remove_all(images);
 }
 
 TEST(FitCommand, RefusesWhatItCannotUse) {

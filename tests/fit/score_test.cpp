@@ -1,0 +1,179 @@
+// The score's figures on images whose answers are known, and its choice of angles.
+#include "fit/score.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+namespace flarelab::fit {
+namespace {
+
+ImageRGB filled(int64_t w, int64_t h, float value) {
+    ImageRGB image(w, h);
+    for (float& v : image.pixels) v = value;
+    return image;
+}
+
+// A bright ghost and one a thousand times dimmer: dropping the dim one costs almost nothing in
+// plain relative L2 and in energy, but the log image sees it.
+TEST(Score, TheLogImageCountsADimGhostThatPlainL2HardlySees) {
+    ImageRGB truth(64, 32), model(64, 32);
+    for (int64_t y = 0; y < 32; ++y)
+        for (int64_t x = 0; x < 64; ++x)
+            for (int c = 0; c < 3; ++c) {
+                const float bright = x < 32 ? 1000.0f : 0.0f;
+                const float dim = x >= 32 ? 1.0f : 0.0f;
+                truth.at(x, y)[c] = bright + dim;
+                model.at(x, y)[c] = bright;  // the dim ghost missed
+            }
+    auto s = compareImages(model, truth, std::nullopt, 0.0, 1e-3);
+    ASSERT_TRUE(s) << s.error().message;
+    EXPECT_NEAR(s->rel_l2, 1e-3, 1e-5);
+    EXPECT_NEAR(s->energy_error, -1.0 / 1001.0, 1e-9);
+    // Tone-mapped, the bright half maps to 1 and the dim half to log(2) / log(1001) ~ 0.1.
+    const double dim = std::log(2.0) / std::log(1001.0);
+    EXPECT_NEAR(s->log_rel_l2, dim / std::sqrt(1.0 + dim * dim), 1e-6);
+    EXPECT_GT(s->log_rel_l2, 50.0 * s->rel_l2);
+    EXPECT_EQ(s->masked_energy_fraction, 0.0);
+}
+
+TEST(Score, EnergyInsideTheLightsDiscIsReportedNotScored) {
+    const ImageRGB truth = filled(40, 40, 2.0f);
+    ImageRGB model = filled(40, 40, 2.0f);
+    // Inside the disc the model is wrong; it does not count, but the disc's share is reported.
+    const Eigen::Vector2d light(20.0, 20.0);
+    int64_t inside = 0;
+    for (int64_t y = 0; y < 40; ++y)
+        for (int64_t x = 0; x < 40; ++x)
+            if (std::hypot(x + 0.5 - 20.0, y + 0.5 - 20.0) <= 5.0) {
+                ++inside;
+                for (int c = 0; c < 3; ++c) model.at(x, y)[c] = 50.0f;
+            }
+    auto s = compareImages(model, truth, light, 5.0);
+    ASSERT_TRUE(s) << s.error().message;
+    EXPECT_EQ(s->rel_l2, 0.0);
+    EXPECT_EQ(s->energy_error, 0.0);
+    EXPECT_EQ(s->log_rel_l2, 0.0);
+    EXPECT_NEAR(s->masked_energy_fraction, static_cast<double>(inside) / 1600.0, 1e-12);
+}
+
+TEST(Score, ABlackTruthScoresWhatIsDrawnAsAllError) {
+    const ImageRGB black = filled(8, 8, 0.0f);
+    auto both = compareImages(black, black, std::nullopt, 0.0);
+    ASSERT_TRUE(both);
+    EXPECT_EQ(both->rel_l2, 0.0);
+    EXPECT_EQ(both->energy_error, 0.0);
+    EXPECT_EQ(both->log_rel_l2, 0.0);
+    auto drawn = compareImages(filled(8, 8, 1.0f), black, std::nullopt, 0.0);
+    ASSERT_TRUE(drawn);
+    EXPECT_EQ(drawn->rel_l2, 1.0);
+    EXPECT_EQ(drawn->energy_error, 1.0);
+    EXPECT_EQ(drawn->log_rel_l2, 1.0);
+    EXPECT_FALSE(compareImages(black, black, std::nullopt, 0.0, 0.0));
+    EXPECT_FALSE(compareImages(black, filled(8, 7, 0.0f), std::nullopt, 0.0));
+}
+
+TEST(Score, ToneMapRunsFromZeroToOneOverTheChosenRange) {
+    EXPECT_EQ(toneMapScore(0.0, 100.0, 1e-3), 0.0);
+    EXPECT_NEAR(toneMapScore(100.0, 100.0, 1e-3), 1.0, 1e-12);
+    EXPECT_EQ(toneMapScore(-5.0, 100.0, 1e-3), 0.0);
+    EXPECT_EQ(toneMapScore(5.0, 0.0, 1e-3), 0.0);
+    EXPECT_LT(toneMapScore(0.1, 100.0, 1e-3), toneMapScore(0.2, 100.0, 1e-3));
+}
+
+FlareModel gridModel(double from, double to, double step) {
+    FlareModel model;
+    model.capture.from_deg = from;
+    model.capture.to_deg = to;
+    model.capture.step_deg = step;
+    model.valid_from_deg = from;
+    model.valid_to_deg = to;
+    return model;
+}
+
+// A model fitted to every fifth frame of a 0.2 deg sweep (step 1 deg): the frames left out are
+// held out as their own kind, never scored twice, and refused outside the valid range.
+TEST(Score, LeftOutFramesAreHeldOutOnceAndChecked) {
+    const FlareModel model = gridModel(0.0, 3.0, 1.0);
+    ScoreOptions options;
+    options.random_angles = 0;
+    for (int i = 0; i <= 15; ++i)
+        if (i % 5 != 0) options.left_out_deg.push_back(0.2 * i);
+    auto angles = scoreAngles(model, options);
+    ASSERT_TRUE(angles) << angles.error().message;
+    int fitted = 0, left = 0, halfway = 0;
+    for (const ScoredAngle& a : *angles) {
+        if (a.kind == AngleKind::Fitted) ++fitted;
+        if (a.kind == AngleKind::LeftOut) ++left;
+        if (a.kind == AngleKind::Halfway) ++halfway;
+    }
+    EXPECT_EQ(fitted, 4);   // 0, 1, 2, 3
+    EXPECT_EQ(left, 12);    // four between each pair of fitted frames
+    EXPECT_EQ(halfway, 3);  // 0.5, 1.5, 2.5: none coincides with a left-out frame
+    for (size_t i = 1; i < angles->size(); ++i)
+        if ((*angles)[i].kind != AngleKind::Fitted && (*angles)[i - 1].kind != AngleKind::Fitted)
+            EXPECT_LT((*angles)[i - 1].angle_deg, (*angles)[i].angle_deg);
+
+    // k = 2: the half-way angles are the left-out frames, scored once, as left-out, even those
+    // the cap on left-out frames leaves unscored.
+    ScoreOptions two;
+    two.random_angles = 0;
+    two.left_out_deg = {0.5, 1.5, 2.5};
+    two.left_out_angles = 2;
+    auto pairs = scoreAngles(model, two);
+    ASSERT_TRUE(pairs);
+    int pair_left = 0;
+    for (const ScoredAngle& a : *pairs) {
+        EXPECT_NE(a.kind, AngleKind::Halfway) << a.angle_deg;
+        pair_left += a.kind == AngleKind::LeftOut;
+    }
+    EXPECT_EQ(pair_left, 2);
+
+    ScoreOptions outside;
+    outside.left_out_deg = {3.4};
+    auto refused = scoreAngles(model, outside);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find("left-out angle"), std::string::npos);
+}
+
+// scoreModel reports each kind's summary and shows every angle's images once.
+TEST(Score, EveryKindIsSummarizedAndEveryAngleShown) {
+    FlareModel model = gridModel(0.0, 2.0, 1.0);
+    model.capture.width_px = 16;
+    model.capture.height_px = 8;
+    model.lens.sensor_width_mm = 16.0;
+    model.lens.sensor_height_mm = 8.0;
+    const TruthSource truth = [](double) -> Result<TruthFrame> {
+        TruthFrame t;
+        t.image = filled(16, 8, 1.0f);
+        return t;
+    };
+    ScoreOptions options;
+    options.left_out_deg = {0.4, 1.6};
+    options.random_angles = 1;
+    int shown = 0;
+    auto report = scoreModel(model, truth, options, {}, [&](const ScoreImages& v) -> Status {
+        ++shown;
+        EXPECT_EQ(v.truth.width, 16);
+        EXPECT_EQ(v.model.width, 16);
+        return Ok{};
+    });
+    ASSERT_TRUE(report) << report.error().message;
+    EXPECT_EQ(shown, static_cast<int>(report->angles.size()));
+    ASSERT_EQ(report->by_kind.size(), 4u);  // fitted, left-out, half-way, random
+    EXPECT_EQ(report->by_kind[0].first, AngleKind::Fitted);
+    EXPECT_EQ(report->by_kind[1].first, AngleKind::LeftOut);
+    EXPECT_EQ(report->by_kind[1].second.count, 2);
+    // A model with no ghosts misses all the light: every angle is all error, energy -100 %.
+    EXPECT_EQ(report->heldout_rel_l2.median, 1.0);
+    EXPECT_EQ(report->heldout_rel_l2.median_abs_energy_error, 1.0);
+    // An error from the images' consumer ends the score with it.
+    auto stopped = scoreModel(model, truth, options, {}, [](const ScoreImages&) -> Status {
+        return makeError(ErrorCode::IoError, "disk full");
+    });
+    ASSERT_FALSE(stopped);
+    EXPECT_NE(stopped.error().message.find("disk full"), std::string::npos);
+}
+
+}  // namespace
+}  // namespace flarelab::fit
