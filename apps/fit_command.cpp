@@ -106,8 +106,8 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
             sensor = {lens->camera().sensor_width_mm, lens->camera().sensor_height_mm};
             have_sensor = true;
             if (auto recorded = fit::sweepSensorSize(*sweep, nullptr)) {
-                const double pitch = (*recorded)[0] /
-                                     static_cast<double>(sweep->header.capture.width_px);
+                const double pitch =
+                    (*recorded)[0] / static_cast<double>(sweep->header.capture.width_px);
                 if (std::abs((*recorded)[0] - sensor[0]) > pitch ||
                     std::abs((*recorded)[1] - sensor[1]) > pitch)
                     sensor = *recorded;
@@ -167,6 +167,21 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         << " (" << result.frames_fitted << " frame fits, " << result.evaluations
         << " cost evaluations) in " << std::fixed << std::setprecision(1) << result.time_ms / 1000.0
         << " s -> " << s.output << "\n";
+    const fit::SweepFitStages& st = result.stages;
+    const std::pair<const char*, double> stages[] = {
+        {"load frames", st.load_ms},     {"detect", st.detect_ms},
+        {"fit frames", st.fit_ms},       {"follow new tracks back", st.extend_ms},
+        {"track", st.track_ms},          {"compress", st.compress_ms},
+        {"refit shading", st.shading_ms}};
+    out << "  stage                    time_s   share\n";
+    for (const auto& [name, ms] : stages)
+        out << "  " << std::left << std::setw(22) << name << std::right << std::fixed
+            << std::setw(8) << std::setprecision(2) << ms / 1000.0 << "  " << std::setw(5)
+            << std::setprecision(1) << (st.total_ms > 0.0 ? 100.0 * ms / st.total_ms : 0.0)
+            << " %\n";
+    out << "  " << std::left << std::setw(22) << "whole fit" << std::right << std::setw(8)
+        << std::setprecision(2) << st.total_ms / 1000.0 << "\n"
+        << std::defaultfloat;
     return 0;
 }
 

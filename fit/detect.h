@@ -60,6 +60,7 @@ struct DetectOptions {
     double circle_edge_sigmas = 5.0;
     double min_circle_step = 0.01;
     int max_edge_pixels = 3000;  // edge pixels sampled evenly beyond this many, >= 16
+    bool operator==(const DetectOptions&) const = default;
 };
 
 struct LightSpot {

@@ -532,7 +532,8 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
             return invalid("frame " + std::to_string(j) + " has " + std::to_string(frame_channels) +
                            " channel(s), the first had " + std::to_string(channels));
         ++report.frames_loaded;
-        auto detection = detectGhosts(*frame, cheap);
+        auto detection =
+            frames.detect ? frames.detect(j, *frame, cheap) : detectGhosts(*frame, cheap);
         if (!detection) return detection.error();
         for (int c = 0; c < 3; ++c)
             if (std::isfinite(sky[static_cast<size_t>(c)]))

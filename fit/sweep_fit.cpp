@@ -7,6 +7,7 @@
 #include <ctime>
 #include <limits>
 #include <map>
+#include <memory>
 #include <numeric>
 #include <optional>
 #include <sstream>
@@ -113,6 +114,105 @@ GhostState predictState(
     return state ? *state : nearest;
 }
 
+using Clock = std::chrono::steady_clock;
+
+double msSince(Clock::time_point t0) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+// Frames read once and kept, with their detections, the least recently used let go beyond a
+// byte budget. Single threaded: the sweep fit asks for one frame at a time.
+class FrameCache {
+public:
+    FrameCache(std::function<Result<FitFrame>(size_t)> load, int64_t budget_bytes)
+        : load_(std::move(load)), budget_(budget_bytes) {}
+
+    Result<FitFrame> get(size_t index) {
+        auto entry = find(index);
+        if (!entry) return entry.error();
+        if (*entry) return (*entry)->frame;
+        return load_(index);  // too large to keep
+    }
+
+    Result<FrameDetection> detect(size_t index,
+                                  const FitFrame& frame,
+                                  const DetectOptions& options) {
+        const auto found = entries_.find(index);
+        if (found == entries_.end()) return detectGhosts(frame, options);
+        Entry& entry = found->second;
+        entry.used = ++clock_;
+        if (entry.detection && entry.detect_options == options) return *entry.detection;
+        auto detection = detectGhosts(frame, options);
+        if (!detection) return detection;
+        const int64_t bytes = static_cast<int64_t>(
+            detection->excluded.size() + detection->candidates.size() * sizeof(GhostCandidate));
+        release(entry.detection_bytes);
+        entry.detection.reset();
+        entry.detection_bytes = 0;
+        if (!makeRoom(bytes, index)) return detection;
+        entry.detection = *detection;
+        entry.detect_options = options;
+        entry.detection_bytes = bytes;
+        used_ += bytes;
+        return detection;
+    }
+
+private:
+    struct Entry {
+        FitFrame frame;
+        int64_t bytes = 0;  // the frame's
+        std::optional<FrameDetection> detection;
+        DetectOptions detect_options;
+        int64_t detection_bytes = 0;
+        uint64_t used = 0;
+    };
+
+    // The entry of frame `index`, read now if it is not kept; null when it cannot be kept.
+    Result<Entry*> find(size_t index) {
+        const auto found = entries_.find(index);
+        if (found != entries_.end()) {
+            found->second.used = ++clock_;
+            return &found->second;
+        }
+        auto frame = load_(index);
+        if (!frame) return frame.error();
+        const int64_t bytes =
+            static_cast<int64_t>(frame->image.pixels.size() * sizeof(float) + sizeof(FitFrame));
+        if (!makeRoom(bytes, index)) return static_cast<Entry*>(nullptr);
+        Entry& entry = entries_[index];
+        entry.frame = std::move(*frame);
+        entry.bytes = bytes;
+        entry.used = ++clock_;
+        used_ += bytes;
+        return &entry;
+    }
+
+    void release(int64_t bytes) { used_ -= bytes; }
+
+    // Lets the least recently used entries (never `keep`) go until `bytes` more fit the budget;
+    // false when they cannot.
+    bool makeRoom(int64_t bytes, size_t keep) {
+        if (bytes > budget_) return false;
+        while (used_ + bytes > budget_) {
+            auto oldest = entries_.end();
+            for (auto it = entries_.begin(); it != entries_.end(); ++it)
+                if (it->first != keep &&
+                    (oldest == entries_.end() || it->second.used < oldest->second.used))
+                    oldest = it;
+            if (oldest == entries_.end()) return false;
+            release(oldest->second.bytes + oldest->second.detection_bytes);
+            entries_.erase(oldest);
+        }
+        return true;
+    }
+
+    std::function<Result<FitFrame>(size_t)> load_;
+    int64_t budget_ = 0;
+    int64_t used_ = 0;
+    uint64_t clock_ = 0;
+    std::map<size_t, Entry> entries_;
+};
+
 std::string nowUtc() {
     const std::time_t now = std::time(nullptr);
     std::tm tm{};
@@ -140,10 +240,22 @@ private:
         size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend);
 
     // The frame source's loader, refusing once options_.cancel is set.
-    Result<FitFrame> load(size_t index) const {
+    Result<FitFrame> load(size_t index) {
         if (options_.cancel && options_.cancel->load())
             return makeError(ErrorCode::Unsupported, "sweep fit: cancelled");
-        return frames_.load(index);
+        const auto t0 = Clock::now();
+        auto frame = frames_.load(index);
+        result_.stages.load_ms += msSince(t0);
+        return frame;
+    }
+    Result<FrameDetection> detectIn(size_t index,
+                                    const FitFrame& frame,
+                                    const DetectOptions& options) {
+        const auto t0 = Clock::now();
+        auto detection =
+            frames_.detect ? frames_.detect(index, frame, options) : detectGhosts(frame, options);
+        result_.stages.detect_ms += msSince(t0);
+        return detection;
     }
 
     const FrameSource& frames_;
@@ -182,7 +294,7 @@ Result<int> SweepFitter::chooseStart() {
     for (const int index : indices) {
         auto frame = load(static_cast<size_t>(index));
         if (!frame) return frame.error().withContext("frame " + std::to_string(index));
-        auto detection = detectGhosts(*frame, options_.detect);
+        auto detection = detectIn(static_cast<size_t>(index), *frame, options_.detect);
         if (!detection) return detection.error();
         for (int c = 0; c < 3; ++c)
             sky_[c] = std::min(sky_[c], detection->background[static_cast<size_t>(c)]);
@@ -207,7 +319,7 @@ Status SweepFitter::processFrame(
     if (!live.empty() && !extend && from_start % options_.detect_every != 0)
         detect.circles = false;  // the predictions carry the fit; the cheap blobs still match
     if (extend) detect.circles = false;
-    auto detection = detectGhosts(*frame, detect);
+    auto detection = detectIn(j, *frame, detect);
     if (!detection) return detection.error();
     const double angle = frames_.angles_deg[j];
     const auto& mapping = frame->mapping;
@@ -391,7 +503,9 @@ Status SweepFitter::processFrame(
     if (!ghosts.empty()) {
         // Priors: the live tracks' predictions; new ghosts have none (their detection is all
         // there is).
+        const auto t0 = Clock::now();
         auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame, predicted, fixed);
+        (extend ? result_.stages.extend_ms : result_.stages.fit_ms) += msSince(t0);
         if (!fitted)
             return fitted.error().withContext("frame " + std::to_string(j) + " (" +
                                               std::to_string(angle) + " deg)");
@@ -549,7 +663,7 @@ Status SweepFitter::processFrame(
 }
 
 Result<SweepFitResult> SweepFitter::run() {
-    const auto t0 = std::chrono::steady_clock::now();
+    const auto t0 = Clock::now();
     const size_t n = frames_.angles_deg.size();
     at_frame_.assign(n, {});
     frames_total_ = static_cast<int64_t>(n);
@@ -603,8 +717,11 @@ Result<SweepFitResult> SweepFitter::run() {
         result_.tracks.push_back({track.id, std::move(track.samples)});
     }
     result_.sky = sky_;
-    result_.time_ms =
-        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+    result_.time_ms = msSince(t0);
+    SweepFitStages& st = result_.stages;
+    st.track_ms =
+        std::max(0.0, result_.time_ms - st.load_ms - st.detect_ms - st.fit_ms - st.extend_ms);
+    st.total_ms = result_.time_ms;
     return std::move(result_);
 }
 
@@ -628,6 +745,7 @@ Status checkSweepFitOptions(const SweepFitOptions& options) {
     if (options.detect_every < 1) return invalid("detect_every must be >= 1");
     if (options.max_extension_frames < 0) return invalid("max_extension_frames must be >= 0");
     if (options.frame_stride < 1) return invalid("frame_stride must be >= 1");
+    if (options.frame_cache_bytes < 0) return invalid("frame_cache_bytes must be >= 0");
     if (auto status = checkFrameFitOptions(options.frame); !status)
         return status.error().withContext("sweep fit: frame");
     if (auto status = checkPolyFitOptions(options.poly); !status)
@@ -831,6 +949,7 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
                             const SweepFitOptions& options,
                             const std::function<void(const SweepFitProgress&)>& progress,
                             SweepFitResult* result) {
+    const auto t_call = Clock::now();
     if (auto status = checkSweepFitOptions(options); !status) return status.error();
     std::vector<size_t> used;  // the sweep's frames fitted
     for (size_t i = 0; i < sweep.frames.size(); i += static_cast<size_t>(options.frame_stride))
@@ -852,8 +971,12 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
 
     FrameSource source;
     for (size_t i : used) source.angles_deg.push_back(sweep.frames[i].angle_deg);
-    source.load = [&](size_t index) {
-        return loadFitFrame(sweep, used[index], width_mm, height_mm);
+    auto cache = std::make_shared<FrameCache>(
+        [&](size_t index) { return loadFitFrame(sweep, used[index], width_mm, height_mm); },
+        options.frame_cache_bytes);
+    source.load = [cache](size_t index) { return cache->get(index); };
+    source.detect = [cache](size_t index, const FitFrame& frame, const DetectOptions& detect) {
+        return cache->detect(index, frame, detect);
     };
     auto fitted = fitSweepFrames(source, options, progress);
     if (!fitted) return fitted.error();
@@ -878,12 +1001,17 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     model.capture.camera = header.camera.description;
     model.valid_from_deg = first;
     model.valid_to_deg = last;
+    auto t_stage = Clock::now();
     auto built = buildModel(*fitted, std::move(model), options);
     if (!built) return built.error();
+    fitted->stages.compress_ms = msSince(t_stage);
+    t_stage = Clock::now();
     auto refit = refitShading(*built, source, fitted->sky, options.detect, options.frame.cost,
                               options.shading);
     if (!refit) return refit.error();
     if (refit->ghosts > 0) refreshResiduals(*built, *fitted);
+    fitted->stages.shading_ms = msSince(t_stage);
+    fitted->stages.total_ms = msSince(t_call);
     if (result) *result = std::move(*fitted);
     return built;
 }

@@ -80,6 +80,10 @@ struct SweepFitOptions {
     // sparse fit, whose left-out frames the score holds out (`fit --every K`, `score --sweep`).
     // The model's capture step is the sweep's times k.
     int frame_stride = 1;
+    // fitSweep keeps the frames it has read in memory, up to this many bytes (the ones used
+    // longest ago are let go first), so that the passes, the tracks followed back and the
+    // shading refit decode each frame once: a 640 x 427 frame takes 3.3 MB. 0 reads every time.
+    int64_t frame_cache_bytes = int64_t{1} << 30;
     // When set and it becomes true, the fit stops before its next frame with an Unsupported
     // error "sweep fit: cancelled" (a daemon's job being cancelled or the daemon stopping).
     const std::atomic<bool>* cancel = nullptr;
@@ -103,6 +107,19 @@ struct SweepFitProgress {
     int live_ghosts = 0;
 };
 
+// Where a sweep fit's time went, wall clock, ms. The stages run one after another (each may use
+// every core inside), so they add up to the whole but for bookkeeping.
+struct SweepFitStages {
+    double load_ms = 0.0;      // frames read from disk and mapped (the tracking passes)
+    double detect_ms = 0.0;    // detectGhosts, start probes included
+    double fit_ms = 0.0;       // fitFrame in the forward and backward passes
+    double extend_ms = 0.0;    // fitFrame following tracks born away from the start back
+    double track_ms = 0.0;     // the rest of the passes: prediction, matching, track ends
+    double compress_ms = 0.0;  // buildModel: the Chebyshev series (fitSweep only)
+    double shading_ms = 0.0;   // refitShading, its frame loads included (fitSweep only)
+    double total_ms = 0.0;     // the whole call
+};
+
 struct SweepFitResult {
     std::vector<GhostTrack> tracks;  // by id
     int start_frame = 0;
@@ -111,13 +128,18 @@ struct SweepFitResult {
     int64_t frame_count = 0;    // frames in the sweep (caps min_track_frames in buildModel)
     int64_t frames_fitted = 0;  // fitFrame calls
     int64_t evaluations = 0;
-    double time_ms = 0.0;
+    double time_ms = 0.0;  // steps 1 to 3
+    SweepFitStages stages;
 };
 
 // Where frames come from: their count, angles (strictly increasing) and loader.
 struct FrameSource {
     std::vector<double> angles_deg;
     std::function<Result<FitFrame>(size_t)> load;
+    // Optional: detectGhosts of frame `index` (as `load` gave it) with these options, which the
+    // source may remember (fitSweep's does, with its frames); empty: detected every time.
+    std::function<Result<FrameDetection>(size_t index, const FitFrame&, const DetectOptions&)>
+        detect;
 };
 
 Status checkSweepFitOptions(const SweepFitOptions& options);

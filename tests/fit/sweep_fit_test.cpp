@@ -727,6 +727,42 @@ TEST(SweepFit, FitSweepOnDisk) {
     // The manifest records no pixel pitch: without a sensor size it is refused.
     EXPECT_FALSE(fitSweep(three, 0.0, 0.0, quickOptions()));
 
+    // Frames kept in memory or read every time, the same model; the stages add up to the whole.
+    SweepFitOptions uncached = quickOptions();
+    uncached.frame_cache_bytes = 0;
+    SweepFitResult uncached_result;
+    auto reread = fitSweep(three, kSensorW, kSensorH, uncached, {}, &uncached_result);
+    ASSERT_TRUE(reread) << reread.error().message;
+    reread->created_utc = model->created_utc;
+    EXPECT_EQ(*reread, *model);
+    for (const SweepFitResult* r : {&result, &uncached_result}) {
+        const SweepFitStages& st = r->stages;
+        const double parts = st.load_ms + st.detect_ms + st.fit_ms + st.extend_ms + st.track_ms +
+                             st.compress_ms + st.shading_ms;
+        for (double ms : {st.load_ms, st.detect_ms, st.fit_ms, st.extend_ms, st.track_ms,
+                          st.compress_ms, st.shading_ms})
+            EXPECT_GE(ms, 0.0);
+        EXPECT_GT(st.fit_ms, 0.0);
+        EXPECT_LE(parts, st.total_ms * 1.001 + 0.01);
+        EXPECT_GE(parts, 0.9 * st.total_ms);
+    }
+    uncached.frame_cache_bytes = -1;
+    EXPECT_FALSE(fitSweep(three, kSensorW, kSensorH, uncached));
+
+    // One frame in every two: the first and the last of the three, the step doubled.
+    SweepFitOptions sparse = quickOptions();
+    sparse.frame_stride = 2;
+    auto halved = fitSweep(three, kSensorW, kSensorH, sparse);
+    ASSERT_TRUE(halved) << halved.error().message;
+    EXPECT_EQ(halved->capture.step_deg, 1.0);
+    EXPECT_EQ(halved->valid_from_deg, 1.0);
+    EXPECT_EQ(halved->valid_to_deg, 2.0);
+    sparse.frame_stride = 3;  // the first frame only
+    auto single = fitSweep(three, kSensorW, kSensorH, sparse);
+    ASSERT_FALSE(single);
+    EXPECT_NE(single.error().message.find("one in every 3"), std::string::npos)
+        << single.error().message;
+
     const hdr::Sweep one = write("one", {1.0});
     auto refused = fitSweep(one, kSensorW, kSensorH, quickOptions());
     ASSERT_FALSE(refused);
