@@ -7,6 +7,7 @@
 #include "bench/bracket_bench.h"
 #include "bench/fit_bench.h"
 #include "bench/merge_bench.h"
+#include "bench/oracle_bench.h"
 #include "bench/playback_bench.h"
 #include "bench/render_bench.h"
 #include "bench/response_bench.h"
@@ -145,6 +146,44 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             file << bench::fitBenchJson(*report) << "\n";
             if (!file) {
                 err << "flarelab: cannot write " << *fit_json_path << "\n";
+                exit_code = 1;
+                return;
+            }
+        }
+        exit_code = 0;
+    });
+
+    auto oracle_options = std::make_shared<bench::OracleBenchOptions>();
+    auto oracle_json_path = std::make_shared<std::string>();
+    CLI::App* oracle = bench->add_subcommand(
+        "oracle",
+        "the ghost model's capacity floor: each ghost path of a lens rendered alone, detected and "
+        "fitted as one ghost, against its image");
+    oracle->add_option("--lens", oracle_options->lens_files, "lens files (repeat)")->required();
+    oracle->add_option("--angle", oracle_options->angles_deg, "light angles in deg (repeat)")
+        ->capture_default_str();
+    oracle->add_option("--width", oracle_options->width, "frame width")->capture_default_str();
+    oracle->add_option("--height", oracle_options->height, "frame height")->capture_default_str();
+    oracle
+        ->add_option("--min-share", oracle_options->min_share,
+                     "paths with less of an angle's ghost light are not fitted")
+        ->capture_default_str();
+    oracle->add_option("--images", oracle_options->images,
+                       "write each path's image beside its fitted ghost (PNG) into this directory");
+    oracle->add_option("--json", *oracle_json_path, "also write the results as JSON here");
+    oracle->callback([oracle_options, oracle_json_path, &out, &err, &exit_code] {
+        auto report = bench::runOracleBench(*oracle_options, err);
+        if (!report) {
+            err << "flarelab: " << report.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printOracleBench(*report, out);
+        if (!oracle_json_path->empty()) {
+            std::ofstream file(*oracle_json_path);
+            file << bench::oracleBenchJson(*report) << "\n";
+            if (!file) {
+                err << "flarelab: cannot write " << *oracle_json_path << "\n";
                 exit_code = 1;
                 return;
             }

@@ -9,8 +9,10 @@ namespace flarelab::drivers {
 
 Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
                                              int64_t width,
-                                             int64_t height) {
+                                             int64_t height,
+                                             const std::vector<optics::GhostPath>& only_paths) {
     SimCameraOptions options;
+    options.render.only_paths = only_paths;
     options.width_px = width;
     options.height_px = height;
     options.render.starburst = false;  // the ghosts alone

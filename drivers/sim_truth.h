@@ -11,15 +11,19 @@
 #pragma once
 
 #include <cstdint>
+#include <vector>
 
 #include "fit/score.h"
 #include "optics/lens.h"
 
 namespace flarelab::drivers {
 
-// Errors: the frame size or lens the simulated camera refuses.
+// Errors: the frame size or lens the simulated camera refuses; with only_paths (not empty: those
+// ghost paths alone, render::SceneOptions::only_paths) a path the lens does not have, when a
+// frame is asked for.
 Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
                                              int64_t width,
-                                             int64_t height);
+                                             int64_t height,
+                                             const std::vector<optics::GhostPath>& only_paths = {});
 
 }  // namespace flarelab::drivers

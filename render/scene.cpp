@@ -151,6 +151,19 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     }
     auto enumeration = optics::enumerateGhosts(lens, options.ghosts);
     if (!enumeration) return enumeration.error();
+    if (!options.only_paths.empty()) {
+        std::vector<optics::GhostPath> kept;
+        for (const optics::GhostPath& path : options.only_paths) {
+            if (std::find(enumeration->ghosts.begin(), enumeration->ghosts.end(), path) ==
+                enumeration->ghosts.end())
+                return invalid("only_paths: " + optics::pathLabel(path) +
+                               " is not one of the lens's ghost paths");
+            kept.push_back(path);
+        }
+        std::sort(kept.begin(), kept.end());
+        kept.erase(std::unique(kept.begin(), kept.end()), kept.end());
+        enumeration->ghosts = std::move(kept);
+    }
 
     SceneStats local;
     SceneStats& st = stats ? *stats : local;

@@ -24,6 +24,7 @@
 #include <array>
 #include <cstdint>
 #include <span>
+#include <vector>
 
 #include "common/image.h"
 #include "common/result.h"
@@ -75,6 +76,10 @@ struct SceneOptions {
     // refine only those the merge's test fails, instead of the whole grid. Not with the Exact
     // tracer (which always traces the whole grid).
     bool adaptive_grid = false;
+    // When not empty, only these of the enumerated ghost paths are drawn (one ghost alone: the
+    // fit's oracle harness, bench/oracle_bench.h); a path the enumeration does not hold is
+    // refused. Culling still applies, relative to the paths drawn.
+    std::vector<optics::GhostPath> only_paths;
 };
 
 struct SceneStats {

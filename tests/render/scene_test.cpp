@@ -228,5 +228,46 @@ TEST(RenderScene, RejectsBadCullingNamingIt) {
     }
 }
 
+// One path at a time: the images of the paths drawn alone add up to the image of all of them
+// (no culling, no starburst, so nothing depends on which paths are drawn together), and a path
+// the lens does not have is refused by name.
+TEST(RenderScene, PathsDrawnAloneAddUpToAllOfThem) {
+    const optics::Lens lens = heliar();
+    SceneOptions options = small();
+    options.starburst = false;
+    options.cull_relative_l2 = 0.0;
+    const Light light{6.0, 20.0, {1.0f, 1.0f, 1.0f}};
+    const auto all = renderScene(lens, std::span(&light, 1), options);
+    ASSERT_TRUE(all) << all.error().message;
+    auto enumeration = optics::enumerateGhosts(lens, options.ghosts);
+    ASSERT_TRUE(enumeration);
+    ASSERT_GT(enumeration->ghosts.size(), 3u);
+    ImageRGB summed(options.width, options.height);
+    int lit = 0;
+    for (const optics::GhostPath& path : enumeration->ghosts) {
+        SceneOptions one = options;
+        one.only_paths = {path, path};  // a repeat is drawn once
+        const auto image = renderScene(lens, std::span(&light, 1), one);
+        ASSERT_TRUE(image) << optics::pathLabel(path) << ": " << image.error().message;
+        lit += sum(*image) > 0.0;
+        for (size_t i = 0; i < summed.pixels.size(); ++i) summed.pixels[i] += image->pixels[i];
+    }
+    EXPECT_GT(lit, 3);
+    double diff = 0.0, norm = 0.0;
+    for (size_t i = 0; i < summed.pixels.size(); ++i) {
+        const double d = static_cast<double>(summed.pixels[i]) - all->pixels[i];
+        diff += d * d;
+        norm += static_cast<double>(all->pixels[i]) * all->pixels[i];
+    }
+    EXPECT_LT(std::sqrt(diff / norm), 1e-5);
+
+    SceneOptions foreign = options;
+    foreign.only_paths = {optics::GhostPath{0, 99}};
+    const auto refused = renderScene(lens, std::span(&light, 1), foreign);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find("only_paths"), std::string::npos)
+        << refused.error().message;
+}
+
 }  // namespace
 }  // namespace flarelab::render

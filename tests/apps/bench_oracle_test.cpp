@@ -1,0 +1,71 @@
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "apps/bench_command.h"
+#include "bench/oracle_bench.h"
+#include "tests/apps/command_runner.h"
+#include "tests/test_paths.h"
+
+namespace flarelab::apps {
+namespace {
+
+// The Heliar's ghost paths at 8 deg, each alone, fitted as one ghost at a small frame size: the
+// paths that carry the light are fitted, each one's floor and the frame's are figures a model can
+// reach (the ghosts are mostly plain discs), and the unfitted light is what min_share leaves.
+TEST(BenchOracle, FitsEachGhostPathAloneAndReportsTheFloors) {
+    const std::string path = (std::filesystem::temp_directory_path() /
+                              ("flarelab_oracle_" + std::to_string(::getpid()) + ".json"))
+                                 .string();
+    const testing::CommandRun run = testing::runCommand(
+        addBenchCommands,
+        {"bench", "oracle", "--lens", flarelab::testing::lensPath("heliar-tronnier.csv"), "--angle",
+         "8", "--width", "160", "--height", "107", "--min-share", "0.01", "--json", path});
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_NE(run.out.find("| heliar-tronnier |"), std::string::npos) << run.out;
+    std::ifstream file(path);
+    const auto json = nlohmann::json::parse(file);
+    std::filesystem::remove(path);
+    ASSERT_EQ(json["lenses"].size(), 1u);
+    const auto& lens = json["lenses"][0];
+    EXPECT_GE(lens["ghosts_fitted"].get<int>(), 4);
+    EXPECT_LT(lens["median_ghost_rel_l2"].get<double>(), 0.3);
+    EXPECT_LT(lens["median_frame_rel_l2"].get<double>(), 0.3);
+    ASSERT_EQ(json["angles"].size(), 1u);
+    const auto& angle = json["angles"][0];
+    EXPECT_GE(angle["paths_lit"].get<int>(), angle["paths_fitted"].get<int>());
+    EXPECT_GE(angle["unfitted_share"].get<double>(), 0.0);
+    EXPECT_LT(angle["unfitted_share"].get<double>(), 0.05);
+    double shares = 0.0;
+    for (const auto& g : json["ghosts"]) {
+        EXPECT_GE(std::max(g["share"].get<double>(), g["l2_share"].get<double>()), 0.01);
+        EXPECT_TRUE(std::isfinite(g["rel_l2"].get<double>()));
+        EXPECT_GE(g["rel_l2"].get<double>(), 0.0);
+        shares += g["share"].get<double>();
+    }
+    EXPECT_NEAR(shares + angle["unfitted_share"].get<double>(), 1.0, 1e-6);
+}
+
+TEST(BenchOracle, RefusesWhatItCannotMeasure) {
+    bench::OracleBenchOptions options;
+    EXPECT_FALSE(bench::runOracleBench(options, std::cerr));  // no lens
+    options.lens_files = {flarelab::testing::lensPath("heliar-tronnier.csv")};
+    options.angles_deg = {95.0};
+    auto refused = bench::runOracleBench(options, std::cerr);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find("angles"), std::string::npos);
+    options.angles_deg = {5.0};
+    options.min_share = 1.0;
+    EXPECT_FALSE(bench::runOracleBench(options, std::cerr));
+    options.min_share = 0.0;
+    options.lens_files = {"/nonexistent/lens.csv"};
+    EXPECT_FALSE(bench::runOracleBench(options, std::cerr));
+}
+
+}  // namespace
+}  // namespace flarelab::apps
