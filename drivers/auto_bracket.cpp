@@ -6,6 +6,7 @@
 #include <sstream>
 
 #include "drivers/calibration_measure.h"
+#include "hdr/merge.h"
 
 namespace flarelab::drivers {
 namespace {
@@ -253,6 +254,20 @@ Result<BracketPlan> planBrackets(Camera& camera, const BracketPlanOptions& o) {
                                "th percentile shows no signal above black even at " +
                                num(at_floor.exposure_s) +
                                " s (a dark scene without veiling glare)");
+
+    // The merge takes exposures at most hdr::kMaxExposureRatio apart. Where the core and the
+    // floor lie further apart than that, the floor wins: the ghosts are what a sweep is for, and
+    // the light's own disc is left out of fit and score. (Seen on the lensbaby: 10 ns to 27 s,
+    // which the merge refused.)
+    constexpr double kMergeSpan = 0.999 * hdr::kMaxExposureRatio;
+    if (t_long > kMergeSpan * t_short) {
+        t_short = t_long / kMergeSpan;
+        plan.core_unclipped = false;
+        plan.reasons.push_back("shortest raised to " + num(t_short) +
+                               " s: the merge takes exposures at most " +
+                               num(hdr::kMaxExposureRatio) +
+                               " times apart, and the floor comes first; the light's core clips");
+    }
 
     // 3. The steps between, then the budget.
     const double high = o.well_level;

@@ -6,6 +6,7 @@
 #include <cmath>
 
 #include "drivers/sim_camera.h"
+#include "hdr/merge.h"
 #include "optics/prescription.h"
 #include "tests/test_paths.h"
 
@@ -95,6 +96,31 @@ TEST(PlanBrackets, SaysPlainlyWhenTheShortestExposureClipsTheCore) {
     EXPECT_EQ(plan->exposure_times_s.front(), 1e-5);
     EXPECT_TRUE(mentions(*plan, "cannot keep the light's core from clipping")) << plan->reasons[0];
     EXPECT_TRUE(plan->floor_reached);  // the other goal is still met
+}
+
+// The lensbaby's light is a hard point and its ghosts a faint veil: core and floor lie further
+// apart than the merge takes (hdr::kMaxExposureRatio), and the plan keeps the floor.
+TEST(PlanBrackets, StaysWithinWhatTheMergeTakesAndKeepsTheFloor) {
+    static const optics::Lens lensbaby = *optics::Lens::make(
+        *optics::loadPrescription(flarelab::testing::lensPath("lensbaby-toy.csv")),
+        optics::CameraDescription{});
+    SimCameraOptions o = scene(1e-12);
+    o.width_px = 640;  // as flarelab capture takes it: the floor per pixel is 16 times dimmer
+    o.height_px = 427;
+    auto c = SimCamera::make(lensbaby, o);
+    ASSERT_TRUE(c) << c.error().message;
+    auto plan = planBrackets(**c);
+    ASSERT_TRUE(plan) << plan.error().message;
+    const std::vector<double>& t = plan->exposure_times_s;
+    ASSERT_GE(t.size(), 2u);
+    EXPECT_LE(t.back() / t.front(), hdr::kMaxExposureRatio);
+    EXPECT_TRUE(mentions(*plan, "the merge takes exposures at most"))
+        << t.front() << " " << t.back();
+    EXPECT_FALSE(plan->core_unclipped);
+    // The core's end moved, not the floor's: the shortest lies well above the camera's 1 ps, the
+    // longest stays seconds long.
+    EXPECT_GT(t.front(), 1e-10);
+    EXPECT_GT(t.back(), 1.0);
 }
 
 TEST(PlanBrackets, SaysPlainlyWhenTheBudgetStopsTheLongest) {
