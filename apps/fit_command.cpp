@@ -190,7 +190,8 @@ void printSummary(const std::string& name, const fit::ScoreSummary& s, std::ostr
         << std::setprecision(4) << s.median << ", worst " << s.worst << " at "
         << std::setprecision(3) << s.worst_angle_deg << " deg; |energy error| median "
         << std::setprecision(2) << 100.0 * s.median_abs_energy_error << " %, worst "
-        << 100.0 * s.worst_abs_energy_error << " %; log relative L2 median " << std::setprecision(4)
+        << 100.0 * s.worst_abs_energy_error << " %; missed light median "
+        << 100.0 * s.median_missed_light << " %; log relative L2 median " << std::setprecision(4)
         << s.median_log_rel_l2 << "; median PSNR " << std::setprecision(1) << s.median_psnr_db
         << " dB\n"
         << std::defaultfloat;
@@ -206,6 +207,7 @@ nlohmann::json summaryJson(const fit::ScoreSummary& s) {
             {"worst_abs_energy_error", s.worst_abs_energy_error},
             {"median_log_rel_l2", s.median_log_rel_l2},
             {"worst_log_rel_l2", s.worst_log_rel_l2},
+            {"median_missed_light", s.median_missed_light},
             {"median_masked_energy_fraction", s.median_masked_energy_fraction}};
 }
 
@@ -393,6 +395,7 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
                               {"model_energy", a.model_energy},
                               {"energy_error", a.energy_error},
                               {"log_rel_l2", a.log_rel_l2},
+                              {"missed_light", a.missed_light},
                               {"masked_energy_fraction", a.masked_energy_fraction}});
         j["angles"] = angles;
         out << j.dump(2) << "\n";

@@ -19,7 +19,7 @@ double median(std::vector<double> v) {
 // The scores that `keep` selects, summarized.
 template <typename Keep>
 ScoreSummary summarize(const std::vector<AngleScore>& scores, Keep keep) {
-    std::vector<double> values, psnr, energy, log_l2, masked;
+    std::vector<double> values, psnr, energy, log_l2, masked, missed;
     ScoreSummary s;
     for (const AngleScore& a : scores) {
         if (!keep(a)) continue;
@@ -28,6 +28,7 @@ ScoreSummary summarize(const std::vector<AngleScore>& scores, Keep keep) {
         energy.push_back(std::abs(a.energy_error));
         log_l2.push_back(a.log_rel_l2);
         masked.push_back(a.masked_energy_fraction);
+        missed.push_back(a.missed_light);
         if (s.count == 0 || a.rel_l2 > s.worst) {
             s.worst = a.rel_l2;
             s.worst_angle_deg = a.angle_deg;
@@ -41,6 +42,7 @@ ScoreSummary summarize(const std::vector<AngleScore>& scores, Keep keep) {
     s.median_abs_energy_error = median(energy);
     s.median_log_rel_l2 = median(log_l2);
     s.median_masked_energy_fraction = median(masked);
+    s.median_missed_light = median(missed);
     return s;
 }
 
@@ -165,7 +167,8 @@ Result<AngleScore> compareImages(const ImageRGB& model,
         const double dy = static_cast<double>(y) + 0.5 - light_px->y();
         return dx * dx + dy * dy <= r2;
     };
-    double num = 0.0, den = 0.0, peak = 0.0, energy = 0.0, model_energy = 0.0, in_mask = 0.0;
+    double num = 0.0, den = 0.0, peak = 0.0, energy = 0.0, model_energy = 0.0, in_mask = 0.0,
+           under = 0.0;
     int64_t count = 0;
     for (int64_t y = 0; y < truth.height; ++y) {
         for (int64_t x = 0; x < truth.width; ++x) {
@@ -182,6 +185,7 @@ Result<AngleScore> compareImages(const ImageRGB& model,
                 peak = std::max(peak, static_cast<double>(t[c]));
                 energy += t[c];
                 model_energy += m[c];
+                under += std::max(0.0, static_cast<double>(t[c]) - m[c]);
             }
             count += 3;
         }
@@ -218,6 +222,7 @@ Result<AngleScore> compareImages(const ImageRGB& model,
     // A black truth: anything the model draws is all error, as for rel_l2.
     s.log_rel_l2 = log_den > 0.0 ? std::sqrt(log_num / log_den) : (num > 0.0 ? 1.0 : 0.0);
     s.masked_energy_fraction = energy + in_mask > 0.0 ? in_mask / (energy + in_mask) : 0.0;
+    s.missed_light = energy > 0.0 ? under / energy : 0.0;
     const double mse = count > 0 ? num / static_cast<double>(count) : 0.0;
     s.psnr_db = mse > 0.0 && peak > 0.0 ? 10.0 * std::log10(peak * peak / mse)
                                         : std::numeric_limits<double>::infinity();

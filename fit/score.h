@@ -14,6 +14,9 @@
 //   log rel. L2   = relative L2 of the images tone-mapped by v -> log(1 + v / s), s = log_scale
 //                   times the truth's peak at that angle: a ghost a thousand times dimmer than
 //                   the brightest still counts, where plain L2 hardly sees it
+//   missed light  = sum(max(truth - model, 0)) / sum(truth): the light the model does not draw
+//                   where the truth has it (a ghost left out counts whole; per pixel, not per
+//                   ghost: a model ghost elsewhere does not make up for it)
 //   masked energy = the truth's ghost light inside the light's disc over all of it: what the
 //                   score (and the fit) cannot see
 // The angles, by kind (AngleKind):
@@ -83,6 +86,7 @@ struct AngleScore {
     // (model_energy - truth_energy) / truth_energy; 0 when both are 0, 1 when only the truth is.
     double energy_error = 0.0;
     double log_rel_l2 = 0.0;
+    double missed_light = 0.0;  // 0 for a black truth
     // The truth's light inside the light's disc over its light in the whole image; 0 for a black
     // truth.
     double masked_energy_fraction = 0.0;
@@ -98,6 +102,7 @@ struct ScoreSummary {
     double worst_abs_energy_error = 0.0;
     double median_log_rel_l2 = 0.0;
     double worst_log_rel_l2 = 0.0;
+    double median_missed_light = 0.0;
     double median_masked_energy_fraction = 0.0;
 };
 

@@ -30,6 +30,7 @@ TEST(Score, TheLogImageCountsADimGhostThatPlainL2HardlySees) {
     ASSERT_TRUE(s) << s.error().message;
     EXPECT_NEAR(s->rel_l2, 1e-3, 1e-5);
     EXPECT_NEAR(s->energy_error, -1.0 / 1001.0, 1e-9);
+    EXPECT_NEAR(s->missed_light, 1.0 / 1001.0, 1e-9);
     // Tone-mapped, the bright half maps to 1 and the dim half to log(2) / log(1001) ~ 0.1.
     const double dim = std::log(2.0) / std::log(1001.0);
     EXPECT_NEAR(s->log_rel_l2, dim / std::sqrt(1.0 + dim * dim), 1e-6);
@@ -69,6 +70,19 @@ TEST(Score, ABlackTruthScoresWhatIsDrawnAsAllError) {
     EXPECT_EQ(drawn->rel_l2, 1.0);
     EXPECT_EQ(drawn->energy_error, 1.0);
     EXPECT_EQ(drawn->log_rel_l2, 1.0);
+    EXPECT_EQ(drawn->missed_light, 0.0);
+    // Light drawn in the wrong place: nothing of the truth drawn, all of it missed, although the
+    // total energy is right.
+    ImageRGB left(8, 8), right(8, 8);
+    for (int64_t y = 0; y < 8; ++y)
+        for (int c = 0; c < 3; ++c) {
+            left.at(0, y)[c] = 1.0f;
+            right.at(7, y)[c] = 1.0f;
+        }
+    auto moved = compareImages(right, left, std::nullopt, 0.0);
+    ASSERT_TRUE(moved);
+    EXPECT_EQ(moved->energy_error, 0.0);
+    EXPECT_EQ(moved->missed_light, 1.0);
     EXPECT_FALSE(compareImages(black, black, std::nullopt, 0.0, 0.0));
     EXPECT_FALSE(compareImages(black, filled(8, 7, 0.0f), std::nullopt, 0.0));
 }
