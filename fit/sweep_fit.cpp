@@ -2,15 +2,18 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <ctime>
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <numeric>
 #include <optional>
 #include <sstream>
+#include <thread>
 #include <utility>
 
 #include "fit/model_eval.h"
@@ -222,6 +225,15 @@ std::string nowUtc() {
     return text;
 }
 
+// What the forward and the backward pass share while they run side by side: the frame source
+// (whose loader need not be thread safe), the progress callback, and a stop when one fails.
+struct PassShare {
+    std::mutex source;
+    std::mutex progress;
+    int64_t frames_fitted = 0;  // both passes', for progress
+    std::atomic<bool> stop{false};
+};
+
 class SweepFitter {
 public:
     SweepFitter(const FrameSource& frames,
@@ -233,17 +245,26 @@ public:
 
 private:
     Result<int> chooseStart();
+    // The backward pass from the start frame s, on this fitter (a copy of the forward one's
+    // state, see run).
+    Status backwardPass(size_t s);
+    // Takes the backward pass's tracks, samples and frame entries into this fitter, numbering the
+    // tracks it started after every track of this one, as if it had run after the forward pass.
+    // `snapshot` holds each track's sample count when the two passes parted.
+    void mergeBackward(SweepFitter& backward, const std::vector<size_t>& snapshot, size_t s);
     // Fits frame j: the live tracks (predicted; updated to those still live afterwards), new
     // tracks from unexplained detections when allow_new, and with `extend` the ghosts stored at j
     // for the other tracks as context (fitted too, not ended).
     Status processFrame(
         size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend);
 
-    // The frame source's loader, refusing once options_.cancel is set.
+    // The frame source's loader, refusing once options_.cancel is set (or the other pass failed).
     Result<FitFrame> load(size_t index) {
         if (options_.cancel && options_.cancel->load())
             return makeError(ErrorCode::Unsupported, "sweep fit: cancelled");
+        if (share_->stop.load()) return makeError(ErrorCode::Unsupported, "sweep fit: stopped");
         const auto t0 = Clock::now();
+        std::lock_guard<std::mutex> lock(share_->source);
         auto frame = frames_.load(index);
         result_.stages.load_ms += msSince(t0);
         return frame;
@@ -252,8 +273,13 @@ private:
                                     const FitFrame& frame,
                                     const DetectOptions& options) {
         const auto t0 = Clock::now();
-        auto detection =
-            frames_.detect ? frames_.detect(index, frame, options) : detectGhosts(frame, options);
+        Result<FrameDetection> detection = makeError(ErrorCode::Internal, "not detected");
+        if (frames_.detect) {
+            std::lock_guard<std::mutex> lock(share_->source);
+            detection = frames_.detect(index, frame, options);
+        } else {
+            detection = detectGhosts(frame, options);
+        }
         result_.stages.detect_ms += msSince(t0);
         return detection;
     }
@@ -266,6 +292,7 @@ private:
     SweepFitResult result_;
     int64_t frames_total_ = 0;
     size_t start_ = 0;
+    std::shared_ptr<PassShare> share_ = std::make_shared<PassShare>();
     // The sky: the lowest background of the probed frames. The camera and the sky do not change
     // along a sweep, the ghosts only add light, so a frame whose own background lies above it
     // holds a ghost larger than the frame (a veil with no edge in view).
@@ -512,6 +539,10 @@ Status SweepFitter::processFrame(
         report = std::move(*fitted);
         ++result_.frames_fitted;
         result_.evaluations += report.evaluations;
+        {
+            std::lock_guard<std::mutex> lock(share_->progress);
+            ++share_->frames_fitted;
+        }
     }
     const auto ghostCost = [&](size_t k) {
         return k < report.ghosts.size() ? report.ghosts[k].final_cost : 0.0;
@@ -652,14 +683,68 @@ Status SweepFitter::processFrame(
     live = std::move(still_live);
 
     if (progress_) {
+        std::lock_guard<std::mutex> lock(share_->progress);
         SweepFitProgress p;
-        p.frames_done = result_.frames_fitted;
-        p.frames_total = std::max(frames_total_, result_.frames_fitted);
+        p.frames_done = share_->frames_fitted;
+        p.frames_total = std::max(frames_total_, share_->frames_fitted);
         p.angle_deg = angle;
         p.live_ghosts = static_cast<int>(live.size());
         progress_(p);
     }
     return Ok{};
+}
+
+Status SweepFitter::backwardPass(size_t s) {
+    std::vector<size_t> live;
+    for (const FrameEntry& entry : at_frame_[s]) {
+        tracks_[entry.track].live = true;
+        tracks_[entry.track].missed = 0;
+        live.push_back(entry.track);
+    }
+    for (size_t j = s; j-- > 0;) {
+        auto status = processFrame(j, live, true, -1, false);
+        if (!status) return status;
+    }
+    return Ok{};
+}
+
+void SweepFitter::mergeBackward(SweepFitter& backward,
+                                const std::vector<size_t>& snapshot,
+                                size_t s) {
+    // Where each of the backward pass's tracks and samples lands here.
+    std::vector<size_t> track_at(backward.tracks_.size());
+    std::vector<size_t> first_new(backward.tracks_.size(), 0);  // its first sample's index here
+    for (size_t t = 0; t < backward.tracks_.size(); ++t) {
+        Track& from = backward.tracks_[t];
+        if (t < snapshot.size()) {
+            track_at[t] = t;
+            first_new[t] = tracks_[t].samples.size();
+            tracks_[t].samples.insert(
+                tracks_[t].samples.end(),
+                from.samples.begin() + static_cast<std::ptrdiff_t>(snapshot[t]),
+                from.samples.end());
+        } else {
+            track_at[t] = tracks_.size();
+            from.id = static_cast<int64_t>(tracks_.size());
+            tracks_.push_back(std::move(from));
+        }
+    }
+    for (size_t j = 0; j < s; ++j) {
+        at_frame_[j].clear();
+        for (const FrameEntry& entry : backward.at_frame_[j]) {
+            const size_t t = entry.track;
+            const size_t sample =
+                t < snapshot.size() ? first_new[t] + (entry.sample - snapshot[t]) : entry.sample;
+            at_frame_[j].push_back({track_at[t], sample});
+        }
+    }
+    result_.frames_fitted += backward.result_.frames_fitted;
+    result_.evaluations += backward.result_.evaluations;
+    SweepFitStages& st = result_.stages;
+    const SweepFitStages& b = backward.result_.stages;
+    st.load_ms += b.load_ms;
+    st.detect_ms += b.detect_ms;
+    st.fit_ms += b.fit_ms;
 }
 
 Result<SweepFitResult> SweepFitter::run() {
@@ -674,23 +759,43 @@ Result<SweepFitResult> SweepFitter::run() {
     result_.start_frame = *start;
     result_.frame_count = static_cast<int64_t>(n);
 
-    // Forward from the start.
+    // Forward from the start, and backward from it with the tracks the start frame holds. The
+    // backward pass predicts its first frames from the forward pass's first `history` frames
+    // (the nearest samples), so those go first; then the two passes run side by side, the
+    // backward one on a copy of the state, and are merged as if it had run after the forward
+    // one (tracks it starts numbered after the forward pass's).
     std::vector<size_t> live;
-    for (size_t j = s; j < n; ++j) {
+    const size_t head = std::min(n, s + static_cast<size_t>(options_.history));
+    for (size_t j = s; j < head; ++j) {
         auto status = processFrame(j, live, true, j == s ? 0 : +1, false);
         if (!status) return status.error();
     }
-    // Backward from the start, with the tracks the start frame holds.
-    live.clear();
-    for (const FrameEntry& entry : at_frame_[s]) {
-        tracks_[entry.track].live = true;
-        tracks_[entry.track].missed = 0;
-        live.push_back(entry.track);
-    }
-    for (size_t j = s; j-- > 0;) {
-        auto status = processFrame(j, live, true, -1, false);
-        if (!status) return status.error();
-    }
+    SweepFitter backward(frames_, options_, progress_);
+    backward.tracks_ = tracks_;
+    backward.at_frame_ = at_frame_;
+    backward.frames_total_ = frames_total_;
+    backward.start_ = start_;
+    backward.sky_ = sky_;
+    backward.share_ = share_;
+    std::vector<size_t> snapshot;
+    for (const Track& track : tracks_) snapshot.push_back(track.samples.size());
+    // The first pass to fail stops the other, and its error is the one reported.
+    std::atomic<int> first_failure{0};  // 1 forward, 2 backward
+    Status backward_status = Ok{};
+    std::thread backward_thread([&] {
+        backward_status = backward.backwardPass(s);
+        int none = 0;
+        if (!backward_status && first_failure.compare_exchange_strong(none, 2)) share_->stop = true;
+    });
+    Status forward_status = Ok{};
+    for (size_t j = head; j < n && forward_status; ++j)
+        forward_status = processFrame(j, live, true, +1, false);
+    int none = 0;
+    if (!forward_status && first_failure.compare_exchange_strong(none, 1)) share_->stop = true;
+    backward_thread.join();
+    if (first_failure == 1) return forward_status.error();
+    if (first_failure == 2) return backward_status.error();
+    mergeBackward(backward, snapshot, s);
     // Tracks born away from the start, followed back from where they were born.
     const size_t born_count = tracks_.size();
     for (size_t t = 0; t < born_count; ++t) {
