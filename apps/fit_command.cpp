@@ -173,6 +173,7 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         {"fit frames", st.fit_ms},       {"follow new tracks back", st.extend_ms},
         {"track", st.track_ms},          {"compress", st.compress_ms},
         {"refit shading", st.shading_ms}};
+    // The two passes run side by side: their stages are summed over both.
     out << "  stage                    time_s   share\n";
     for (const auto& [name, ms] : stages)
         out << "  " << std::left << std::setw(22) << name << std::right << std::fixed

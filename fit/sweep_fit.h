@@ -107,8 +107,9 @@ struct SweepFitProgress {
     int live_ghosts = 0;
 };
 
-// Where a sweep fit's time went, wall clock, ms. The stages run one after another (each may use
-// every core inside), so they add up to the whole but for bookkeeping.
+// Where a sweep fit's time went, wall clock, ms. The forward and backward passes run side by
+// side, and their load, detect and fit times are summed over both, so the stages may add up to
+// more than the whole (track_ms is what the whole leaves, 0 when nothing is left).
 struct SweepFitStages {
     double load_ms = 0.0;      // frames read from disk and mapped (the tracking passes)
     double detect_ms = 0.0;    // detectGhosts, start probes included

@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
 # Fits and scores every shipped lens on the simulated rig by the sparse protocol: a sweep 0 to 30
-# deg in 0.2 deg steps at 640 x 427 with brackets 0.25 / 1 / 4 s is captured, one frame in every
+# deg in 0.2 deg steps at 640 x 427, with the brackets capture plans (so that no frame clips), is
+# captured, one frame in every
 # EVERY (default 5) is fitted (flarelab fit --every), and the model is scored against the
 # simulator's noiseless ghosts at the frames the fit left out, at half-way and random angles, and
 # at fitted ones (flarelab score --sweep). EVERY=1 fits every frame (then no frame is left out and
 # the held-out angles are the half-way and random ones). Writes out/bench/fit-lenses.md (a
 # Markdown table) and one JSON score per lens beside it. About 1 to 2 minutes per lens on 2
-# cores with EVERY=5. BRACKETS (seconds, comma-separated) replaces the brackets: the defaults
-# saturate the whole frame of lenses whose ghosts are much brighter (the double Gauss and the
-# Nikon 28-75 need 0.004,0.016,0.064). KEEP=DIR keeps each lens's sweep and model there.
-#   [EVERY=5] [BRACKETS=...] [KEEP=DIR] scripts/fit_lenses.sh [BUILD_DIR] [LENS.csv ...]
+# cores with EVERY=5. BRACKETS (seconds, comma-separated) gives fixed brackets instead (the
+# tables before 2026-12-03 used 0.25,1,4, which saturate much of the frames of the double Gauss,
+# the Nikon 28-75 and, near the axis, the zooms). KEEP=DIR keeps each lens's sweep and model there.
+#   [EVERY=5] [BRACKETS=0.25,1,4] [KEEP=DIR] scripts/fit_lenses.sh [BUILD_DIR] [LENS.csv ...]
 set -euo pipefail
 build=$(realpath -m "${1:-build/release}")
 shift || true
@@ -21,7 +22,7 @@ lenses=("$@")
 if ((${#lenses[@]} == 0)); then lenses=(data/lenses/*.csv); fi
 table="$out/fit-lenses.md"
 {
-    echo "Fit one frame in every $every; held out: the frames left out, half-way and random angles."
+    echo "Fit one frame in every $every; held out: the frames left out, half-way and random angles; brackets ${BRACKETS:-as capture plans them}."
     echo
     echo "| lens | ghosts in model | fit time (s) | held-out rel L2 median | worst (angle) | held-out abs energy error median | held-out log rel L2 median | left-out rel L2 median | fitted angles median |"
     echo "|---|---|---|---|---|---|---|---|---|"
@@ -29,8 +30,10 @@ table="$out/fit-lenses.md"
 for lens in "${lenses[@]}"; do
     name=$(basename "$lens" .csv)
     work=$(mktemp -d)
+    brackets=()
+    if [[ -n ${BRACKETS:-} ]]; then brackets=(--brackets "$BRACKETS"); fi
     "$build/apps/flarelab" capture --sim --fast --lens "$lens" --from 0 --to 30 --step 0.2 \
-        --brackets "${BRACKETS:-0.25,1,4}" --width 640 --height 427 -o "$work/sweep" >/dev/null
+        "${brackets[@]}" --width 640 --height 427 -o "$work/sweep" >/dev/null
     start=$(date +%s.%N)
     "$build/apps/flarelab" fit "$work/sweep" --lens "$lens" --every "$every" -o "$work/model.flm" \
         --quiet >"$work/fit.txt"

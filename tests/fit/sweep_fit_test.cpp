@@ -743,7 +743,7 @@ TEST(SweepFit, FitSweepOnDisk) {
                           st.compress_ms, st.shading_ms})
             EXPECT_GE(ms, 0.0);
         EXPECT_GT(st.fit_ms, 0.0);
-        EXPECT_LE(parts, st.total_ms * 1.001 + 0.01);
+        EXPECT_LE(parts, 2.0 * st.total_ms + 0.01);  // two passes side by side at most
         EXPECT_GE(parts, 0.9 * st.total_ms);
     }
     uncached.frame_cache_bytes = -1;
