@@ -13,6 +13,7 @@
 #include <numeric>
 #include <optional>
 #include <sstream>
+#include <stdexcept>
 #include <thread>
 #include <utility>
 
@@ -124,7 +125,7 @@ double msSince(Clock::time_point t0) {
 }
 
 // Frames read once and kept, with their detections, the least recently used let go beyond a
-// byte budget. Single threaded: the sweep fit asks for one frame at a time.
+// byte budget. Not thread safe: the sweep fit's passes call their frame source under a lock.
 class FrameCache {
 public:
     FrameCache(std::function<Result<FitFrame>(size_t)> load, int64_t budget_bytes)
@@ -783,7 +784,13 @@ Result<SweepFitResult> SweepFitter::run() {
     std::atomic<int> first_failure{0};  // 1 forward, 2 backward
     Status backward_status = Ok{};
     std::thread backward_thread([&] {
-        backward_status = backward.backwardPass(s);
+        // An exception must not end the process from this thread; it becomes the pass's error.
+        try {
+            backward_status = backward.backwardPass(s);
+        } catch (const std::exception& e) {
+            backward_status = makeError(ErrorCode::Internal,
+                                        std::string("sweep fit: backward pass: ") + e.what());
+        }
         int none = 0;
         if (!backward_status && first_failure.compare_exchange_strong(none, 2)) share_->stop = true;
     });
