@@ -27,6 +27,9 @@ constexpr double kLightThresholdFactor = 2.0;
 // brightest broad ghosts, so a relative level alone would swallow a concentric ghost.
 constexpr double kLightRelativeLevel = 1e-3;
 constexpr double kLightCoreFraction = 0.25;
+// ... but never above this many noise sigmas. A core the merge clips (1.6e4 on the simulated rig,
+// noise about 1) puts a thousandth of it at some 15 sigmas; an unclipped one is held to the same.
+constexpr double kLightLevelSigmas = 15.0;
 constexpr double kLightPlateauRatio = 0.97;
 // A light's profile falls below kLightCoreFraction of its peak within this fraction of the
 // diagonal (4 px at least); a blob that does not is a broad ghost, the light being out of frame.
@@ -216,7 +219,11 @@ LightSpot findLight(const std::vector<float>& signal,
             ++ring_count[static_cast<size_t>(r)];
         }
     }
-    const double level = std::max(kLightRelativeLevel * peak, options.threshold_sigmas * sigma);
+    // A thousandth of the peak, but no more than kLightLevelSigmas noise sigmas: an unclipped
+    // core (1e11 above a sky whose noise is 1, with the brackets capture plans) would end the
+    // disc a few pixels out, inside its own glare, which the fit would then take for ghosts.
+    const double level = std::max(std::min(kLightRelativeLevel * peak, kLightLevelSigmas * sigma),
+                                  options.threshold_sigmas * sigma);
     const double core_limit = std::max(4.0, kLightCoreLimitFraction * diagonal);
     double grown = cap;
     double lowest = std::numeric_limits<double>::infinity();
@@ -526,13 +533,20 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
         signal[static_cast<size_t>(i)] = static_cast<float>(s);
     }
     // The floor keeps sigma > 0 on a constant, black or noise-free frame: a millionth of the
-    // level, a billionth of the largest excursion, at least the smallest normal double.
+    // level, at least the smallest normal double, and where the frame shows no noise above a
+    // millionth of its level, a billionth of the largest excursion. A frame with noise keeps its
+    // own: the unclipped core of a planned bracket lies 1e11 above a sky whose noise is 1, and a
+    // billionth of it had raised every threshold some seventyfold (no ghost found on the Heliar
+    // from 6 to 10 deg while the light was in view).
     for (int c = 0; c < 3; ++c) {
         const auto& level = levels[static_cast<size_t>(std::min(c, channels - 1))];
+        const double level_floor =
+            std::max(1e-6 * std::abs(level.median), std::numeric_limits<double>::min());
         const double floor =
-            std::max({1e-6 * std::abs(level.median),
-                      1e-9 * largest[static_cast<size_t>(std::min(c, channels - 1))],
-                      std::numeric_limits<double>::min()});
+            level.sigma > level_floor
+                ? level_floor
+                : std::max(level_floor,
+                           1e-9 * largest[static_cast<size_t>(std::min(c, channels - 1))]);
         detection.background[static_cast<size_t>(c)] = level.median;
         detection.noise_sigma[static_cast<size_t>(c)] = std::max(level.sigma, floor);
     }

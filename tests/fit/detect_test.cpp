@@ -419,5 +419,35 @@ TEST(DetectGhosts, DISABLED_Probe) {
     }
 }
 
+// An unclipped light, as the brackets capture plans record it: a core 1e11 above a sky whose
+// noise is 1, with glare falling as (1 + r / 2)^-10 around it. The noise stays the sky's (a floor
+// of a billionth of the core had put it at 100 and hidden this ghost, 3 sigmas deep), and the
+// light's disc reaches out to where its glare falls to some 15 sigmas, not a few pixels.
+TEST(DetectGhosts, AnUnclippedCoreLeavesTheNoiseAndTheGhostsAlone) {
+    const double lx = 420.5, ly = 200.5;
+    ImageRGB image =
+        syntheticImage(640, 427, {{150.0, 220.0, 40.0, 3.0, 3.0}}, 0.0, 0.0, 0.0, 25.0, 1.0, 11);
+    for (int64_t y = 0; y < image.height; ++y)
+        for (int64_t x = 0; x < image.width; ++x) {
+            const double r =
+                std::hypot(static_cast<double>(x) + 0.5 - lx, static_cast<double>(y) + 0.5 - ly);
+            const double glare = 1e11 * std::pow(1.0 + r / 2.0, -10.0);
+            for (int c = 0; c < 3; ++c) image.at(x, y)[c] += static_cast<float>(glare);
+        }
+    auto detection = detectGhosts(makeFrame(std::move(image)));
+    ASSERT_TRUE(detection) << detection.error().message;
+    EXPECT_NEAR(detection->noise_sigma[0], 1.0, 0.25);
+    ASSERT_TRUE(detection->light.found);
+    EXPECT_NEAR(detection->light.centre_px.x(), lx, 1.0);
+    // The glare falls to 15 sigmas at r of about 17 px, and the margin adds 3; a thousandth of the
+    // core would have ended the disc at 2 px.
+    EXPECT_GT(detection->light.radius_px, 14.0);
+    EXPECT_LT(detection->light.radius_px, 30.0);
+    bool ghost = false;
+    for (const GhostCandidate& c : detection->candidates)
+        ghost = ghost || std::hypot(c.centroid_px.x() - 150.0, c.centroid_px.y() - 220.0) < 8.0;
+    EXPECT_TRUE(ghost) << detection->candidates.size() << " candidates";
+}
+
 }  // namespace
 }  // namespace flarelab::fit
