@@ -13,6 +13,23 @@
 #include "bench/response_bench.h"
 
 namespace flarelab::apps {
+namespace {
+
+// Writes `text` and a newline to `path` when a path is given; false (said on `err`) when that
+// fails.
+template <typename Text>
+bool writeJsonFile(const std::string& path, const Text& text, std::ostream& err) {
+    if (path.empty()) return true;
+    std::ofstream file(path);
+    file << text << "\n";
+    if (!file) {
+        err << "flarelab: cannot write " << path << "\n";
+        return false;
+    }
+    return true;
+}
+
+}  // namespace
 
 void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {
     CLI::App* bench = app.add_subcommand("bench", "measure speed and accuracy");
@@ -54,16 +71,7 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             exit_code = 1;
             return;
         }
-        if (!json_path->empty()) {
-            std::ofstream file(*json_path);
-            file << doc->dump(2) << "\n";
-            if (!file) {
-                err << "flarelab: cannot write " << *json_path << "\n";
-                exit_code = 1;
-                return;
-            }
-        }
-        exit_code = 0;
+        exit_code = writeJsonFile(*json_path, doc->dump(2), err) ? 0 : 1;
     });
 
     auto merge_options = std::make_shared<bench::MergeBenchOptions>();
@@ -98,16 +106,7 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             exit_code = 1;
             return;
         }
-        if (!merge_json_path->empty()) {
-            std::ofstream file(*merge_json_path);
-            file << doc->dump(2) << "\n";
-            if (!file) {
-                err << "flarelab: cannot write " << *merge_json_path << "\n";
-                exit_code = 1;
-                return;
-            }
-        }
-        exit_code = 0;
+        exit_code = writeJsonFile(*merge_json_path, doc->dump(2), err) ? 0 : 1;
     });
 
     auto fit_options = std::make_shared<bench::FitBenchOptions>();
@@ -141,16 +140,7 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             return;
         }
         bench::printFitBench(*report, out);
-        if (!fit_json_path->empty()) {
-            std::ofstream file(*fit_json_path);
-            file << bench::fitBenchJson(*report) << "\n";
-            if (!file) {
-                err << "flarelab: cannot write " << *fit_json_path << "\n";
-                exit_code = 1;
-                return;
-            }
-        }
-        exit_code = 0;
+        exit_code = writeJsonFile(*fit_json_path, bench::fitBenchJson(*report), err) ? 0 : 1;
     });
 
     auto oracle_options = std::make_shared<bench::OracleBenchOptions>();
@@ -179,16 +169,7 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             return;
         }
         bench::printOracleBench(*report, out);
-        if (!oracle_json_path->empty()) {
-            std::ofstream file(*oracle_json_path);
-            file << bench::oracleBenchJson(*report) << "\n";
-            if (!file) {
-                err << "flarelab: cannot write " << *oracle_json_path << "\n";
-                exit_code = 1;
-                return;
-            }
-        }
-        exit_code = 0;
+        exit_code = writeJsonFile(*oracle_json_path, bench::oracleBenchJson(*report), err) ? 0 : 1;
     });
 
     auto response_options = std::make_shared<bench::ResponseBenchOptions>();
@@ -226,16 +207,9 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             return;
         }
         bench::printResponseBench(*rows, out);
-        if (!response_json_path->empty()) {
-            std::ofstream file(*response_json_path);
-            file << bench::responseBenchJson(*rows).dump(2) << "\n";
-            if (!file) {
-                err << "flarelab: cannot write " << *response_json_path << "\n";
-                exit_code = 1;
-                return;
-            }
-        }
-        exit_code = 0;
+        exit_code = writeJsonFile(*response_json_path, bench::responseBenchJson(*rows).dump(2), err)
+                        ? 0
+                        : 1;
     });
 
     auto bracket_options = std::make_shared<bench::BracketBenchOptions>();
@@ -306,16 +280,8 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             return;
         }
         bench::printBracketBench(*rows, *bracket_options, out);
-        if (!bracket_json_path->empty()) {
-            std::ofstream file(*bracket_json_path);
-            file << bench::bracketBenchJson(*rows).dump(2) << "\n";
-            if (!file) {
-                err << "flarelab: cannot write " << *bracket_json_path << "\n";
-                exit_code = 1;
-                return;
-            }
-        }
-        exit_code = 0;
+        exit_code =
+            writeJsonFile(*bracket_json_path, bench::bracketBenchJson(*rows).dump(2), err) ? 0 : 1;
     });
     auto playback_options = std::make_shared<bench::PlaybackBenchOptions>();
     auto playback_json_path = std::make_shared<std::string>();
@@ -364,16 +330,9 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             return;
         }
         bench::printPlaybackBench(*result, out);
-        if (!playback_json_path->empty()) {
-            std::ofstream file(*playback_json_path);
-            file << bench::playbackBenchJson(*result).dump(2) << "\n";
-            if (!file) {
-                err << "flarelab: cannot write " << *playback_json_path << "\n";
-                exit_code = 1;
-                return;
-            }
-        }
-        exit_code = 0;
+        exit_code =
+            writeJsonFile(*playback_json_path, bench::playbackBenchJson(*result).dump(2), err) ? 0
+                                                                                               : 1;
     });
 }
 
