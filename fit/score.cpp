@@ -195,18 +195,14 @@ Result<AngleScore> compareImages(const ImageRGB& model,
         return makeError(ErrorCode::Internal, "score: the images hold non-finite values");
     double log_num = 0.0, log_den = 0.0;
     if (peak > 0.0) {
-        const double s = log_scale * peak;
-        const double norm = 1.0 / std::log1p(peak / s);
         for (int64_t y = 0; y < truth.height; ++y) {
             for (int64_t x = 0; x < truth.width; ++x) {
                 if (masked(x, y)) continue;
                 const float* m = model.at(x, y);
                 const float* t = truth.at(x, y);
                 for (int c = 0; c < 3; ++c) {
-                    const double lt =
-                        norm * std::log1p(std::max(0.0, static_cast<double>(t[c])) / s);
-                    const double lm =
-                        norm * std::log1p(std::max(0.0, static_cast<double>(m[c])) / s);
+                    const double lt = toneMapScore(t[c], peak, log_scale);
+                    const double lm = toneMapScore(m[c], peak, log_scale);
                     log_num += (lm - lt) * (lm - lt);
                     log_den += lt * lt;
                 }
