@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <functional>
+#include <limits>
 #include <optional>
 #include <random>
 #include <sstream>
@@ -400,6 +401,80 @@ SweepFitResult exactTracks(const std::function<bool(double)>& short_range) {
     result.tracks = {long_track, short_track};
     result.frame_count = 13;
     return result;
+}
+
+// The model's ghosts against the truth's at `angle`, drawn noiseless on the test's frame: the
+// relative L2 of the difference over the truth's image.
+double modelError(const FlareModel& model, const std::vector<TrueGhost>& truth, double angle) {
+    std::vector<GhostState> true_states;
+    for (const auto& g : truth)
+        if (present(g, angle)) true_states.push_back(trueState(g, angle));
+    auto at = modelGhostsAt(model, angle, 0.0);
+    if (!at) return std::numeric_limits<double>::infinity();
+    std::vector<GhostState> model_states;
+    for (const auto& g : *at) model_states.push_back(g.state);
+    const ImageRGB a = renderGhostStates(true_states, testMapping(), kWidth, kHeight);
+    const ImageRGB b = renderGhostStates(model_states, testMapping(), kWidth, kHeight);
+    double diff = 0.0, norm = 0.0;
+    for (size_t i = 0; i < a.pixels.size(); i += 3) {
+        diff += std::pow(double{b.pixels[i]} - double{a.pixels[i]}, 2);
+        norm += std::pow(double{a.pixels[i]}, 2);
+    }
+    return std::sqrt(diff / std::max(norm, 1e-30));
+}
+
+// Extremes the sweep fit must get through: frames missing in the middle of a sweep, a ghost
+// passing over the light.
+
+TEST(SweepFit, AGapOfMissingFramesIsBridged) {
+    // 0 .. 6 deg at 0.5 deg with 2.0 .. 3.5 missing (four frames, a third of the sweep's middle):
+    // each ghost keeps one track across the gap, and the model predicts inside it.
+    std::vector<double> angles;
+    for (const double a : angleRange(0.0, 0.5, 13))
+        if (a < 1.75 || a > 3.75) angles.push_back(a);
+    const SweepFitOptions options = quickOptions();
+    auto result = fitSweepFrames(syntheticSource(kTwoGhosts, angles), options);
+    ASSERT_TRUE(result) << result.error().message;
+    ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
+    for (const auto& track : result->tracks) {
+        EXPECT_EQ(track.samples.size(), angles.size()) << describe(*result);
+        const int g = nearestTruth(kTwoGhosts, track.samples.front().state, angles.front());
+        ASSERT_GE(g, 0);
+        for (const auto& sample : track.samples)
+            EXPECT_NEAR(boxCentreX(sample.state),
+                        trueState(kTwoGhosts[g], sample.angle_deg).shape.centre_x_mm, 0.15)
+                << "ghost " << g << " at " << sample.angle_deg;
+    }
+    auto model = buildModel(*result, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(model) << model.error().message;
+    ASSERT_EQ(model->ghosts.size(), 2u);
+    for (const double a : {2.0, 2.75, 3.5})
+        EXPECT_LT(modelError(*model, kTwoGhosts, a), 0.1) << "in the gap at " << a << " deg";
+}
+
+TEST(SweepFit, AGhostPassingOverTheLightKeepsItsTrack) {
+    // The light sits at x = -16 + 0.2 angle mm; ghost 0's centre, -17 + 0.6 angle, passes over
+    // it at 2.5 deg, the light's spot inside its disc from about 0 to 5 deg. The spot's disc is
+    // left out of the fit; the ghost around it is followed all along, as one track.
+    const std::vector<TrueGhost> truth = {{-17.0, 0.6, 3.0, 40.0, 0.0}, {6.0, 0.5, 3.5, 25.0, 0.0}};
+    const auto angles = angleRange(0.0, 0.5, 13);
+    const SweepFitOptions options = quickOptions();
+    auto result = fitSweepFrames(syntheticSource(truth, angles), options);
+    ASSERT_TRUE(result) << result.error().message;
+    ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
+    for (const auto& track : result->tracks) {
+        EXPECT_EQ(track.samples.size(), angles.size()) << describe(*result);
+        const int g = nearestTruth(truth, track.samples.front().state, angles.front());
+        ASSERT_GE(g, 0);
+        for (const auto& sample : track.samples)
+            EXPECT_NEAR(boxCentreX(sample.state),
+                        trueState(truth[g], sample.angle_deg).shape.centre_x_mm, 0.2)
+                << "ghost " << g << " at " << sample.angle_deg;
+    }
+    auto model = buildModel(*result, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(model) << model.error().message;
+    for (const double a : {1.25, 2.5, 2.75, 3.25})
+        EXPECT_LT(modelError(*model, truth, a), 0.1) << "at " << a << " deg";
 }
 
 // A fixed degree higher than a track's frames support is capped at them, not refused: the
