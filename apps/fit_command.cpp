@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "apps/camera_flags.h"
+#include "drivers/path_seeds.h"
 #include "drivers/sim_truth.h"
 #include "fit/sweep_fit.h"
 #include "hdr/sweep.h"
@@ -35,6 +36,7 @@ struct FitState {
     int distance_iterations = fit::CostOptions{}.distance.iterations;
     int degree = -1;
     int every = 1;
+    bool paths = false;
     bool quiet = false;
 };
 
@@ -134,6 +136,29 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.frame.cost.distance.iterations = s.distance_iterations;
     options.poly.fixed_degree = s.degree;
     options.frame_stride = s.every;
+    if (s.paths) {
+        if (!lens) {
+            err << "flarelab: fit: --paths needs --lens (the prescription whose ghost paths seed "
+                   "the tracks)\n";
+            return 2;
+        }
+        // The lens as the capture set it: its f-number, focal length and sensor.
+        CameraFlags flags;
+        if (sweep->header.lens.f_number) flags.f_number = *sweep->header.lens.f_number;
+        if (sweep->header.lens.focal_length_mm)
+            flags.focal_mm = *sweep->header.lens.focal_length_mm;
+        std::ostringstream sensor_text;
+        sensor_text << std::setprecision(17) << (*size)[0] << "x" << (*size)[1];
+        flags.sensor = sensor_text.str();
+        auto capture_lens = loadLens(s.lens_file, flags, err);
+        if (!capture_lens) return 1;
+        auto seeder = drivers::pathSeeder(*capture_lens);
+        if (!seeder) {
+            err << "flarelab: fit: " << seeder.error().message << "\n";
+            return 1;
+        }
+        options.path_seeds = std::move(*seeder);
+    }
     if (Status ok = fit::checkSweepFitOptions(options); !ok) {
         err << "flarelab: fit: " << ok.error().message << "\n";
         return 2;
@@ -169,10 +194,10 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         << " s -> " << s.output << "\n";
     const fit::SweepFitStages& st = result.stages;
     const std::pair<const char*, double> stages[] = {
-        {"load frames", st.load_ms},     {"detect", st.detect_ms},
-        {"fit frames", st.fit_ms},       {"follow new tracks back", st.extend_ms},
-        {"track", st.track_ms},          {"compress", st.compress_ms},
-        {"refit shading", st.shading_ms}};
+        {"load frames", st.load_ms},  {"detect", st.detect_ms},
+        {"fit frames", st.fit_ms},    {"follow new tracks back", st.extend_ms},
+        {"ghost paths", st.seed_ms},  {"track", st.track_ms},
+        {"compress", st.compress_ms}, {"refit shading", st.shading_ms}};
     // The two passes run side by side: their stages are summed over both.
     out << "  stage                    time_s   share\n";
     for (const auto& [name, ms] : stages)
@@ -472,6 +497,9 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                     "other frames `score --sweep` holds out")
         ->capture_default_str()
         ->check(CLI::Range(1, 1000));
+    fit->add_flag("--paths", fs->paths,
+                  "start tracks from the ghost paths of the --lens prescription (one track per "
+                  "path) instead of from detections");
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 

@@ -60,6 +60,7 @@ bool plausibleFit(
 
 struct Track {
     int64_t id = 0;
+    int64_t path = -1;                 // PathSeed::path, -1 when born from a detection
     std::vector<TrackSample> samples;  // in the order fitted; sorted at the end
     int missed = 0;
     bool live = false;
@@ -119,6 +120,75 @@ GhostState predictState(
 }
 
 using Clock = std::chrono::steady_clock;
+
+// A path seed's ghost as the frame shows it: the seed's outline with circle-like falloffs, its
+// inner intensity the median of the frame over the sky inside half its extents, its border the
+// 90th percentile between 0.6 and 1 of them (per channel; excluded pixels and pixels off the
+// frame are not looked at). nullopt when too little of it is in the frame to say.
+std::optional<GhostState> seedState(const FitFrame& frame,
+                                    const FrameDetection& detection,
+                                    const render::GhostShapeParams& shape,
+                                    int channels) {
+    const auto& m = frame.mapping;
+    const int64_t w = frame.image.width, h = frame.image.height;
+    const double x0 = m.centre_x_px + (shape.centre_x_mm - shape.left_mm) * m.px_per_mm_x;
+    const double x1 = m.centre_x_px + (shape.centre_x_mm + shape.right_mm) * m.px_per_mm_x;
+    const double y0 = m.centre_y_px + (shape.centre_y_mm - shape.half_height_mm) * m.px_per_mm_y;
+    const double y1 = m.centre_y_px + (shape.centre_y_mm + shape.half_height_mm) * m.px_per_mm_y;
+    const int64_t ix0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(x0)));
+    const int64_t ix1 = std::min<int64_t>(w - 1, static_cast<int64_t>(std::ceil(x1)));
+    const int64_t iy0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(y0)));
+    const int64_t iy1 = std::min<int64_t>(h - 1, static_cast<int64_t>(std::ceil(y1)));
+    if (ix1 < ix0 || iy1 < iy0) return std::nullopt;
+    // About 4096 pixels looked at, whatever the ghost's size.
+    const double area = static_cast<double>(ix1 - ix0 + 1) * static_cast<double>(iy1 - iy0 + 1);
+    const int64_t stride = std::max<int64_t>(1, static_cast<int64_t>(std::sqrt(area / 4096.0)));
+    std::array<std::vector<float>, 3> inner, border;
+    for (int64_t y = iy0; y <= iy1; y += stride) {
+        const double dy_mm =
+            (static_cast<double>(y) + 0.5 - m.centre_y_px) / m.px_per_mm_y - shape.centre_y_mm;
+        for (int64_t x = ix0; x <= ix1; x += stride) {
+            const size_t i = static_cast<size_t>(y * w + x);
+            if (detection.excluded[i]) continue;
+            const double dx_mm =
+                (static_cast<double>(x) + 0.5 - m.centre_x_px) / m.px_per_mm_x - shape.centre_x_mm;
+            const double ex = dx_mm < 0.0 ? shape.left_mm : shape.right_mm;
+            const double r = std::hypot(dx_mm / std::max(ex, 1e-9),
+                                        dy_mm / std::max(shape.half_height_mm, 1e-9));
+            for (int c = 0; c < channels; ++c) {
+                const float v =
+                    static_cast<float>(frame.image.pixels[3 * i + static_cast<size_t>(c)] -
+                                       detection.background[static_cast<size_t>(c)]);
+                if (!std::isfinite(v)) continue;
+                if (r <= 0.5)
+                    inner[static_cast<size_t>(c)].push_back(v);
+                else if (r >= 0.6 && r <= 1.0)
+                    border[static_cast<size_t>(c)].push_back(v);
+            }
+        }
+    }
+    if (inner[0].size() + border[0].size() < 8) return std::nullopt;
+    const auto at = [](std::vector<float>& v, double q) -> double {
+        if (v.empty()) return 0.0;
+        const size_t k =
+            std::min(v.size() - 1, static_cast<size_t>(q * static_cast<double>(v.size())));
+        std::nth_element(v.begin(), v.begin() + static_cast<std::ptrdiff_t>(k), v.end());
+        return std::max(0.0, static_cast<double>(v[k]));
+    };
+    GhostState state;
+    state.shape = shape;
+    for (int c = 0; c < 3; ++c) {
+        const size_t k = static_cast<size_t>(std::min(c, channels - 1));
+        state.shading.inner_rgb[static_cast<size_t>(c)] = at(inner[k], 0.5);
+        state.shading.border_rgb[static_cast<size_t>(c)] =
+            std::max(at(border[k], 0.9), state.shading.inner_rgb[static_cast<size_t>(c)]);
+    }
+    const double px_mm = 1.0 / std::max(m.px_per_mm_x, m.px_per_mm_y);
+    const double extent = std::min({shape.left_mm + shape.right_mm, 2.0 * shape.half_height_mm});
+    state.shading.inner_falloff_mm = std::max(0.15 * 0.5 * extent, px_mm);
+    state.shading.outer_falloff_mm = 1.5 * px_mm;
+    return state;
+}
 
 double msSince(Clock::time_point t0) {
     return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
@@ -346,7 +416,8 @@ Status SweepFitter::processFrame(
     const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));
     if (!live.empty() && !extend && from_start % options_.detect_every != 0)
         detect.circles = false;  // the predictions carry the fit; the cheap blobs still match
-    if (extend) detect.circles = false;
+    // Circles only start tracks; with the paths as seeds, the seeds do.
+    if (extend || options_.path_seeds) detect.circles = false;
     auto detection = detectIn(j, *frame, detect);
     if (!detection) return detection.error();
     const double angle = frames_.angles_deg[j];
@@ -378,6 +449,21 @@ Status SweepFitter::processFrame(
     for (size_t i = 0; i < live.size(); ++i)
         predicted[i] = predictState(tracks_[live[i]], angle, options_.history,
                                     options_.prediction_degree, ln_floor);
+    std::vector<PathSeed> seeds;
+    if (options_.path_seeds) {
+        const auto t_seed = Clock::now();
+        auto made = options_.path_seeds(angle);
+        result_.stages.seed_ms += msSince(t_seed);
+        if (!made)
+            return made.error().withContext("path seeds at " + std::to_string(angle) + " deg");
+        seeds = std::move(*made);
+        // A path's ghost is where the optics core puts it: the seed's outline is the prior of
+        // the track's shape, its history keeps the shading (the history's shape as prior scored
+        // worse: docs/path-tracking.md).
+        for (size_t i = 0; i < live.size(); ++i)
+            for (const PathSeed& seed : seeds)
+                if (seed.path == tracks_[live[i]].path) predicted[i].shape = seed.shape;
+    }
 
     // Detections in mm.
     const auto& candidates = detection->candidates;
@@ -460,9 +546,10 @@ Status SweepFitter::processFrame(
     // New tracks from detections that no ghost explains.
     std::vector<size_t> born;
     std::vector<GhostState> born_states;
-    const auto startTrack = [&](const GhostState& state) {
+    const auto startTrack = [&](const GhostState& state, int64_t path = -1) {
         Track track;
         track.id = static_cast<int64_t>(tracks_.size());
+        track.path = path;
         track.live = true;
         track.born_frame = static_cast<int>(j);
         track.born_direction = direction;
@@ -470,7 +557,32 @@ Status SweepFitter::processFrame(
         born.push_back(tracks_.size() - 1);
         born_states.push_back(state);
     };
-    if (allow_new) {
+    // With the prescription's paths: which are in view here, and new tracks from those no track
+    // follows.
+    std::vector<int64_t> seen_paths;
+    if (options_.path_seeds) {
+        const auto t_seed = Clock::now();
+        std::vector<int64_t> followed;
+        for (const size_t t : live) followed.push_back(tracks_[t].path);
+        for (const auto& entry : context) followed.push_back(tracks_[entry.track].path);
+        for (const PathSeed& seed : seeds) {
+            auto state = seedState(*frame, *detection, seed.shape, channels);
+            if (!state || outside(*state) ||
+                std::min(state->shape.left_mm + state->shape.right_mm,
+                         2.0 * state->shape.half_height_mm) < 2.0 * pixel_mm ||
+                peakSigmas(*state) < kFadedSigmas)
+                continue;
+            seen_paths.push_back(seed.path);
+            if (!allow_new ||
+                std::find(followed.begin(), followed.end(), seed.path) != followed.end())
+                continue;
+            if (static_cast<int>(live.size() + born.size()) >= options_.max_ghosts) continue;
+            followed.push_back(seed.path);
+            startTrack(*state, seed.path);
+        }
+        result_.stages.seed_ms += msSince(t_seed);
+    }
+    if (allow_new && !options_.path_seeds) {
         for (size_t c = 0; c < candidates.size(); ++c) {
             if (used[c]) continue;
             if (static_cast<int>(live.size() + born.size()) >= options_.max_ghosts) break;
@@ -529,10 +641,12 @@ Status SweepFitter::processFrame(
     ghosts.insert(ghosts.end(), born_states.begin(), born_states.end());
     FrameFitReport report;
     if (!ghosts.empty()) {
-        // Priors: the live tracks' predictions; new ghosts have none (their detection is all
-        // there is).
+        // Priors: the live tracks' predictions; a ghost new from a detection has none (its
+        // detection is all there is), one new from a path has its seed's outline.
+        const std::span<const GhostState> priors(
+            ghosts.data(), options_.path_seeds ? ghosts.size() : predicted.size());
         const auto t0 = Clock::now();
-        auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame, predicted, fixed);
+        auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame, priors, fixed);
         (extend ? result_.stages.extend_ms : result_.stages.fit_ms) += msSince(t0);
         if (!fitted)
             return fitted.error().withContext("frame " + std::to_string(j) + " (" +
@@ -625,7 +739,9 @@ Status SweepFitter::processFrame(
         }
         track.samples.push_back({angle, state, ghostCost(k)});
         has_sample[i] = true;
-        const bool seen = is_born || matched[i] || peak >= options_.detect.threshold_sigmas;
+        const bool seen = is_born || matched[i] || peak >= options_.detect.threshold_sigmas ||
+                          (track.path >= 0 && std::find(seen_paths.begin(), seen_paths.end(),
+                                                        track.path) != seen_paths.end());
         track.missed = seen ? 0 : track.missed + 1;
         if (track.missed > options_.max_missed) track.live = false;
     }
@@ -657,6 +773,10 @@ Status SweepFitter::processFrame(
             if (gone(present[a])) break;
             if (gone(present[b])) continue;
             if (!sameGhost(stateOf(present[a]), stateOf(present[b]), half_pixel_mm)) continue;
+            // Two paths' ghosts may coincide (concentric at 0 deg); both stay.
+            const int64_t path_a = tracks_[present[a].track].path;
+            const int64_t path_b = tracks_[present[b].track].path;
+            if (path_a >= 0 && path_b >= 0 && path_a != path_b) continue;
             const bool a_endable = present[a].fitted_index != npos;
             const bool b_endable = present[b].fitted_index != npos;
             if (!a_endable && !b_endable) continue;
@@ -746,6 +866,7 @@ void SweepFitter::mergeBackward(SweepFitter& backward,
     st.load_ms += b.load_ms;
     st.detect_ms += b.detect_ms;
     st.fit_ms += b.fit_ms;
+    st.seed_ms += b.seed_ms;
 }
 
 Result<SweepFitResult> SweepFitter::run() {
@@ -806,7 +927,9 @@ Result<SweepFitResult> SweepFitter::run() {
     // Tracks born away from the start, followed back from where they were born.
     const size_t born_count = tracks_.size();
     for (size_t t = 0; t < born_count; ++t) {
-        if (tracks_[t].born_direction == 0 || tracks_[t].samples.empty()) continue;
+        // A path's track starts where its ghost comes into view and rises above the noise.
+        if (tracks_[t].born_direction == 0 || tracks_[t].samples.empty() || tracks_[t].path >= 0)
+            continue;
         const int step = -tracks_[t].born_direction;
         tracks_[t].live = true;
         tracks_[t].missed = 0;
@@ -821,18 +944,38 @@ Result<SweepFitResult> SweepFitter::run() {
         }
     }
 
+    // The pieces of one path (a track ended, and started again from the path's seed further on,
+    // or in the other pass) become one track, the earliest's; where two hold the same frame, the
+    // lower cost stays.
+    for (size_t t = 0; t < tracks_.size(); ++t) {
+        if (tracks_[t].path < 0) continue;
+        for (size_t u = t + 1; u < tracks_.size(); ++u) {
+            if (tracks_[u].path != tracks_[t].path) continue;
+            auto& into = tracks_[t].samples;
+            for (TrackSample& sample : tracks_[u].samples) {
+                auto same = std::find_if(into.begin(), into.end(), [&](const TrackSample& k) {
+                    return k.angle_deg == sample.angle_deg;
+                });
+                if (same == into.end())
+                    into.push_back(std::move(sample));
+                else if (sample.cost < same->cost)
+                    *same = std::move(sample);
+            }
+            tracks_[u].samples.clear();
+        }
+    }
     for (Track& track : tracks_) {
         if (track.samples.empty()) continue;
         std::sort(
             track.samples.begin(), track.samples.end(),
             [](const TrackSample& a, const TrackSample& b) { return a.angle_deg < b.angle_deg; });
-        result_.tracks.push_back({track.id, std::move(track.samples)});
+        result_.tracks.push_back({track.id, track.path, std::move(track.samples)});
     }
     result_.sky = sky_;
     result_.time_ms = msSince(t0);
     SweepFitStages& st = result_.stages;
-    st.track_ms =
-        std::max(0.0, result_.time_ms - st.load_ms - st.detect_ms - st.fit_ms - st.extend_ms);
+    st.track_ms = std::max(
+        0.0, result_.time_ms - st.load_ms - st.detect_ms - st.fit_ms - st.extend_ms - st.seed_ms);
     st.total_ms = result_.time_ms;
     return std::move(result_);
 }

@@ -50,6 +50,15 @@
 
 namespace flarelab::fit {
 
+// A ghost path of the lens's prescription at a head angle, where the optics core puts its ghost
+// (`fit --lens FILE --paths`): the stop's image through the path, before vignetting.
+struct PathSeed {
+    int64_t path = 0;  // the path's identity: the same number at every angle
+    render::GhostShapeParams shape;
+};
+// The seeds at a head angle; called from two threads at once (the passes run side by side).
+using PathSeeder = std::function<Result<std::vector<PathSeed>>(double angle_deg)>;
+
 struct SweepFitOptions {
     DetectOptions detect;
     FrameFitOptions frame;
@@ -84,6 +93,11 @@ struct SweepFitOptions {
     // longest ago are let go first), so that the passes, the tracks followed back and the
     // shading refit decode each frame once: a 640 x 427 frame takes 3.3 MB. 0 reads every time.
     int64_t frame_cache_bytes = int64_t{1} << 30;
+    // When set, tracks start only from these (one per path, where its ghost is in view and lit
+    // above the noise, its shading read off the frame) instead of from detections, ghosts of two
+    // paths are never ended as duplicates of each other, and the pieces of one path become one
+    // track. Empty: the tracks come from detections alone (a lens with no prescription).
+    PathSeeder path_seeds;
     // When set and it becomes true, the fit stops before its next frame with an Unsupported
     // error "sweep fit: cancelled" (a daemon's job being cancelled or the daemon stopping).
     const std::atomic<bool>* cancel = nullptr;
@@ -97,6 +111,7 @@ struct TrackSample {
 
 struct GhostTrack {
     int64_t id = 0;
+    int64_t path = -1;                 // the PathSeed::path it was started from, -1 without seeds
     std::vector<TrackSample> samples;  // ascending angle, one per frame
 };
 
@@ -115,6 +130,7 @@ struct SweepFitStages {
     double detect_ms = 0.0;    // detectGhosts, start probes included
     double fit_ms = 0.0;       // fitFrame in the forward and backward passes
     double extend_ms = 0.0;    // fitFrame following tracks born away from the start back
+    double seed_ms = 0.0;      // SweepFitOptions::path_seeds and reading the seeds off the frames
     double track_ms = 0.0;     // the rest of the passes: prediction, matching, track ends
     double compress_ms = 0.0;  // buildModel: the Chebyshev series (fitSweep only)
     double shading_ms = 0.0;   // refitShading, its frame loads included (fitSweep only)

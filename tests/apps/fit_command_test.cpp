@@ -148,6 +148,9 @@ TEST(FitCommand, RefusesWhatItCannotUse) {
     r = run({"fit", sweepDir(), "-o", model.string(), "--sensor-mm", "36x24", "--samples", "2"});
     EXPECT_EQ(r.code, 2);
     EXPECT_NE(r.err.find("max_samples"), std::string::npos) << r.err;
+    r = run({"fit", sweepDir(), "-o", model.string(), "--sensor-mm", "36x24", "--paths"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("--paths needs --lens"), std::string::npos) << r.err;
     r = run({"fit", "/nonexistent/sweep", "-o", model.string()});
     EXPECT_NE(r.code, 0);
     EXPECT_FALSE(fs::exists(model));
@@ -158,6 +161,23 @@ TEST(FitCommand, RefusesWhatItCannotUse) {
              flarelab::testing::lensPath("double-gauss-tronnier-50mm.csv")});
     EXPECT_EQ(r.code, 2);
     EXPECT_NE(r.err.find("not the lens the model was fitted with"), std::string::npos) << r.err;
+    fs::remove(model);
+}
+
+TEST(FitCommand, PathsSeedTheTracksFromThePrescription) {
+    // The recorded Heliar sweep, 0 to 2 deg: with --paths its ghosts are the lens's paths, each
+    // one track, so the model holds no more ghosts than the lens has paths lit there.
+    const fs::path model = tempPath("heliar-paths.flm");
+    const CommandRun fitted =
+        run({"fit", sweepDir(), "--lens", lensFile(), "--paths", "-o", model.string(), "--quiet"});
+    ASSERT_EQ(fitted.code, 0) << fitted.err;
+    auto read = fit::readModel(model.string());
+    ASSERT_TRUE(read.has_value()) << read.error().message;
+    EXPECT_GE(read->ghosts.size(), 1u);
+    EXPECT_LE(read->ghosts.size(), 13u);  // the Heliar's two-reflection paths
+    const CommandRun scored = run({"score", model.string(), "--lens", lensFile(), "--json",
+                                   "--halfway", "2", "--random", "1", "--fitted", "2"});
+    ASSERT_EQ(scored.code, 0) << scored.err;
     fs::remove(model);
 }
 

@@ -477,6 +477,95 @@ TEST(SweepFit, AGhostPassingOverTheLightKeepsItsTrack) {
         EXPECT_LT(modelError(*model, truth, a), 0.1) << "at " << a << " deg";
 }
 
+// The true ghosts' outlines as path seeds (what drivers::pathSeeder gives from a prescription),
+// each ghost its own path.
+PathSeeder trueSeeder(const std::vector<TrueGhost>& truth) {
+    return [truth](double angle) -> Result<std::vector<PathSeed>> {
+        std::vector<PathSeed> seeds;
+        for (size_t g = 0; g < truth.size(); ++g)
+            if (present(truth[g], angle))
+                seeds.push_back({static_cast<int64_t>(g), trueState(truth[g], angle).shape});
+        return seeds;
+    };
+}
+
+TEST(SweepFit, GhostsThatMergeAndSplitKeepTheirOwnPaths) {
+    // A small bright disc moving right and a large dim one moving left, 1 mm closer every frame,
+    // overlap from about 1.1 to 4.9 deg and are concentric at 3 deg. From detections alone the
+    // tracker loses them there (8 tracks on this sweep, 5 when started at the first frame: the
+    // concentric frame looks like the best start). With the paths as seeds each track keeps its
+    // own ghost through the merge, and the model draws both at every angle.
+    const std::vector<TrueGhost> truth = {{-6.0, 2.0, 2.5, 40.0, 0.0}, {6.0, -2.0, 5.0, 15.0, 0.0}};
+    const auto angles = angleRange(0.0, 0.25, 25);
+    SweepFitOptions options = quickOptions();
+    options.path_seeds = trueSeeder(truth);
+    const FrameSource source = syntheticSource(truth, angles);
+    auto result = fitSweepFrames(source, options);
+    ASSERT_TRUE(result) << result.error().message;
+    ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
+    for (const auto& track : result->tracks) {
+        ASSERT_TRUE(track.path == 0 || track.path == 1);
+        const int g = static_cast<int>(track.path);
+        // A frame whose fit runs off is a miss, not a sample (one, next to the crossing).
+        EXPECT_GE(track.samples.size(), angles.size() - 1) << describe(*result);
+        for (const auto& sample : track.samples) {
+            const GhostState want = trueState(truth[g], sample.angle_deg);
+            EXPECT_NEAR(boxCentreX(sample.state), want.shape.centre_x_mm, 0.2)
+                << "ghost " << g << " at " << sample.angle_deg << "\n"
+                << describe(*result);
+            EXPECT_NEAR(ghostSize(sample.state), truth[g].radius_mm, 0.3)
+                << "ghost " << g << " at " << sample.angle_deg;
+        }
+    }
+    // Concentric, the two trade light between them frame by frame (the small disc's inside is
+    // the sum of both); the shading refit over the whole sweep settles it.
+    auto model = buildModel(*result, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(model) << model.error().message;
+    auto refit = refitShading(*model, source, result->sky, options.detect, options.frame.cost,
+                              options.shading);
+    ASSERT_TRUE(refit) << refit.error().message;
+    for (const double a : {1.125, 2.125, 3.875, 4.375})
+        EXPECT_LT(modelError(*model, truth, a), 0.1) << "at " << a << " deg";
+    for (const double a : {2.875, 3.0, 3.125})  // concentric
+        EXPECT_LT(modelError(*model, truth, a), 0.15) << "at " << a << " deg";
+}
+
+TEST(SweepFit, PathSeedsStartOnlyWhatIsLitAndJoinAPathsPieces) {
+    // Ghost 1 fades in at 2 deg (border 0 there); its seed is given from the start, but no track
+    // starts before its light rises above the noise. A seed for a path that puts nothing in the
+    // frame (a third, absent ghost) starts nothing. A seeder's error ends the fit with it.
+    std::vector<TrueGhost> truth = {{-9.0, 0.5, 3.0, 40.0, 0.0}, {4.0, 0.5, 3.5, -8.0, 4.0}};
+    const auto angles = angleRange(0.0, 0.5, 13);
+    SweepFitOptions options = quickOptions();
+    std::vector<TrueGhost> seeded = truth;
+    seeded[1].border0 = 1.0;                       // seeded everywhere
+    seeded.push_back({14.0, 0.0, 1.5, 5.0, 0.0});  // a path that draws nothing here
+    options.path_seeds = trueSeeder(seeded);
+    auto result = fitSweepFrames(syntheticSource(truth, angles), options);
+    ASSERT_TRUE(result) << result.error().message;
+    ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
+    for (const auto& track : result->tracks) {
+        ASSERT_TRUE(track.path == 0 || track.path == 1) << track.path;
+        if (track.path == 0) {
+            EXPECT_EQ(track.samples.size(), angles.size());
+        } else {
+            EXPECT_GT(track.samples.front().angle_deg, 2.0) << describe(*result);
+            EXPECT_EQ(track.samples.back().angle_deg, angles.back());
+            // One track from where it is lit to the end, whichever pass started it.
+            EXPECT_EQ(
+                track.samples.size(),
+                static_cast<size_t>(std::lround((6.0 - track.samples.front().angle_deg) / 0.5)) +
+                    1);
+        }
+    }
+    options.path_seeds = [](double) -> Result<std::vector<PathSeed>> {
+        return makeError(ErrorCode::InvalidArgument, "no paths here");
+    };
+    auto failed = fitSweepFrames(syntheticSource(truth, angles), options);
+    ASSERT_FALSE(failed);
+    EXPECT_NE(failed.error().message.find("no paths here"), std::string::npos);
+}
+
 // A fixed degree higher than a track's frames support is capped at them, not refused: the
 // whole model must not fail for one short track.
 TEST(SweepFit, FixedDegreeAboveAShortTrackIsCapped) {
