@@ -13,8 +13,10 @@
 #include <vector>
 
 #include "apps/camera_flags.h"
+#include "apps/fit_command.h"
 #include "drivers/auto_bracket.h"
 #include "drivers/calibration.h"
+#include "drivers/lens_settings.h"
 #include "drivers/rig.h"
 #include "hdr/merge.h"
 #include "hdr/raw_io.h"
@@ -68,6 +70,19 @@ std::string bracketText(const std::vector<double>& times) {
     std::ostringstream o;
     for (size_t k = 0; k < times.size(); ++k) o << (k ? "," : "") << times[k];
     return o.str();
+}
+
+// Whether the simulated camera wears the --lens file's lens: a sim: URI may name its own.
+bool sameLens(const optics::Lens& a, const optics::Lens& b) {
+    if (a.name() != b.name() || a.surfaces().size() != b.surfaces().size()) return false;
+    for (size_t i = 0; i < a.surfaces().size(); ++i) {
+        const optics::LensSurface& x = a.surfaces()[i];
+        const optics::LensSurface& y = b.surfaces()[i];
+        if (x.z_mm != y.z_mm || x.curvature != y.curvature || x.ior_d != y.ior_d ||
+            x.abbe != y.abbe)
+            return false;
+    }
+    return true;
 }
 
 int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
@@ -189,25 +204,34 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
                                   ? "flarelab capture (simulated rig)"
                                   : "flarelab capture (" + camera_uri + ", " + head_uri + ")";
     const optics::Lens* sim_lens = rig->sim_camera ? &rig->sim_camera->lens() : nullptr;
-    if (sim_lens)
-        header.lens.description = sim_lens->name();
-    else if (lens)
-        header.lens.description = lens->name();
+    // The lens and its camera settings, so that a score simulates the same lens again: the
+    // simulated camera's own, or the one --lens says a real camera wears.
+    const optics::Lens* described = sim_lens ? sim_lens : lens ? &*lens : nullptr;
+    if (described) header.lens = drivers::describeLens(*described);
+    if (!sim_lens) {
+        // A real camera's sensor is what its pixel pitch says, not the --sensor-mm default.
+        header.lens.sensor_width_mm.reset();
+        header.lens.sensor_height_mm.reset();
+    }
+    if (lens && (!sim_lens || sameLens(*sim_lens, *lens))) {
+        auto digest = sha256Hex(s.lens_file);
+        if (!digest) {
+            err << "flarelab: " << digest.error().message << "\n";
+            return 1;
+        }
+        header.lens.prescription_file = s.lens_file;
+        header.lens.prescription_sha256 = *digest;
+    }
     header.camera.description = camera.identity().model;
     header.camera.serial = camera.identity().serial;
     header.camera.bit_depth = caps.bit_depth;
-    // The sensor's geometry and the lens settings, so that a fit maps pixels to sensor mm: the
-    // simulated camera's own; for other cameras what --pixel-um says.
-    const optics::Lens* described = sim_lens ? sim_lens : lens ? &*lens : nullptr;
+    // The sensor's geometry, so that a fit maps pixels to sensor mm: the simulated camera's own;
+    // for other cameras what --pixel-um says.
     if (s.pixel_um > 0.0)
         header.camera.pixel_pitch_um = s.pixel_um;
     else if (sim_lens)
         header.camera.pixel_pitch_um =
             1000.0 * sim_lens->camera().sensor_width_mm / static_cast<double>(caps.width_px);
-    if (described && described->camera().f_number > 0.0)
-        header.lens.f_number = described->camera().f_number;
-    if (described && described->camera().focal_length_mm > 0.0)
-        header.lens.focal_length_mm = described->camera().focal_length_mm;
     header.capture.from_deg = s.from_deg;
     header.capture.to_deg = s.to_deg;
     header.capture.step_deg = s.step_deg;

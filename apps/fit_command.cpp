@@ -13,11 +13,12 @@
 #include <sstream>
 #include <vector>
 
-#include "apps/camera_flags.h"
+#include "drivers/lens_settings.h"
 #include "drivers/path_seeds.h"
 #include "drivers/sim_truth.h"
 #include "fit/sweep_fit.h"
 #include "hdr/sweep.h"
+#include "optics/prescription.h"
 #include "render/preview.h"
 
 namespace flarelab::apps {
@@ -90,29 +91,36 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         }
         have_sensor = true;
     }
+    const hdr::SweepLens& recorded = sweep->header.lens;
     std::optional<optics::Lens> lens;
     std::string sha;
     if (!s.lens_file.empty()) {
-        lens = loadLens(s.lens_file, CameraFlags{}, err);
-        if (!lens) return 1;
         auto digest = sha256Hex(s.lens_file);
         if (!digest) {
             err << "flarelab: fit: " << digest.error().message << "\n";
             return 1;
         }
         sha = *digest;
-        // The sensor the sweep records (its pixel pitch times the frame size), not the flags
-        // default; the default (36 x 24 mm) where the two agree to a pixel, since the pitch
-        // carries the width's rounding into the height.
-        if (!have_sensor) {
-            sensor = {lens->camera().sensor_width_mm, lens->camera().sensor_height_mm};
+        if (!recorded.prescription_sha256.empty() && sha != recorded.prescription_sha256) {
+            err << "flarelab: fit: " << s.lens_file << " is not the lens the sweep was captured "
+                << "with (" << recorded.prescription_file << ", sha256 "
+                << recorded.prescription_sha256 << ")\n";
+            return 2;
+        }
+        // An older sweep records no sensor size: the one the sweep's pixel pitch gives (times
+        // the frame size), not the flags' default; the default (36 x 24 mm) where the two agree
+        // to a pixel, since the pitch carries the width's rounding into the height.
+        const bool sensor_recorded = recorded.sensor_width_mm && recorded.sensor_height_mm;
+        if (!have_sensor && !sensor_recorded) {
+            const optics::CameraDescription defaults;
+            sensor = {defaults.sensor_width_mm, defaults.sensor_height_mm};
             have_sensor = true;
-            if (auto recorded = fit::sweepSensorSize(*sweep, nullptr)) {
+            if (auto from_pitch = fit::sweepSensorSize(*sweep, nullptr)) {
                 const double pitch =
-                    (*recorded)[0] / static_cast<double>(sweep->header.capture.width_px);
-                if (std::abs((*recorded)[0] - sensor[0]) > pitch ||
-                    std::abs((*recorded)[1] - sensor[1]) > pitch)
-                    sensor = *recorded;
+                    (*from_pitch)[0] / static_cast<double>(sweep->header.capture.width_px);
+                if (std::abs((*from_pitch)[0] - sensor[0]) > pitch ||
+                    std::abs((*from_pitch)[1] - sensor[1]) > pitch)
+                    sensor = *from_pitch;
             }
         }
     }
@@ -120,6 +128,22 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     if (!size) {
         err << "flarelab: fit: " << size.error().message << "\n";
         return 2;
+    }
+    if (!s.lens_file.empty()) {
+        // The lens as the sweep records its camera settings; the model copies them from the
+        // sweep (fit::modelLens).
+        auto prescription = optics::loadPrescription(s.lens_file);
+        if (!prescription) {
+            err << "flarelab: fit: " << prescription.error().message << "\n";
+            return 1;
+        }
+        auto rebuilt =
+            drivers::rebuildLens(*prescription, fit::modelLens(recorded, (*size)[0], (*size)[1]));
+        if (!rebuilt) {
+            err << "flarelab: fit: " << rebuilt.error().message << "\n";
+            return 1;
+        }
+        lens = std::move(rebuilt->lens);
     }
     fit::SweepFitOptions options;
     if (s.optimizer == "ceres") {
@@ -142,17 +166,8 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
                    "the tracks)\n";
             return 2;
         }
-        // The lens as the capture set it: its f-number, focal length and sensor.
-        CameraFlags flags;
-        if (sweep->header.lens.f_number) flags.f_number = *sweep->header.lens.f_number;
-        if (sweep->header.lens.focal_length_mm)
-            flags.focal_mm = *sweep->header.lens.focal_length_mm;
-        std::ostringstream sensor_text;
-        sensor_text << std::setprecision(17) << (*size)[0] << "x" << (*size)[1];
-        flags.sensor = sensor_text.str();
-        auto capture_lens = loadLens(s.lens_file, flags, err);
-        if (!capture_lens) return 1;
-        auto seeder = drivers::pathSeeder(*capture_lens);
+        // The lens as the sweep records the capture's settings (above).
+        auto seeder = drivers::pathSeeder(*lens);
         if (!seeder) {
             err << "flarelab: fit: " << seeder.error().message << "\n";
             return 1;
@@ -237,21 +252,6 @@ nlohmann::json summaryJson(const fit::ScoreSummary& s) {
             {"median_masked_energy_fraction", s.median_masked_energy_fraction}};
 }
 
-// The lens of the capture: the prescription with the f-number, focal length and sensor size the
-// model recorded (what the sweep's camera used), not the command line's defaults.
-std::optional<optics::Lens> captureLens(const std::string& path,
-                                        const fit::FlareModel& model,
-                                        std::ostream& err) {
-    CameraFlags flags;
-    if (model.lens.f_number) flags.f_number = *model.lens.f_number;
-    if (model.lens.focal_length_mm) flags.focal_mm = *model.lens.focal_length_mm;
-    std::ostringstream sensor;
-    sensor << std::setprecision(17) << model.lens.sensor_width_mm << "x"
-           << model.lens.sensor_height_mm;
-    flags.sensor = sensor.str();
-    return loadLens(path, flags, err);
-}
-
 // The sweep's frames the model was not fitted to: inside its valid range and off its capture
 // grid (a sparse fit, `fit --every K`). Refused when the sweep is not the model's.
 Result<std::vector<double>> leftOutAngles(const std::string& directory,
@@ -330,7 +330,7 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: score: " << model.error().message << "\n";
         return 1;
     }
-    auto lens = captureLens(s.lens_file, *model, err);
+    auto lens = captureLens(s.lens_file, *model, s.model, err);
     if (!lens) return 1;
     if (!model->lens.prescription_sha256.empty()) {
         auto digest = sha256Hex(s.lens_file);
@@ -446,6 +446,30 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
 }
 
 }  // namespace
+
+std::optional<optics::Lens> captureLens(const std::string& lens_path,
+                                        const fit::FlareModel& model,
+                                        const std::string& model_path,
+                                        std::ostream& err) {
+    auto prescription = optics::loadPrescription(lens_path);
+    if (!prescription) {
+        err << "flarelab: score: " << prescription.error().message << "\n";
+        return std::nullopt;
+    }
+    auto rebuilt = drivers::rebuildLens(*prescription, model.lens);
+    if (!rebuilt) {
+        err << "flarelab: score: " << rebuilt.error().message << "\n";
+        return std::nullopt;
+    }
+    if (!rebuilt->assumed.empty()) {
+        err << "flarelab: score: note: " << model_path << " (model format " << model.format_version
+            << ") does not record the capture's ";
+        for (size_t i = 0; i < rebuilt->assumed.size(); ++i)
+            err << (i ? ", " : "") << rebuilt->assumed[i];
+        err << "; a capture taken otherwise is scored against another lens\n";
+    }
+    return std::move(rebuilt->lens);
+}
 
 Result<std::string> sha256Hex(const std::string& path) {
     std::ifstream in(path, std::ios::binary);

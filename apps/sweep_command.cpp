@@ -45,10 +45,21 @@ Json clippedJson(const hdr::Sweep& s) {
 
 Json toJson(const hdr::Sweep& s, bool checked) {
     const hdr::SweepHeader& h = s.header;
-    Json lens = {{"description", h.lens.description},
-                 {"serial", h.lens.serial},
-                 {"focal_length_mm", optionalNumber(h.lens.focal_length_mm)},
-                 {"f_number", optionalNumber(h.lens.f_number)}};
+    Json lens = {
+        {"description", h.lens.description},
+        {"serial", h.lens.serial},
+        {"focal_length_mm", optionalNumber(h.lens.focal_length_mm)},
+        {"f_number", optionalNumber(h.lens.f_number)},
+        {"aperture_blades", h.lens.aperture_blades ? Json(*h.lens.aperture_blades) : Json(nullptr)},
+        {"blade_rotation_deg", optionalNumber(h.lens.blade_rotation_deg)},
+        {"stop_semi_aperture_mm", optionalNumber(h.lens.stop_semi_aperture_mm)},
+        {"coat_unspecified_surfaces", h.lens.coat_unspecified_surfaces
+                                          ? Json(*h.lens.coat_unspecified_surfaces)
+                                          : Json(nullptr)},
+        {"sensor_width_mm", optionalNumber(h.lens.sensor_width_mm)},
+        {"sensor_height_mm", optionalNumber(h.lens.sensor_height_mm)},
+        {"prescription_file", h.lens.prescription_file},
+        {"prescription_sha256", h.lens.prescription_sha256}};
     Json camera = {{"description", h.camera.description},
                    {"serial", h.camera.serial},
                    {"pixel_pitch_um", optionalNumber(h.camera.pixel_pitch_um)},
@@ -91,6 +102,19 @@ void printText(const hdr::Sweep& s, bool checked, std::ostream& out) {
     if (!h.lens.serial.empty()) out << ", serial " << h.lens.serial;
     if (h.lens.focal_length_mm) out << ", " << *h.lens.focal_length_mm << " mm";
     if (h.lens.f_number) out << ", f/" << *h.lens.f_number;
+    if (h.lens.aperture_blades)
+        out << (*h.lens.aperture_blades == 0
+                    ? std::string(", circular stop")
+                    : ", " + std::to_string(*h.lens.aperture_blades) + " blades");
+    if (h.lens.blade_rotation_deg && h.lens.aperture_blades.value_or(0) != 0)
+        out << " rotated " << *h.lens.blade_rotation_deg << " deg";
+    if (h.lens.stop_semi_aperture_mm)
+        out << ", stop semi-aperture " << *h.lens.stop_semi_aperture_mm << " mm";
+    if (h.lens.coat_unspecified_surfaces)
+        out << ", unspecified surfaces " << (*h.lens.coat_unspecified_surfaces ? "coated" : "bare");
+    if (h.lens.sensor_width_mm && h.lens.sensor_height_mm)
+        out << ", sensor " << *h.lens.sensor_width_mm << " x " << *h.lens.sensor_height_mm << " mm";
+    if (!h.lens.prescription_file.empty()) out << ", prescription " << h.lens.prescription_file;
     out << "\n";
 
     out << "camera: " << (h.camera.description.empty() ? "(not described)" : h.camera.description);

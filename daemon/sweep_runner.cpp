@@ -23,6 +23,7 @@
 #include "daemon/bounded_queue.h"
 #include "daemon/log.h"
 #include "drivers/auto_bracket.h"
+#include "drivers/lens_settings.h"
 #include "drivers/replay.h"
 #include "drivers/sim_camera.h"
 #include "drivers/sim_head.h"
@@ -324,7 +325,14 @@ Result<hdr::SweepWriter> SweepJob::openSweep() {
         const optics::Lens* lens = sweep_.lens   ? &*sweep_.lens
                                    : sim_camera_ ? &sim_camera_->lens()
                                                  : nullptr;
-        header.lens.description = lens ? lens->name() : c.lens_description();
+        // The lens with its camera settings, as `flarelab capture` records them, so that a score
+        // simulates the same lens again.
+        if (lens) {
+            header.lens = drivers::describeLens(*lens);
+            if (sweep_.lens && c.has_sim()) header.lens.prescription_file = c.sim().lens().name();
+        } else {
+            header.lens.description = c.lens_description();
+        }
         header.camera.description = camera_->identity().model;
         header.camera.serial = camera_->identity().serial;
         header.camera.bit_depth = camera_->capabilities().bit_depth;
@@ -333,9 +341,6 @@ Result<hdr::SweepWriter> SweepJob::openSweep() {
         else if (lens)
             header.camera.pixel_pitch_um =
                 1000.0 * lens->camera().sensor_width_mm / static_cast<double>(width_px_);
-        if (lens && lens->camera().f_number > 0.0) header.lens.f_number = lens->camera().f_number;
-        if (lens && lens->camera().focal_length_mm > 0.0)
-            header.lens.focal_length_mm = lens->camera().focal_length_mm;
     }
     header.capture.from_deg = c.from_deg();
     header.capture.to_deg = c.to_deg();

@@ -1,6 +1,7 @@
 #include "fit/frame.h"
 
 #include <cmath>
+#include <iomanip>
 #include <sstream>
 #include <utility>
 
@@ -8,6 +9,23 @@ namespace flarelab::fit {
 
 Result<std::array<double, 2>> sweepSensorSize(const hdr::Sweep& sweep,
                                               const std::array<double, 2>* sensor_mm) {
+    const auto& lens = sweep.header.lens;
+    if (lens.sensor_width_mm && lens.sensor_height_mm) {
+        const std::array<double, 2> recorded{*lens.sensor_width_mm, *lens.sensor_height_mm};
+        // Equal but for the rounding of a decimal round trip ("36x24" typed again).
+        const auto same = [](double a, double b) { return std::abs(a - b) <= 1e-9 * std::abs(b); };
+        if (sensor_mm &&
+            !(same((*sensor_mm)[0], recorded[0]) && same((*sensor_mm)[1], recorded[1]))) {
+            std::ostringstream why;
+            why << std::setprecision(17) << "sensor size: " << (*sensor_mm)[0] << " x "
+                << (*sensor_mm)[1] << " mm contradicts the " << recorded[0] << " x " << recorded[1]
+                << " mm that sweep " << sweep.directory
+                << " records (lens.sensor_width_mm, lens.sensor_height_mm), the size its frames "
+                   "were taken with; leave the sensor size out";
+            return makeError(ErrorCode::InvalidArgument, why.str());
+        }
+        return recorded;
+    }
     if (sensor_mm) {
         if (!((*sensor_mm)[0] > 0.0) || !((*sensor_mm)[1] > 0.0) ||
             !std::isfinite((*sensor_mm)[0]) || !std::isfinite((*sensor_mm)[1]))

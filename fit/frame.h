@@ -29,9 +29,11 @@ struct FitFrame {
     int channels = 3;  // 1 when R = G = B everywhere: fitted in channel 0 only
 };
 
-// The sensor size of a sweep in mm: from the camera's pixel pitch when the manifest has it,
-// else `sensor_mm` (width, height; both > 0), else InvalidArgument saying that the sweep does not
-// record it and how to give it.
+// The sensor size of a sweep in mm: the one the manifest records (lens.sensor_width_mm and
+// sensor_height_mm, format version 3: what the simulated camera used), else `sensor_mm` (width,
+// height; both > 0), else the camera's pixel pitch times the frame size, else InvalidArgument
+// saying that the sweep does not record it and how to give it. A `sensor_mm` that contradicts
+// the recorded size is refused (InvalidArgument naming both): the frames show the recorded one.
 Result<std::array<double, 2>> sweepSensorSize(const hdr::Sweep& sweep,
                                               const std::array<double, 2>* sensor_mm = nullptr);
 

@@ -63,7 +63,7 @@ std::string quotedText(std::string_view text) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// The rules of format version 1 (model_file.h), on the plain structs. Reading reports a broken
+// The rules of the format (model_file.h), on the plain structs. Reading reports a broken
 // rule as ParseError, writing as InvalidArgument; `name` is the file or a stand-in.
 
 class Checker {
@@ -117,9 +117,10 @@ bool isLowerHexDigest(std::string_view text) {
 }
 
 Status checkHeader(const FlareModel& m, const Checker& check) {
-    if (m.format_version != kModelFormatVersion)
+    if (m.format_version < kModelOldestFormatVersion || m.format_version > kModelFormatVersion)
         return check.fail("format_version", std::to_string(m.format_version) +
-                                                " is not the version this program knows (" +
+                                                " is not a version this program knows (" +
+                                                std::to_string(kModelOldestFormatVersion) + ".." +
                                                 std::to_string(kModelFormatVersion) + ")");
     if (auto ok = check.text("software_version", m.software_version); !ok) return ok;
     if (!m.created_utc.empty()) {
@@ -139,6 +140,27 @@ Status checkHeader(const FlareModel& m, const Checker& check) {
     if (auto ok = check.positive("lens.focal_length_mm", lens.focal_length_mm); !ok) return ok;
     if (auto ok = check.positive("lens.sensor_width_mm", lens.sensor_width_mm); !ok) return ok;
     if (auto ok = check.positive("lens.sensor_height_mm", lens.sensor_height_mm); !ok) return ok;
+    if (m.format_version < 2) {
+        const std::pair<const char*, bool> newer[] = {
+            {"lens.aperture_blades", lens.aperture_blades.has_value()},
+            {"lens.blade_rotation_deg", lens.blade_rotation_deg.has_value()},
+            {"lens.stop_semi_aperture_mm", lens.stop_semi_aperture_mm.has_value()},
+            {"lens.coat_unspecified_surfaces", lens.coat_unspecified_surfaces.has_value()}};
+        for (const auto& [field, present] : newer)
+            if (present)
+                return check.fail(field, "is a field of format version 2, not of version " +
+                                             std::to_string(m.format_version));
+    }
+    if (lens.aperture_blades && *lens.aperture_blades != 0 &&
+        (*lens.aperture_blades < 3 || *lens.aperture_blades > kModelMaxApertureBlades))
+        return check.fail("lens.aperture_blades", std::to_string(*lens.aperture_blades) +
+                                                      " is neither 0 (a circular stop) nor 3.." +
+                                                      std::to_string(kModelMaxApertureBlades));
+    if (lens.blade_rotation_deg)
+        if (auto ok = check.finite("lens.blade_rotation_deg", *lens.blade_rotation_deg); !ok)
+            return ok;
+    if (auto ok = check.positive("lens.stop_semi_aperture_mm", lens.stop_semi_aperture_mm); !ok)
+        return ok;
 
     const ModelCapture& c = m.capture;
     if (auto ok = check.finite("capture.from_deg", c.from_deg); !ok) return ok;
@@ -315,6 +337,14 @@ FlareModel fromProto(const v1::FlareModel& m) {
     if (l.has_focal_length_mm()) model.lens.focal_length_mm = l.focal_length_mm();
     model.lens.sensor_width_mm = l.sensor_width_mm();
     model.lens.sensor_height_mm = l.sensor_height_mm();
+    // Kept from wrapping into a valid count; the rules refuse it.
+    if (l.has_aperture_blades())
+        model.lens.aperture_blades =
+            static_cast<int>(std::min<uint32_t>(l.aperture_blades(), 1u << 30));
+    if (l.has_blade_rotation_deg()) model.lens.blade_rotation_deg = l.blade_rotation_deg();
+    if (l.has_stop_semi_aperture_mm()) model.lens.stop_semi_aperture_mm = l.stop_semi_aperture_mm();
+    if (l.has_coat_unspecified_surfaces())
+        model.lens.coat_unspecified_surfaces = l.coat_unspecified_surfaces();
     const v1::ModelCapture& c = m.capture();
     model.capture.from_deg = c.from_deg();
     model.capture.to_deg = c.to_deg();
@@ -368,6 +398,13 @@ v1::FlareModel toProto(const FlareModel& model) {
     if (model.lens.focal_length_mm) l->set_focal_length_mm(*model.lens.focal_length_mm);
     l->set_sensor_width_mm(model.lens.sensor_width_mm);
     l->set_sensor_height_mm(model.lens.sensor_height_mm);
+    if (model.lens.aperture_blades)
+        l->set_aperture_blades(static_cast<uint32_t>(*model.lens.aperture_blades));
+    if (model.lens.blade_rotation_deg) l->set_blade_rotation_deg(*model.lens.blade_rotation_deg);
+    if (model.lens.stop_semi_aperture_mm)
+        l->set_stop_semi_aperture_mm(*model.lens.stop_semi_aperture_mm);
+    if (model.lens.coat_unspecified_surfaces)
+        l->set_coat_unspecified_surfaces(*model.lens.coat_unspecified_surfaces);
     v1::ModelCapture* c = m.mutable_capture();
     c->set_from_deg(model.capture.from_deg);
     c->set_to_deg(model.capture.to_deg);
@@ -460,7 +497,13 @@ Status limitCounts(const v1::FlareModel& m, const Checker& check) {
 Error unsupportedVersion(const std::string& name, const std::string& shown) {
     return makeError(ErrorCode::Unsupported, name + ": format_version: " + shown +
                                                  " is not a version this reader knows (" +
+                                                 std::to_string(kModelOldestFormatVersion) + ".." +
                                                  std::to_string(kModelFormatVersion) + ")");
+}
+
+bool knownVersion(uint32_t version) {
+    return version >= static_cast<uint32_t>(kModelOldestFormatVersion) &&
+           version <= static_cast<uint32_t>(kModelFormatVersion);
 }
 
 Result<FlareModel> fromCheckedProto(const v1::FlareModel& m, const std::string& name) {
@@ -598,7 +641,7 @@ Result<FlareModel> readModelFromMemory(std::string_view bytes, const std::string
                              "flarelab.v1.FlareModel; truncated or another kind of file?)");
     // The version first: a newer writer's fields should read as "unsupported version", not as
     // "unknown field".
-    if (m.format_version() != static_cast<uint32_t>(kModelFormatVersion))
+    if (!knownVersion(m.format_version()))
         return unsupportedVersion(name, std::to_string(m.format_version()));
     if (auto unknown = findUnknownFields(m, ""))
         return makeError(ErrorCode::ParseError,
@@ -647,10 +690,12 @@ Result<FlareModel> modelFromJson(std::string_view json, const std::string& name)
         return makeError(ErrorCode::ParseError, name + ": format_version: missing");
     const pb::Value& value = version->second;
     // protobuf JSON allows integers as numbers or as strings ("1").
-    const bool known = (value.kind_case() == pb::Value::kNumberValue &&
-                        value.number_value() == kModelFormatVersion) ||
-                       (value.kind_case() == pb::Value::kStringValue &&
-                        value.string_value() == std::to_string(kModelFormatVersion));
+    bool known = false;
+    for (int v = kModelOldestFormatVersion; v <= kModelFormatVersion; ++v)
+        known = known ||
+                (value.kind_case() == pb::Value::kNumberValue && value.number_value() == v) ||
+                (value.kind_case() == pb::Value::kStringValue &&
+                 value.string_value() == std::to_string(v));
     if (!known) {
         std::string shown = "a value that is not a number";
         if (value.kind_case() == pb::Value::kNumberValue)
@@ -724,6 +769,27 @@ std::string describeModel(const FlareModel& m, const std::string& path) {
         << (lens.prescription_file.empty() ? std::string("none") : lens.prescription_file);
     if (!lens.prescription_sha256.empty()) out << " (sha256 " << lens.prescription_sha256 << ")";
     out << "\n";
+    // Version 2's settings, those the model records.
+    std::vector<std::string> settings;
+    if (lens.aperture_blades)
+        settings.push_back(*lens.aperture_blades == 0
+                               ? std::string("circular stop")
+                               : std::to_string(*lens.aperture_blades) + " blades");
+    std::ostringstream number;
+    if (lens.blade_rotation_deg) {
+        number << "blades rotated " << *lens.blade_rotation_deg << " deg";
+        settings.push_back(number.str());
+    }
+    if (lens.stop_semi_aperture_mm) {
+        number.str("");
+        number << "stop semi-aperture " << *lens.stop_semi_aperture_mm << " mm";
+        settings.push_back(number.str());
+    }
+    if (lens.coat_unspecified_surfaces)
+        settings.push_back(*lens.coat_unspecified_surfaces ? "unspecified surfaces coated"
+                                                           : "unspecified surfaces bare");
+    for (size_t i = 0; i < settings.size(); ++i)
+        out << (i ? ", " : "aperture: ") << settings[i] << (i + 1 == settings.size() ? "\n" : "");
 
     const ModelCapture& c = m.capture;
     out << "capture: " << c.from_deg << " to " << c.to_deg << " deg in steps of " << c.step_deg

@@ -10,15 +10,22 @@
 // else in fit/ sees protobuf. Each parameter of a ghost is a list of pieces, each a Chebyshev
 // series on its normalized angle (the formula is at the top of model.proto).
 //
-// Rules of format version 1. A model breaking any of them is refused with an Error naming the
-// file (or stand-in) and the field path ("ghosts[2].parameters[5].pieces[0].coefficients"):
-//   - format_version is 1 (another version: Unsupported). Fields the reader does not know are
-//     refused (ParseError), in binary files as in JSON: a writer that adds a field raises the
-//     version, so nothing is dropped silently. JSON field names may be written as in the .proto
-//     or in lowerCamelCase.
+// Format versions. Version 2, which the fit writes, adds to the lens the camera settings the
+// sweep recorded (version 3 of hdr/sweep.h): aperture blades and their rotation, the stop
+// semi-aperture used and whether unspecified surfaces got the default coating, so that `flarelab
+// score` simulates the capture's own lens again. Both versions are read.
+//
+// Rules of the format (both versions). A model breaking any of them is refused with an Error
+// naming the file (or stand-in) and the field path ("ghosts[2].parameters[5].pieces[0].
+// coefficients"):
+//   - format_version is 1 or 2 (another version: Unsupported). Fields the reader does not know
+//     are refused (ParseError), in binary files as in JSON: a writer that adds a field raises the
+//     version, so nothing is dropped silently; so are version 2's lens fields in a version 1
+//     model. JSON field names may be written as in the .proto or in lowerCamelCase.
 //   - every number is finite; strings hold no NUL, are valid UTF-8 and at most
 //     kModelMaxStringBytes long; created is RFC 3339 or empty.
-//   - lens: f_number, focal_length_mm (when present), sensor_width_mm, sensor_height_mm > 0;
+//   - lens: f_number, focal_length_mm, stop_semi_aperture_mm (when present), sensor_width_mm,
+//     sensor_height_mm > 0; aperture_blades (when present) 0 or 3..kModelMaxApertureBlades;
 //     prescription_sha256 empty or 64 lowercase hex digits.
 //   - capture: from_deg <= to_deg, step_deg > 0, exposure times > 0, width_px and height_px
 //     1..32768.
@@ -49,7 +56,8 @@
 
 namespace flarelab::fit {
 
-inline constexpr int kModelFormatVersion = 1;
+inline constexpr int kModelFormatVersion = 2;        // what the fit writes
+inline constexpr int kModelOldestFormatVersion = 1;  // the oldest version still read
 inline constexpr int64_t kModelMaxFileBytes = int64_t{64} << 20;
 inline constexpr size_t kModelMaxGhosts = 4096;
 inline constexpr size_t kModelMaxParameters = 256;   // per ghost
@@ -57,6 +65,7 @@ inline constexpr size_t kModelMaxPieces = 256;       // per parameter
 inline constexpr size_t kModelMaxCoefficients = 32;  // per piece; degree <= 31
 inline constexpr size_t kModelMaxStringBytes = 4096;
 inline constexpr int64_t kModelMaxSide = int64_t{1} << 15;  // capture width and height, pixels
+inline constexpr int kModelMaxApertureBlades = 64;  // what optics::CameraDescription accepts
 
 struct ModelLens {
     std::string description;
@@ -66,6 +75,12 @@ struct ModelLens {
     std::optional<double> focal_length_mm;
     double sensor_width_mm = 0.0;
     double sensor_height_mm = 0.0;
+    // Version 2; absent when the sweep did not record them (then a score assumes a circular stop
+    // scaled for the f-number and bare unspecified surfaces).
+    std::optional<int> aperture_blades;  // 0: a circular stop
+    std::optional<double> blade_rotation_deg;
+    std::optional<double> stop_semi_aperture_mm;
+    std::optional<bool> coat_unspecified_surfaces;
     bool operator==(const ModelLens&) const = default;
 };
 

@@ -1198,6 +1198,22 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
     return model;
 }
 
+ModelLens modelLens(const hdr::SweepLens& lens, double sensor_width_mm, double sensor_height_mm) {
+    ModelLens out;
+    out.description = lens.description;
+    out.prescription_file = lens.prescription_file;
+    out.prescription_sha256 = lens.prescription_sha256;
+    out.f_number = lens.f_number;
+    out.focal_length_mm = lens.focal_length_mm;
+    out.sensor_width_mm = sensor_width_mm;
+    out.sensor_height_mm = sensor_height_mm;
+    out.aperture_blades = lens.aperture_blades;
+    out.blade_rotation_deg = lens.blade_rotation_deg;
+    out.stop_semi_aperture_mm = lens.stop_semi_aperture_mm;
+    out.coat_unspecified_surfaces = lens.coat_unspecified_surfaces;
+    return out;
+}
+
 Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
                             double sensor_width_mm,
                             double sensor_height_mm,
@@ -1240,11 +1256,7 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     FlareModel model;
     model.software_version = "flarelab fit";
     model.created_utc = nowUtc();
-    model.lens.description = header.lens.description;
-    model.lens.f_number = header.lens.f_number;
-    model.lens.focal_length_mm = header.lens.focal_length_mm;
-    model.lens.sensor_width_mm = width_mm;
-    model.lens.sensor_height_mm = height_mm;
+    model.lens = modelLens(header.lens, width_mm, height_mm);
     const double first = source.angles_deg.front(), last = source.angles_deg.back();
     model.capture.from_deg = std::min(header.capture.from_deg, first);
     model.capture.to_deg = std::max(header.capture.to_deg, last);

@@ -1,6 +1,6 @@
 // ============================================================================
 //  flarelab fit: SweepFitOptions, TrackSample, GhostTrack, SweepFitProgress, SweepFitResult,
-//                FrameSource, fitSweepFrames, buildModel, fitSweep
+//                FrameSource, fitSweepFrames, buildModel, modelLens, fitSweep
 // ============================================================================
 //
 // A whole sweep fitted with no human input (chapters 7.3 and 10.3 of the thesis, automated):
@@ -173,9 +173,15 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                               FlareModel model,
                               const SweepFitOptions& options);
 
+// The model's lens from the sweep's: description, f-number, focal length, the camera settings
+// and prescription a version 3 manifest records (absent ones stay absent), and the sensor size
+// the fit maps pixels with.
+ModelLens modelLens(const hdr::SweepLens& lens, double sensor_width_mm, double sensor_height_mm);
+
 // All of it (steps 1 to 5) for a sweep on disk: frames loaded one at a time, the metadata from the
-// manifest (lens, capture, sensor size, camera), the valid range the sweep's angles. The sensor
-// size is the one given; both <= 0 means the manifest's pixel pitch (sweepSensorSize).
+// manifest (lens with its camera settings, capture, sensor size, camera), the valid range the
+// sweep's angles. The sensor size is sweepSensorSize's: the manifest's when it records one (a
+// given one must agree), else the one given, else from the pixel pitch (both <= 0: none given).
 // InvalidArgument for a sweep whose frames (every frame_stride-th) do not span two angles (a model
 // needs at least two).
 Result<FlareModel> fitSweep(const hdr::Sweep& sweep,

@@ -2,13 +2,14 @@
 //
 // Any byte string goes to parseSweepManifest, the code readSweepManifest runs on manifest.json. A
 // rejection must name the input and be a parse error or an unsupported version. An acceptance
-// must keep every rule of format version 1 (rechecked here independently of the parser), and
+// must keep the rules of its format version (rechecked here independently of the parser), and
 // must survive a round trip: formatSweepManifest accepts it, and its text parses back to the same
 // sweep and formats to the same text. Every violation is a trap, so libFuzzer records the input.
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <set>
 #include <string>
 #include <string_view>
@@ -58,6 +59,22 @@ void requireValid(const Sweep& s) {
     for (const double t : c.exposure_times_s) require(std::isfinite(t) && t > 0.0);
     require(!c.gain || (std::isfinite(*c.gain) && *c.gain > 0.0));
     require(!h.camera.bit_depth || (*h.camera.bit_depth >= 1 && *h.camera.bit_depth <= 32));
+    const SweepLens& l = h.lens;
+    const auto positive = [](const std::optional<double>& v) {
+        return !v || (std::isfinite(*v) && *v > 0.0);
+    };
+    require(positive(l.focal_length_mm) && positive(l.f_number));
+    require(positive(l.stop_semi_aperture_mm) && positive(l.sensor_width_mm) &&
+            positive(l.sensor_height_mm));
+    require(!l.aperture_blades || *l.aperture_blades == 0 ||
+            (*l.aperture_blades >= 3 && *l.aperture_blades <= kSweepMaxApertureBlades));
+    require(!l.blade_rotation_deg || std::isfinite(*l.blade_rotation_deg));
+    require(l.prescription_sha256.empty() || l.prescription_sha256.size() == 64);
+    // Version 3's lens fields only in version 3.
+    if (h.format_version < 3)
+        require(!l.aperture_blades && !l.blade_rotation_deg && !l.stop_semi_aperture_mm &&
+                !l.coat_unspecified_surfaces && !l.sensor_width_mm && !l.sensor_height_mm &&
+                l.prescription_file.empty() && l.prescription_sha256.empty());
     std::set<std::string> files;
     for (size_t i = 0; i < s.frames.size(); ++i) {
         const SweepFrame& f = s.frames[i];

@@ -78,7 +78,7 @@ bool hasExrExtension(std::string_view name) {
 }
 
 // ---------------------------------------------------------------------------------------------
-// The rules of format version 1 (sweep.h), on the plain structs. Parsing reports a broken rule as
+// The rules of the format (sweep.h), on the plain structs. Parsing reports a broken rule as
 // ParseError, writing as InvalidArgument; `name` is the manifest (file or stand-in).
 
 class Checker {
@@ -178,6 +178,64 @@ private:
     std::string name_;
 };
 
+bool isLowerHexDigest(std::string_view text) {
+    return text.size() == 64 && std::all_of(text.begin(), text.end(), [](char c) {
+               return (c >= '0' && c <= '9') || (c >= 'a' && c <= 'f');
+           });
+}
+
+// What optics::CameraDescription accepts: 0 for a circle, else a polygon of 3 or more sides.
+bool validBlades(int64_t blades) {
+    return blades == 0 || (blades >= 3 && blades <= kSweepMaxApertureBlades);
+}
+
+std::string bladesProblem(int64_t blades) {
+    return std::to_string(blades) + " is neither 0 (a circular stop) nor 3.." +
+           std::to_string(kSweepMaxApertureBlades);
+}
+
+// The first lens field of version 3 that `lens` records, or nullptr: an older manifest has none.
+const char* firstVersion3Field(const SweepLens& lens) {
+    const std::pair<const char*, bool> fields[] = {
+        {"lens.aperture_blades", lens.aperture_blades.has_value()},
+        {"lens.blade_rotation_deg", lens.blade_rotation_deg.has_value()},
+        {"lens.stop_semi_aperture_mm", lens.stop_semi_aperture_mm.has_value()},
+        {"lens.coat_unspecified_surfaces", lens.coat_unspecified_surfaces.has_value()},
+        {"lens.sensor_width_mm", lens.sensor_width_mm.has_value()},
+        {"lens.sensor_height_mm", lens.sensor_height_mm.has_value()},
+        {"lens.prescription_file", !lens.prescription_file.empty()},
+        {"lens.prescription_sha256", !lens.prescription_sha256.empty()}};
+    for (const auto& [field, present] : fields)
+        if (present) return field;
+    return nullptr;
+}
+
+Status checkLens(const SweepLens& lens, int format_version, const Checker& check) {
+    if (auto ok = check.text("lens.description", lens.description); !ok) return ok;
+    if (auto ok = check.text("lens.serial", lens.serial); !ok) return ok;
+    if (auto ok = check.positive("lens.focal_length_mm", lens.focal_length_mm); !ok) return ok;
+    if (auto ok = check.positive("lens.f_number", lens.f_number); !ok) return ok;
+    if (format_version < 3)
+        if (const char* field = firstVersion3Field(lens))
+            return check.fail(field, "is a field of format version 3, not of version " +
+                                         std::to_string(format_version));
+    if (lens.aperture_blades && !validBlades(*lens.aperture_blades))
+        return check.fail("lens.aperture_blades", bladesProblem(*lens.aperture_blades));
+    if (lens.blade_rotation_deg)
+        if (auto ok = check.finite("lens.blade_rotation_deg", *lens.blade_rotation_deg); !ok)
+            return ok;
+    if (auto ok = check.positive("lens.stop_semi_aperture_mm", lens.stop_semi_aperture_mm); !ok)
+        return ok;
+    if (auto ok = check.positive("lens.sensor_width_mm", lens.sensor_width_mm); !ok) return ok;
+    if (auto ok = check.positive("lens.sensor_height_mm", lens.sensor_height_mm); !ok) return ok;
+    if (auto ok = check.text("lens.prescription_file", lens.prescription_file); !ok) return ok;
+    if (!lens.prescription_sha256.empty() && !isLowerHexDigest(lens.prescription_sha256))
+        return check.fail("lens.prescription_sha256",
+                          Checker::quoted(lens.prescription_sha256) +
+                              " is not 64 lowercase hex digits (a SHA-256)");
+    return Ok{};
+}
+
 Status checkHeader(const SweepHeader& h, const Checker& check) {
     if (h.format_version < kSweepOldestFormatVersion || h.format_version > kSweepFormatVersion)
         return check.fail("format_version", std::to_string(h.format_version) +
@@ -191,11 +249,7 @@ Status checkHeader(const SweepHeader& h, const Checker& check) {
             return check.fail("created", Checker::quoted(h.created_utc) +
                                              " is not an RFC 3339 time (2026-11-29T07:04:02Z)");
     }
-    const SweepLens& lens = h.lens;
-    if (auto ok = check.text("lens.description", lens.description); !ok) return ok;
-    if (auto ok = check.text("lens.serial", lens.serial); !ok) return ok;
-    if (auto ok = check.positive("lens.focal_length_mm", lens.focal_length_mm); !ok) return ok;
-    if (auto ok = check.positive("lens.f_number", lens.f_number); !ok) return ok;
+    if (auto ok = checkLens(h.lens, h.format_version, check); !ok) return ok;
     const SweepCamera& camera = h.camera;
     if (auto ok = check.text("camera.description", camera.description); !ok) return ok;
     if (auto ok = check.text("camera.serial", camera.serial); !ok) return ok;
@@ -344,6 +398,20 @@ Result<Sweep> fromProto(const flarelab::v1::SweepManifest& m, const Checker& che
     h.lens.serial = m.lens().serial();
     if (m.lens().has_focal_length_mm()) h.lens.focal_length_mm = m.lens().focal_length_mm();
     if (m.lens().has_f_number()) h.lens.f_number = m.lens().f_number();
+    const auto& l = m.lens();
+    if (l.has_aperture_blades()) {
+        const uint32_t blades = l.aperture_blades();
+        if (!validBlades(blades)) return check.fail("lens.aperture_blades", bladesProblem(blades));
+        h.lens.aperture_blades = static_cast<int>(blades);
+    }
+    if (l.has_blade_rotation_deg()) h.lens.blade_rotation_deg = l.blade_rotation_deg();
+    if (l.has_stop_semi_aperture_mm()) h.lens.stop_semi_aperture_mm = l.stop_semi_aperture_mm();
+    if (l.has_coat_unspecified_surfaces())
+        h.lens.coat_unspecified_surfaces = l.coat_unspecified_surfaces();
+    if (l.has_sensor_width_mm()) h.lens.sensor_width_mm = l.sensor_width_mm();
+    if (l.has_sensor_height_mm()) h.lens.sensor_height_mm = l.sensor_height_mm();
+    h.lens.prescription_file = l.prescription_file();
+    h.lens.prescription_sha256 = l.prescription_sha256();
     h.camera.description = m.camera().description();
     h.camera.serial = m.camera().serial();
     if (m.camera().has_pixel_pitch_um()) h.camera.pixel_pitch_um = m.camera().pixel_pitch_um();
@@ -383,6 +451,18 @@ flarelab::v1::SweepManifest toProto(const Sweep& s) {
     lens->set_serial(h.lens.serial);
     if (h.lens.focal_length_mm) lens->set_focal_length_mm(*h.lens.focal_length_mm);
     if (h.lens.f_number) lens->set_f_number(*h.lens.f_number);
+    if (h.lens.aperture_blades)
+        lens->set_aperture_blades(static_cast<uint32_t>(*h.lens.aperture_blades));
+    if (h.lens.blade_rotation_deg) lens->set_blade_rotation_deg(*h.lens.blade_rotation_deg);
+    if (h.lens.stop_semi_aperture_mm)
+        lens->set_stop_semi_aperture_mm(*h.lens.stop_semi_aperture_mm);
+    if (h.lens.coat_unspecified_surfaces)
+        lens->set_coat_unspecified_surfaces(*h.lens.coat_unspecified_surfaces);
+    if (h.lens.sensor_width_mm) lens->set_sensor_width_mm(*h.lens.sensor_width_mm);
+    if (h.lens.sensor_height_mm) lens->set_sensor_height_mm(*h.lens.sensor_height_mm);
+    if (!h.lens.prescription_file.empty()) lens->set_prescription_file(h.lens.prescription_file);
+    if (!h.lens.prescription_sha256.empty())
+        lens->set_prescription_sha256(h.lens.prescription_sha256);
     auto* camera = m.mutable_camera();
     camera->set_description(h.camera.description);
     camera->set_serial(h.camera.serial);
@@ -1146,6 +1226,47 @@ Status resetFrameLog(int directory_fd, const std::string& directory, FileDescrip
     return syncDirectory(directory);
 }
 
+std::string shown(const std::optional<double>& value) {
+    return value ? formatDouble(*value) : "absent";
+}
+std::string shown(const std::optional<int>& value) {
+    return value ? std::to_string(*value) : "absent";
+}
+std::string shown(const std::optional<bool>& value) {
+    return value ? (*value ? "true" : "false") : "absent";
+}
+std::string shown(const std::string& value) { return Checker::quoted(value); }
+
+template <typename T>
+void noteDifference(std::string& why, const char* field, const T& was, const T& now) {
+    if (why.empty() && !(was == now))
+        why = std::string("lens.") + field + ": " + shown(was) + ", the new sweep's " + shown(now);
+}
+
+// Why the lens of a sweep being resumed is not the new header's: the first field that differs,
+// with both values; empty when none does. A sweep older than version 3 recorded none of that
+// version's fields: they are not compared (the new header's are not what its frames were taken
+// with, nor known not to be) and the sweep keeps them absent.
+std::string lensDifference(const SweepLens& was, const SweepLens& now, int was_version) {
+    std::string why;
+    noteDifference(why, "description", was.description, now.description);
+    noteDifference(why, "serial", was.serial, now.serial);
+    noteDifference(why, "focal_length_mm", was.focal_length_mm, now.focal_length_mm);
+    noteDifference(why, "f_number", was.f_number, now.f_number);
+    if (was_version < 3) return why;
+    noteDifference(why, "aperture_blades", was.aperture_blades, now.aperture_blades);
+    noteDifference(why, "blade_rotation_deg", was.blade_rotation_deg, now.blade_rotation_deg);
+    noteDifference(why, "stop_semi_aperture_mm", was.stop_semi_aperture_mm,
+                   now.stop_semi_aperture_mm);
+    noteDifference(why, "coat_unspecified_surfaces", was.coat_unspecified_surfaces,
+                   now.coat_unspecified_surfaces);
+    noteDifference(why, "sensor_width_mm", was.sensor_width_mm, now.sensor_width_mm);
+    noteDifference(why, "sensor_height_mm", was.sensor_height_mm, now.sensor_height_mm);
+    // The file's bytes, not its name: the same file may be given by another path.
+    noteDifference(why, "prescription_sha256", was.prescription_sha256, now.prescription_sha256);
+    return why;
+}
+
 }  // namespace
 
 Result<SweepWriter> SweepWriter::create(const std::string& directory,
@@ -1186,8 +1307,12 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
         auto existing = readListing(directory);
         if (!existing) return existing.error();
         const SweepHeader& old = existing->sweep.header;
-        const std::pair<const char*, bool> same[] = {{"lens", old.lens == header.lens},
-                                                     {"camera", old.camera == header.camera},
+        if (const std::string why = lensDifference(old.lens, header.lens, old.format_version);
+            !why.empty())
+            return makeError(
+                ErrorCode::InvalidArgument,
+                manifest + ": " + why + "; a different capture, cannot resume this sweep");
+        const std::pair<const char*, bool> same[] = {{"camera", old.camera == header.camera},
                                                      {"capture", old.capture == header.capture}};
         for (const auto& [part, equal] : same)
             if (!equal)
@@ -1200,7 +1325,7 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
             state->files.insert(f.exr_file);
             state->files.insert(f.raw_files.begin(), f.raw_files.end());
         }
-        // Compacted once now: a version 1 manifest becomes version 2 before any log exists, and
+        // Compacted once now: an older manifest becomes version 3 before any log exists, and
         // a record a crash tore at the end of the log is cut off before anything follows it.
         const bool clean =
             old.format_version == kSweepFormatVersion &&

@@ -13,13 +13,18 @@
 //
 // Format versions. Version 1 lists every frame in manifest.json, which its writer rewrote whole
 // after every frame: bytes written grew with the square of the frame count (a sweep of 10000
-// frames wrote some 26 GB; README, "The daemon: measured"). Version 2, which SweepWriter writes,
+// frames wrote some 26 GB; README, "The daemon: measured"). Version 2, which version 3 extends,
 // has the same manifest fields and adds an append-only frame log beside it, `frames.log`: a frame
 // is listed by appending one record to the log; the manifest is rewritten with every frame
 // ("compacted") only when the log has grown as long as the manifest, on resume, and when the
 // writer finishes, after which the log is removed. Bytes written thus stay within a small
 // multiple of the final manifest. The frames of a version 2 sweep are the manifest's, followed by
-// the log's records. Both versions are read; version 1 sweeps are upgraded when resumed.
+// the log's records. Version 3, which SweepWriter writes, keeps version 2's files and adds to
+// `lens` the camera settings a simulated capture depends on (aperture blades and their rotation,
+// the stop semi-aperture used, the coating of unspecified surfaces, the sensor size) and the
+// prescription's file name and SHA-256, so that a score re-simulates exactly the capture. Every
+// version is read; older sweeps are upgraded when resumed, their new fields left absent (nobody
+// recorded them for the frames already taken).
 //
 // The frame log: the 21 bytes "flarelab frame log 1\n", then records, each a 4-byte little-endian
 // payload length (1..kSweepMaxLogRecordBytes), the payload's CRC-32 (4 bytes, little-endian) and
@@ -31,13 +36,16 @@
 // compaction and the log's truncation leaves such records); one beyond the next index is a gap,
 // refused.
 //
-// Rules of the format (both versions). A manifest breaking any of them is refused with an Error
+// Rules of the format (every version). A manifest breaking any of them is refused with an Error
 // naming the manifest file and the field ("frames[3].angle_deg"):
-//   - format_version is 1 or 2 (another version: Unsupported). Fields the reader does not know are
-//     refused (ParseError), not skipped: a writer that adds a field raises the version, so a
-//     misspelt field cannot silently lose data. Field names may be written as in the .proto
-//     ("angle_deg", as the writer does) or in lowerCamelCase ("angleDeg"), as protobuf JSON allows.
-//   - every number is finite; exposure times, gain, focal length, f-number and pixel pitch > 0;
+//   - format_version is 1, 2 or 3 (another version: Unsupported). Fields the reader does not know
+//     are refused (ParseError), not skipped: a writer that adds a field raises the version, so a
+//     misspelt field cannot silently lose data; so are version 3's lens fields in an older
+//     manifest. Field names may be written as in the .proto ("angle_deg", as the writer does) or
+//     in lowerCamelCase ("angleDeg"), as protobuf JSON allows.
+//   - every number is finite; exposure times, gain, focal length, f-number, pixel pitch, stop
+//     semi-aperture and sensor width and height > 0; lens.aperture_blades 0 (a circle) or
+//     3..kSweepMaxApertureBlades; lens.prescription_sha256 empty or 64 lowercase hex digits;
 //     capture.from_deg <= capture.to_deg; capture.step_deg > 0; capture.width_px and height_px
 //     1..32768; camera.bit_depth 1..32; strings hold no NUL (EXR attributes cannot).
 //   - frame angles strictly increase and lie in [from_deg, to_deg] (give or take
@@ -81,7 +89,7 @@
 
 namespace flarelab::hdr {
 
-inline constexpr int kSweepFormatVersion = 2;        // what SweepWriter writes
+inline constexpr int kSweepFormatVersion = 3;        // what SweepWriter writes
 inline constexpr int kSweepOldestFormatVersion = 1;  // the oldest version still read
 inline constexpr char kSweepManifestFile[] = "manifest.json";
 inline constexpr char kSweepFrameLogFile[] = "frames.log";
@@ -95,12 +103,26 @@ inline constexpr int64_t kSweepMaxSide = int64_t{1} << 15;  // frame width and h
 // How far a frame's angle may lie outside [from_deg, to_deg]: the writer computes angles as
 // from_deg + i * step_deg, which may round past to_deg.
 inline constexpr double kSweepAngleSlackDeg = 1e-6;
+// The most aperture blades a lens may record: what optics::CameraDescription accepts.
+inline constexpr int kSweepMaxApertureBlades = 64;
 
+// The lens, and from version 3 the camera settings it was simulated with, precisely enough to
+// simulate it again (drivers/lens_settings.h). A setting nobody recorded is absent: a sweep begun
+// by an older version keeps them absent when it is resumed.
 struct SweepLens {
     std::string description;  // also the frames' EXR attribute flarelab.lens
     std::string serial;
     std::optional<double> focal_length_mm;
     std::optional<double> f_number;
+    // Version 3.
+    std::optional<int> aperture_blades;  // 0: a circular stop; else 3..kSweepMaxApertureBlades
+    std::optional<double> blade_rotation_deg;
+    std::optional<double> stop_semi_aperture_mm;    // what the lens used: the table's or scaled
+    std::optional<bool> coat_unspecified_surfaces;  // given the default coating, or left bare
+    std::optional<double> sensor_width_mm;          // the sensor area the frames show
+    std::optional<double> sensor_height_mm;
+    std::string prescription_file;    // as given to the program; empty when none
+    std::string prescription_sha256;  // of the file's bytes, 64 lowercase hex digits, or empty
     bool operator==(const SweepLens&) const = default;
 };
 
@@ -182,7 +204,7 @@ Result<Sweep> parseSweepManifest(std::string_view json, const std::string& name 
 // naming the field, when `sweep` breaks a rule, so whatever this returns parses back to `sweep`.
 Result<std::string> formatSweepManifest(const Sweep& sweep);
 
-// Reads and validates the sweep's frame list: `directory`/manifest.json and, for version 2, its
+// Reads and validates the sweep's frame list: `directory`/manifest.json and, from version 2 on, its
 // frames.log: cheap, for listing a sweep. NotFound when there is no manifest, IoError when it or
 // the log cannot be read, is not a regular file or exceeds kSweepMaxManifestBytes, else as
 // parseSweepManifest and parseSweepFrameLog. Frame files are not looked at; `warnings` names a
@@ -263,8 +285,9 @@ std::string clippingWarning(const ClippedFrames& clipped, size_t total_frames);
 struct SweepWriteOptions {
     ExrWriteOptions exr;
     // Append to the sweep already in the directory, whose lens, camera and capture settings must
-    // equal the new header's (its software_version and created_utc are kept). Without it a
-    // directory that holds a manifest or any EXR file is refused.
+    // equal the new header's (its software_version and created_utc are kept). A sweep of version 1
+    // or 2 records none of version 3's lens fields: those are not compared and stay absent. Without
+    // it a directory that holds a manifest or any EXR file is refused.
     bool resume = false;
     // The frame log is compacted into the manifest once it holds this many records and as many as
     // the manifest lists (so that compactions grow geometrically and bytes stay linear).
@@ -282,11 +305,11 @@ class SweepWriter {
 public:
     // Creates `directory` (and its parents, each flushed into its parent) if needed, checks
     // `header` against the rules and writes a manifest with no frames (or, with options.resume,
-    // takes the lock, reads the existing sweep, checks its header and compacts it: a version 1
-    // sweep becomes version 2, a torn record at the end of the log is cut off). InvalidArgument
-    // naming the field for a bad header, or when the directory already holds a sweep or EXR files
-    // (without resume), another writer, or a lock file that is not a regular file; IoError when
-    // the system refuses.
+    // takes the lock, reads the existing sweep, checks its header and compacts it: an older sweep
+    // becomes version 3, a torn record at the end of the log is cut off). InvalidArgument naming
+    // the field for a bad header, a resumed sweep whose header differs (naming the first field
+    // that does), when the directory already holds a sweep or EXR files (without resume), another
+    // writer, or a lock file that is not a regular file; IoError when the system refuses.
     static Result<SweepWriter> create(const std::string& directory,
                                       SweepHeader header,
                                       SweepWriteOptions options = {});

@@ -3,8 +3,15 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
+#include <cmath>
 #include <filesystem>
+#include <sstream>
 
+#include "apps/camera_flags.h"
+#include "apps/fit_command.h"
+#include "fit/frame.h"
+#include "fit/sweep_fit.h"
 #include "hdr/sweep.h"
 #include "tests/apps/command_runner.h"
 #include "tests/test_paths.h"
@@ -57,6 +64,95 @@ TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
     run = capture(args);
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_NE(run.out.find("3 already there"), std::string::npos) << run.out;
+}
+
+// A capture with six rotated blades records them with the stop, coating and sensor it used; the
+// fit copies them into the model, and the score's lens (captureLens) is that six-bladed lens, not
+// a circular one scaled for the f-number.
+TEST(Capture, RecordsTheLensSettingsThatFitCopiesAndScoreRebuilds) {
+    const std::string dir = freshDir("settings");
+    const std::string lens_file = flarelab::testing::lensPath("lensbaby-toy.csv");
+    auto args = small(dir);
+    args.insert(args.end(), {"--brackets", "1", "--blades", "6", "--blade-rotation-deg", "15",
+                             "--sensor-mm", "24x16"});
+    const CommandRun run = capture(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    auto sweep = hdr::readSweepManifest(dir);
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    const hdr::SweepLens& recorded = sweep->header.lens;
+    EXPECT_EQ(sweep->header.format_version, 3);
+    EXPECT_EQ(recorded.aperture_blades, 6);
+    EXPECT_EQ(recorded.blade_rotation_deg, 15.0);
+    EXPECT_EQ(recorded.coat_unspecified_surfaces, false);
+    EXPECT_EQ(recorded.sensor_width_mm, 24.0);
+    EXPECT_EQ(recorded.sensor_height_mm, 16.0);
+    EXPECT_EQ(recorded.prescription_file, lens_file);
+    auto digest = sha256Hex(lens_file);
+    ASSERT_TRUE(digest) << digest.error().message;
+    EXPECT_EQ(recorded.prescription_sha256, *digest);
+    CameraFlags flags;
+    flags.blades = 6;
+    flags.blade_rotation_deg = 15.0;
+    flags.sensor = "24x16";
+    std::ostringstream ignored;
+    const auto simulated = loadLens(lens_file, flags, ignored);
+    ASSERT_TRUE(simulated);
+    const auto stopOf = [](const optics::Lens& lens) {
+        return lens.surfaces()[static_cast<size_t>(lens.stopIndex())].semi_aperture_mm;
+    };
+    EXPECT_EQ(recorded.stop_semi_aperture_mm, stopOf(*simulated));
+    EXPECT_EQ(recorded.f_number, simulated->camera().f_number);
+
+    // The fit: the model takes the sweep's settings and sensor.
+    const auto size = fit::sweepSensorSize(*sweep);
+    ASSERT_TRUE(size) << size.error().message;
+    EXPECT_EQ(*size, (std::array<double, 2>{24.0, 16.0}));
+    fit::FlareModel model;
+    model.lens = fit::modelLens(recorded, (*size)[0], (*size)[1]);
+    model.capture.from_deg = 0.0;
+    model.capture.to_deg = 0.4;
+    model.capture.width_px = 48;
+    model.capture.height_px = 32;
+    model.valid_from_deg = 0.0;
+    model.valid_to_deg = 0.4;
+    const std::string path = dir + "/" + hdr::kSweepModelFile;
+    ASSERT_TRUE(fit::writeModel(path, model));
+    auto read = fit::readModel(path);
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->format_version, 2);
+    EXPECT_EQ(read->lens.aperture_blades, 6);
+    EXPECT_EQ(read->lens.prescription_sha256, *digest);
+
+    // The score's lens is the capture's: six blades, rotated, the same stop, nothing assumed.
+    std::ostringstream err;
+    const auto truth = captureLens(lens_file, *read, path, err);
+    ASSERT_TRUE(truth) << err.str();
+    EXPECT_TRUE(err.str().empty()) << err.str();
+    EXPECT_EQ(truth->aperture().blades, 6);
+    EXPECT_NEAR(truth->aperture().rotation_rad, 15.0 * M_PI / 180.0, 1e-15);
+    EXPECT_EQ(stopOf(*truth), stopOf(*simulated));
+    EXPECT_EQ(truth->camera().sensor_width_mm, 24.0);
+    EXPECT_EQ(truth->camera().sensor_height_mm, 16.0);
+
+    // A model from before the settings: a circular stop, and one note saying so.
+    fit::FlareModel old = *read;
+    old.format_version = 1;
+    old.lens.aperture_blades.reset();
+    old.lens.blade_rotation_deg.reset();
+    old.lens.stop_semi_aperture_mm.reset();
+    old.lens.coat_unspecified_surfaces.reset();
+    std::ostringstream note;
+    const auto assumed = captureLens(lens_file, old, "old.flm", note);
+    ASSERT_TRUE(assumed) << note.str();
+    EXPECT_EQ(assumed->aperture().blades, 0);
+    const std::string text = note.str();
+    EXPECT_EQ(std::count(text.begin(), text.end(), '\n'), 1) << text;
+    for (const char* part :
+         {"note: old.flm (model format 1) does not record",
+          "aperture blades (assumed a circular stop)",
+          "coating of unspecified surfaces (assumed bare)", "stop semi-aperture (assumed"})
+        EXPECT_NE(text.find(part), std::string::npos) << part << " in: " << text;
+    std::filesystem::remove_all(dir);
 }
 
 TEST(Capture, RecordsEachExposuresClippingAndWarnsOfASaturatedSweep) {

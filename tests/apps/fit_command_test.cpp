@@ -10,6 +10,7 @@
 #include <string>
 #include <vector>
 
+#include "apps/capture_command.h"
 #include "fit/model_file.h"
 #include "render/preview.h"
 #include "tests/apps/command_runner.h"
@@ -178,6 +179,59 @@ TEST(FitCommand, PathsSeedTheTracksFromThePrescription) {
     const CommandRun scored = run({"score", model.string(), "--lens", lensFile(), "--json",
                                    "--halfway", "2", "--random", "1", "--fitted", "2"});
     ASSERT_EQ(scored.code, 0) << scored.err;
+    fs::remove(model);
+}
+
+// A simulated capture of format version 3 with six blades, fitted and scored through the
+// commands: the model copies the sweep's settings, `score` rebuilds that lens without a note, and
+// flags or files that contradict what the sweep records are refused rather than one picked.
+TEST(FitCommand, TheSweepsLensSettingsReachTheModelAndContradictionsAreRefused) {
+    const fs::path sweep = tempPath("six-blades");
+    const fs::path model = tempPath("six-blades.flm");
+    fs::remove_all(sweep);
+    const std::string lens = flarelab::testing::lensPath("lensbaby-toy.csv");
+    const CommandRun captured = testing::runCommand(
+        addCaptureCommand,
+        {"capture",    "--sim",   "--fast",      "--lens",   lens,
+         "--from",     "0",       "--to",        "0.4",      "--step",
+         "0.2",        "--width", "48",          "--height", "32",
+         "--brackets", "1",       "--blades",    "6",        "--blade-rotation-deg",
+         "15",         "-o",      sweep.string()});
+    ASSERT_EQ(captured.code, 0) << captured.err;
+
+    const CommandRun fitted = run({"fit", sweep.string(), "-o", model.string(), "--quiet"});
+    ASSERT_EQ(fitted.code, 0) << fitted.err;
+    auto read = fit::readModel(model.string());
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->format_version, fit::kModelFormatVersion);
+    EXPECT_EQ(read->lens.aperture_blades, 6);
+    EXPECT_EQ(read->lens.blade_rotation_deg, 15.0);
+    EXPECT_TRUE(read->lens.stop_semi_aperture_mm);
+    EXPECT_EQ(read->lens.coat_unspecified_surfaces, false);
+    EXPECT_EQ(read->lens.sensor_width_mm, 36.0);
+    EXPECT_EQ(read->lens.sensor_height_mm, 24.0);
+    EXPECT_EQ(read->lens.prescription_file, lens);  // from the sweep, without fit --lens
+    EXPECT_EQ(read->lens.prescription_sha256.size(), 64u);
+
+    const CommandRun scored = run({"score", model.string(), "--lens", lens, "--halfway", "0",
+                                   "--random", "0", "--fitted", "1"});
+    EXPECT_EQ(scored.code, 0) << scored.err;
+    EXPECT_EQ(scored.err.find("note:"), std::string::npos) << scored.err;
+
+    // --sensor-mm against the recorded sensor, --lens against the recorded prescription.
+    CommandRun r =
+        run({"fit", sweep.string(), "-o", model.string(), "--sensor-mm", "24x16", "--quiet"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("24 x 16 mm contradicts the 36 x 24 mm"), std::string::npos) << r.err;
+    r = run({"fit", sweep.string(), "-o", model.string(), "--lens",
+             flarelab::testing::lensPath("heliar-tronnier.csv"), "--quiet"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("not the lens the sweep was captured with"), std::string::npos) << r.err;
+    // The same values given again agree, and the recorded lens is accepted.
+    r = run({"fit", sweep.string(), "-o", model.string(), "--sensor-mm", "36x24", "--lens", lens,
+             "--quiet"});
+    EXPECT_EQ(r.code, 0) << r.err;
+    fs::remove_all(sweep);
     fs::remove(model);
 }
 

@@ -93,7 +93,7 @@ TEST(ModelShow, PrintsLensCaptureRangeAndGhosts) {
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_TRUE(run.err.empty()) << run.err;
     for (const char* part :
-         {"format 1", "written by flarelab test", "created 2026-11-29T07:04:02Z",
+         {"format 2", "written by flarelab test", "created 2026-11-29T07:04:02Z",
           "lens: heliar 50mm, 50 mm, f/4.5, sensor 36 x 24 mm", "prescription: heliar-50.csv",
           "capture: -4 to 4 deg in steps of 0.5 deg", "64x48 pixels", "mono test camera",
           "2 exposures of 0.001 0.1 s", "valid range: -4 to 4 deg", "ghosts: 1",
@@ -111,7 +111,7 @@ TEST(ModelShow, JsonIsTheModelsJsonMapping) {
     ASSERT_TRUE(fit::writeModel(path, written));
     const CommandRun run = model({"show", path, "--json"});
     ASSERT_EQ(run.code, 0) << run.err;
-    EXPECT_TRUE(contains(run.out, "\"format_version\": 1")) << run.out;
+    EXPECT_TRUE(contains(run.out, "\"format_version\": 2")) << run.out;
     const Result<fit::FlareModel> back = fit::modelFromJson(run.out, "stdout");
     ASSERT_TRUE(back) << back.error().message;
     EXPECT_EQ(*back, written);

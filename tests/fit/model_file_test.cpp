@@ -31,6 +31,10 @@ FlareModel sampleModel() {
     m.lens.focal_length_mm = 50.0;
     m.lens.sensor_width_mm = 36.0;
     m.lens.sensor_height_mm = 24.0;
+    m.lens.aperture_blades = 6;
+    m.lens.blade_rotation_deg = 15.0;
+    m.lens.stop_semi_aperture_mm = 12.4033203125;
+    m.lens.coat_unspecified_surfaces = true;
     m.capture.from_deg = -10.0;
     m.capture.to_deg = 10.0;
     m.capture.step_deg = 0.2;
@@ -98,6 +102,13 @@ void writeBytes(const std::string& path, const std::string& bytes) {
 
 bool contains(const std::string& text, const std::string& part) {
     return text.find(part) != std::string::npos;
+}
+
+std::string replaced(std::string text, const std::string& from, const std::string& to) {
+    const size_t at = text.find(from);
+    EXPECT_NE(at, std::string::npos) << from;
+    if (at != std::string::npos) text.replace(at, from.size(), to);
+    return text;
 }
 
 // The bytes of a valid model, through a file (the only way to get them from the API).
@@ -184,7 +195,24 @@ std::vector<BrokenCase> brokenCases() {
     const double nan = std::numeric_limits<double>::quiet_NaN();
     const double inf = std::numeric_limits<double>::infinity();
     return {
-        {"format_version", [](FlareModel& m) { m.format_version = 2; }},
+        {"format_version", [](FlareModel& m) { m.format_version = 3; }},
+        {"format_version", [](FlareModel& m) { m.format_version = 0; }},
+        // Version 2's lens fields in a version 1 model.
+        {"lens.aperture_blades", [](FlareModel& m) { m.format_version = 1; }},
+        {"lens.coat_unspecified_surfaces",
+         [](FlareModel& m) {
+             m.format_version = 1;
+             m.lens.aperture_blades.reset();
+             m.lens.blade_rotation_deg.reset();
+             m.lens.stop_semi_aperture_mm.reset();
+         }},
+        {"lens.aperture_blades", [](FlareModel& m) { m.lens.aperture_blades = 2; }},
+        {"lens.aperture_blades", [](FlareModel& m) { m.lens.aperture_blades = 65; }},
+        {"lens.aperture_blades", [](FlareModel& m) { m.lens.aperture_blades = -1; }},
+        {"lens.blade_rotation_deg", [inf](FlareModel& m) { m.lens.blade_rotation_deg = inf; }},
+        {"lens.stop_semi_aperture_mm", [](FlareModel& m) { m.lens.stop_semi_aperture_mm = 0.0; }},
+        {"lens.stop_semi_aperture_mm",
+         [nan](FlareModel& m) { m.lens.stop_semi_aperture_mm = nan; }},
         {"software_version", [](FlareModel& m) { m.software_version = std::string("a\0b", 3); }},
         {"software_version", [](FlareModel& m) { m.software_version.assign(2, '\xff'); }},
         {"lens.description",
@@ -353,16 +381,19 @@ TEST(ReadModel, RefusesTruncatedBinaryAtEveryLength) {
 TEST(ReadModel, RefusesUnknownVersion) {
     FlareModel model = sampleModel();
     const std::string bytes = modelBytes(model);
-    // Field 1 (format_version, varint) comes first: tag 0x08, value 1.
+    // Field 1 (format_version, varint) comes first: tag 0x08, value 2.
     ASSERT_GE(bytes.size(), 2u);
-    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x01", 2));
-    std::string newer = bytes;
-    newer[1] = 2;
-    const Result<FlareModel> read = readModelFromMemory(newer, "newer.flaremodel");
-    ASSERT_FALSE(read);
-    EXPECT_EQ(read.error().code, ErrorCode::Unsupported);
-    EXPECT_TRUE(contains(read.error().message, "newer.flaremodel: format_version: 2"))
-        << read.error().message;
+    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x02", 2));
+    for (const char version : {'\x00', '\x03'}) {
+        std::string other = bytes;
+        other[1] = version;
+        const Result<FlareModel> read = readModelFromMemory(other, "other.flaremodel");
+        ASSERT_FALSE(read);
+        EXPECT_EQ(read.error().code, ErrorCode::Unsupported);
+        EXPECT_TRUE(contains(read.error().message,
+                             "other.flaremodel: format_version: " + std::to_string(version)))
+            << read.error().message;
+    }
 
     const Result<FlareModel> json = modelFromJson(R"({"format_version": 3, "new_field": 1})");
     ASSERT_FALSE(json);
@@ -370,6 +401,66 @@ TEST(ReadModel, RefusesUnknownVersion) {
     const Result<FlareModel> missing = modelFromJson(R"({"lens": {}})");
     ASSERT_FALSE(missing);
     EXPECT_TRUE(contains(missing.error().message, "format_version: missing"));
+}
+
+// A model written before version 2 (no camera settings beyond f-number, focal length and sensor)
+// still reads, from a file of the repository as from this writer, and keeps its version.
+TEST(ReadModel, AVersion1ModelStillReads) {
+    const Result<FlareModel> shipped =
+        readModel(std::string(FLARELAB_SOURCE_DIR) + "/fuzz/corpus/model/valid-full.flaremodel");
+    ASSERT_TRUE(shipped) << shipped.error().message;
+    EXPECT_EQ(shipped->format_version, 1);
+    EXPECT_FALSE(shipped->lens.aperture_blades);
+    EXPECT_FALSE(shipped->lens.stop_semi_aperture_mm);
+    EXPECT_EQ(shipped->lens.sensor_width_mm, 36.0);
+
+    FlareModel old = sampleModel();
+    old.format_version = 1;
+    old.lens.aperture_blades.reset();
+    old.lens.blade_rotation_deg.reset();
+    old.lens.stop_semi_aperture_mm.reset();
+    old.lens.coat_unspecified_surfaces.reset();
+    const std::string bytes = modelBytes(old);
+    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x01", 2));
+    const Result<FlareModel> binary = readModelFromMemory(bytes, "old.flaremodel");
+    ASSERT_TRUE(binary) << binary.error().message;
+    EXPECT_EQ(*binary, old);
+    const Result<std::string> json = modelToJson(old);
+    ASSERT_TRUE(json) << json.error().message;
+    EXPECT_FALSE(contains(*json, "aperture_blades")) << *json;
+    const Result<FlareModel> text = modelFromJson(*json, "old.json");
+    ASSERT_TRUE(text) << text.error().message;
+    EXPECT_EQ(*text, old);
+    // Version 2's fields in a version 1 text are refused by name.
+    const Result<FlareModel> mixed =
+        modelFromJson(replaced(*json, "\"sensor_width_mm\": 36",
+                               "\"sensor_width_mm\": 36, \"aperture_blades\": 6"),
+                      "mixed.json");
+    ASSERT_FALSE(mixed);
+    EXPECT_EQ(mixed.error().code, ErrorCode::ParseError);
+    EXPECT_TRUE(contains(mixed.error().message,
+                         "mixed.json: lens.aperture_blades: is a field of format version 2"))
+        << mixed.error().message;
+}
+
+TEST(ModelFile, Version2RecordsTheCaptureSettings) {
+    const Result<std::string> json = modelToJson(sampleModel());
+    ASSERT_TRUE(json) << json.error().message;
+    EXPECT_TRUE(contains(*json, "\"format_version\": 2")) << *json;
+    EXPECT_TRUE(contains(*json, "\"aperture_blades\": 6")) << *json;
+    EXPECT_TRUE(contains(*json, "\"blade_rotation_deg\": 15")) << *json;
+    EXPECT_TRUE(contains(*json, "\"stop_semi_aperture_mm\": 12.4033203125")) << *json;
+    EXPECT_TRUE(contains(*json, "\"coat_unspecified_surfaces\": true")) << *json;
+    // A circular stop and bare surfaces are settings too, kept apart from "not recorded".
+    FlareModel circle = sampleModel();
+    circle.lens.aperture_blades = 0;
+    circle.lens.coat_unspecified_surfaces = false;
+    const Result<FlareModel> read = readModelFromMemory(modelBytes(circle));
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->lens.aperture_blades, 0);
+    EXPECT_EQ(read->lens.coat_unspecified_surfaces, false);
+    const std::string shown = describeModel(sampleModel(), "m.flm");
+    EXPECT_TRUE(contains(shown, "aperture: 6 blades, blades rotated 15 deg")) << shown;
 }
 
 TEST(ReadModel, RefusesUnknownFieldsInBinary) {

@@ -124,9 +124,11 @@ TEST(Score, LeftOutFramesAreHeldOutOnceAndChecked) {
     EXPECT_EQ(fitted, 4);   // 0, 1, 2, 3
     EXPECT_EQ(left, 12);    // four between each pair of fitted frames
     EXPECT_EQ(halfway, 3);  // 0.5, 1.5, 2.5: none coincides with a left-out frame
-    for (size_t i = 1; i < angles->size(); ++i)
-        if ((*angles)[i].kind != AngleKind::Fitted && (*angles)[i - 1].kind != AngleKind::Fitted)
+    for (size_t i = 1; i < angles->size(); ++i) {
+        if ((*angles)[i].kind != AngleKind::Fitted && (*angles)[i - 1].kind != AngleKind::Fitted) {
             EXPECT_LT((*angles)[i - 1].angle_deg, (*angles)[i].angle_deg);
+        }
+    }
 
     // k = 2: the half-way angles are the left-out frames, scored once, as left-out, even those
     // the cap on left-out frames leaves unscored.

@@ -1,6 +1,7 @@
-// Sweeps on disk under faults: the version 2 frame log (linear bytes, torn records), the order of
-// writes and flushes, a failed flush or a full disk, files set aside on resume, and hostile files
-// (FIFOs, links, devices, oversized declarations) in place of every file a reader opens.
+// Sweeps on disk under faults: the frame log of version 2 on (linear bytes, torn records), older
+// versions resumed, the order of writes and flushes, a failed flush or a full disk, files set
+// aside on resume, and hostile files (FIFOs, links, devices, oversized declarations) in place of
+// every file a reader opens.
 #include <fcntl.h>
 #include <gtest/gtest.h>
 #include <sys/stat.h>
@@ -157,7 +158,7 @@ TEST(SweepWriter, TheFinishedSweepIsItsManifestAlone) {
     EXPECT_FALSE(fs::exists(dir.file(kSweepFrameLogFile)));
     auto manifest = parseSweepManifest(readText(dir.file(kSweepManifestFile)));
     ASSERT_TRUE(manifest) << manifest.error().message;
-    EXPECT_EQ(manifest->header.format_version, 2);
+    EXPECT_EQ(manifest->header.format_version, kSweepFormatVersion);
     EXPECT_EQ(manifest->frames, writer.sweep().frames);
     auto sweep = readSweep(dir.path());
     ASSERT_TRUE(sweep) << sweep.error().message;
@@ -263,10 +264,109 @@ TEST(ReadSweep, VersionOneSweepsStillReadAndAreUpgradedWhenResumed) {
     ASSERT_TRUE(resumed->addFrame(image(3), frame(3)));
     auto manifest = parseSweepManifest(readText(dir.file(kSweepManifestFile)));
     ASSERT_TRUE(manifest) << manifest.error().message;
-    EXPECT_EQ(manifest->header.format_version, 2);
+    EXPECT_EQ(manifest->header.format_version, 3);
     auto upgraded = readSweep(dir.path());
     ASSERT_TRUE(upgraded) << upgraded.error().message;
     EXPECT_EQ(upgraded->frames.size(), 4u);
+}
+
+// The camera settings a version 3 sweep records for a simulated lens (drivers::describeLens).
+SweepHeader withLensSettings(SweepHeader h, int blades = 6) {
+    h.lens.f_number = 4.5;
+    h.lens.focal_length_mm = 50.0;
+    h.lens.aperture_blades = blades;
+    h.lens.blade_rotation_deg = 15.0;
+    h.lens.stop_semi_aperture_mm = 3.25;
+    h.lens.coat_unspecified_surfaces = false;
+    h.lens.sensor_width_mm = 36.0;
+    h.lens.sensor_height_mm = 24.0;
+    return h;
+}
+
+// A sweep begun by an older version (here 2, its frame log holding frames) is resumed by a writer
+// whose camera records the settings: the frames already taken were not recorded with them, so
+// they stay absent, and the sweep becomes version 3 when compacted.
+TEST(SweepWriter, AnOlderSweepResumesWithTheSettingsItNeverRecordedLeftAbsent) {
+    TempDir dir;
+    SweepHeader old_header = header();
+    old_header.lens.f_number = 4.5;
+    old_header.lens.focal_length_mm = 50.0;
+    writeFrames(dir.path(), 3);
+    // What version 2 left: its manifest (no frames yet compacted) and a log with the frames.
+    Sweep old;
+    old.header = old_header;
+    old.header.format_version = 2;
+    old.header.created_utc = "2026-11-29T07:00:00Z";
+    auto v2 = formatSweepManifest(old);
+    ASSERT_TRUE(v2) << v2.error().message;
+    writeText(dir.file(kSweepManifestFile), *v2);
+    auto listed = readSweepManifest(dir.path());
+    ASSERT_TRUE(listed) << listed.error().message;
+    EXPECT_EQ(listed->header.format_version, 2);
+    EXPECT_EQ(listed->frames.size(), 3u);
+
+    SweepWriteOptions resume;
+    resume.resume = true;
+    {
+        auto resumed = SweepWriter::create(dir.path(), withLensSettings(old_header), resume);
+        ASSERT_TRUE(resumed) << resumed.error().message;
+        EXPECT_EQ(resumed->sweep().header.format_version, 3);
+        EXPECT_EQ(resumed->sweep().header.lens, old_header.lens);
+        ASSERT_TRUE(resumed->addFrame(image(3), frame(3)));
+        ASSERT_TRUE(resumed->finish());
+    }
+    auto manifest = parseSweepManifest(readText(dir.file(kSweepManifestFile)));
+    ASSERT_TRUE(manifest) << manifest.error().message;
+    EXPECT_EQ(manifest->header.format_version, 3);
+    EXPECT_EQ(manifest->header.lens, old_header.lens);
+    EXPECT_FALSE(manifest->header.lens.aperture_blades);
+    EXPECT_FALSE(manifest->header.lens.sensor_width_mm);
+    EXPECT_EQ(manifest->header.created_utc, "2026-11-29T07:00:00Z");
+    EXPECT_EQ(manifest->frames.size(), 4u);
+
+    // Now version 3, it records no settings: a writer that has some is another capture.
+    auto again = SweepWriter::create(dir.path(), withLensSettings(old_header), resume);
+    ASSERT_FALSE(again);
+    EXPECT_TRUE(contains(again.error().message, "lens.aperture_blades: absent, the new sweep's 6"))
+        << again.error().message;
+    // What older versions recorded is still compared.
+    SweepHeader other = old_header;
+    other.lens.f_number = 8.0;
+    EXPECT_FALSE(SweepWriter::create(dir.path(), other, resume));
+}
+
+// A version 3 sweep taken with six blades is not continued with another aperture: the frames
+// would mix two captures, and a score would re-simulate only one of them.
+TEST(SweepWriter, AResumeWithOtherBladesIsRefusedAsAnotherCapture) {
+    TempDir dir;
+    const SweepHeader six = withLensSettings(header(), 6);
+    {
+        auto writer = SweepWriter::create(dir.path(), six);
+        ASSERT_TRUE(writer) << writer.error().message;
+        ASSERT_TRUE(writer->addFrame(image(0), frame(0)));
+    }
+    SweepWriteOptions resume;
+    resume.resume = true;
+    for (const int blades : {0, 5}) {
+        auto refused = SweepWriter::create(dir.path(), withLensSettings(header(), blades), resume);
+        ASSERT_FALSE(refused) << blades;
+        EXPECT_EQ(refused.error().code, ErrorCode::InvalidArgument);
+        EXPECT_TRUE(contains(refused.error().message,
+                             "lens.aperture_blades: 6, the new sweep's " + std::to_string(blades)))
+            << refused.error().message;
+        EXPECT_TRUE(contains(refused.error().message, "cannot resume")) << refused.error().message;
+    }
+    SweepHeader rotated = six;
+    rotated.lens.blade_rotation_deg = 0.0;
+    auto refused = SweepWriter::create(dir.path(), rotated, resume);
+    ASSERT_FALSE(refused);
+    EXPECT_TRUE(contains(refused.error().message, "lens.blade_rotation_deg: 15, the new sweep's 0"))
+        << refused.error().message;
+    // Nothing was touched: the same settings resume.
+    auto same = SweepWriter::create(dir.path(), six, resume);
+    ASSERT_TRUE(same) << same.error().message;
+    EXPECT_EQ(same->sweep().header.lens, six.lens);
+    EXPECT_EQ(same->sweep().frames.size(), 1u);
 }
 
 TEST(SweepWriter, FramesReachTheDiskBeforeTheRecordThatListsThem) {

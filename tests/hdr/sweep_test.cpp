@@ -546,7 +546,7 @@ TEST(ParseSweepManifest, AcceptsWhatFormatWrites) {
 TEST(ParseSweepManifest, AcceptsCamelCaseNamesAndQuotedIntegers) {
     const std::string json =
         replaced(replaced(validManifest(), "\"angle_deg\":0.1", "\"angleDeg\":0.1"),
-                 "\"format_version\": 2", "\"formatVersion\": \"2\"");
+                 "\"format_version\": 3", "\"formatVersion\": \"3\"");
     auto sweep = parseSweepManifest(json);
     ASSERT_TRUE(sweep) << sweep.error().message;
     EXPECT_EQ(sweep->frames[0].angle_deg, 0.1);
@@ -554,16 +554,125 @@ TEST(ParseSweepManifest, AcceptsCamelCaseNamesAndQuotedIntegers) {
 
 TEST(ParseSweepManifest, UnknownVersionIsUnsupported) {
     // A later version with a field this reader does not know: the version is what is wrong.
-    const std::string json = replaced(validManifest(), "\"format_version\": 2",
-                                      "\"format_version\": 3, \"new_field\": true");
+    const std::string json = replaced(validManifest(), "\"format_version\": 3",
+                                      "\"format_version\": 4, \"new_field\": true");
     auto sweep = parseSweepManifest(json, "m.json");
     ASSERT_FALSE(sweep);
     EXPECT_EQ(sweep.error().code, ErrorCode::Unsupported);
-    EXPECT_TRUE(contains(sweep.error().message, "m.json: format_version: 3"))
+    EXPECT_TRUE(contains(sweep.error().message, "m.json: format_version: 4"))
         << sweep.error().message;
-    auto missing = parseSweepManifest(replaced(validManifest(), "\"format_version\": 2,", ""));
+    auto missing = parseSweepManifest(replaced(validManifest(), "\"format_version\": 3,", ""));
     ASSERT_FALSE(missing);
     EXPECT_TRUE(contains(missing.error().message, "format_version: missing"));
+}
+
+// The camera settings of a simulated capture, as drivers::describeLens records them.
+SweepHeader withLensSettings(SweepHeader header) {
+    header.lens.aperture_blades = 6;
+    header.lens.blade_rotation_deg = 15.0;
+    header.lens.stop_semi_aperture_mm = 4.3759765625;
+    header.lens.coat_unspecified_surfaces = true;
+    header.lens.sensor_width_mm = 36.0;
+    header.lens.sensor_height_mm = 24.0;
+    header.lens.prescription_file = "data/lenses/test lens.csv";
+    header.lens.prescription_sha256 = std::string(32, 'a') + std::string(32, '7');
+    return header;
+}
+
+TEST(ParseSweepManifest, Version3LensSettingsRoundTrip) {
+    Sweep sweep;
+    sweep.header = withLensSettings(smallHeader());
+    sweep.frames = {frameAt(sweep.header, 0)};
+    sweep.frames[0].exr_file = "a.exr";
+    auto json = formatSweepManifest(sweep);
+    ASSERT_TRUE(json) << json.error().message;
+    EXPECT_TRUE(contains(*json, "\"format_version\": 3")) << *json;
+    EXPECT_TRUE(contains(*json, "\"aperture_blades\": 6")) << *json;
+    EXPECT_TRUE(contains(*json, "\"coat_unspecified_surfaces\": true")) << *json;
+    auto read = parseSweepManifest(*json, "m.json");
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->header, sweep.header);
+    EXPECT_EQ(read->header.lens.stop_semi_aperture_mm, 4.3759765625);
+
+    // A circular stop and bare surfaces are recorded settings too, not absent ones.
+    sweep.header.lens.aperture_blades = 0;
+    sweep.header.lens.coat_unspecified_surfaces = false;
+    json = formatSweepManifest(sweep);
+    ASSERT_TRUE(json) << json.error().message;
+    read = parseSweepManifest(*json);
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->header.lens.aperture_blades, 0);
+    EXPECT_EQ(read->header.lens.coat_unspecified_surfaces, false);
+
+    // Without them, the fields are left out of the text and read back absent.
+    const std::string bare = validManifest();
+    EXPECT_FALSE(contains(bare, "aperture_blades")) << bare;
+    EXPECT_FALSE(contains(bare, "prescription_file")) << bare;
+}
+
+TEST(ParseSweepManifest, AVersion2ManifestStillReadsWithoutTheSettings) {
+    const std::string v2 =
+        replaced(validManifest(), "\"format_version\": 3", "\"format_version\": 2");
+    auto sweep = parseSweepManifest(v2, "m.json");
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    EXPECT_EQ(sweep->header.format_version, 2);
+    EXPECT_EQ(sweep->header.lens.f_number, 2.0);
+    EXPECT_FALSE(sweep->header.lens.aperture_blades);
+    EXPECT_FALSE(sweep->header.lens.sensor_width_mm);
+    // Version 3's fields belong to version 3: an older manifest holding one is refused by name.
+    auto mixed = parseSweepManifest(
+        replaced(v2, "\"f_number\": 2", "\"f_number\": 2, \"aperture_blades\": 6"), "m.json");
+    ASSERT_FALSE(mixed);
+    EXPECT_EQ(mixed.error().code, ErrorCode::ParseError);
+    EXPECT_TRUE(contains(mixed.error().message,
+                         "m.json: lens.aperture_blades: is a field of format version 3, not of "
+                         "version 2"))
+        << mixed.error().message;
+    Sweep old = *sweep;
+    old.header.lens.sensor_width_mm = 36.0;
+    auto written = formatSweepManifest(old);
+    ASSERT_FALSE(written);
+    EXPECT_EQ(written.error().code, ErrorCode::InvalidArgument);
+    EXPECT_TRUE(contains(written.error().message, "lens.sensor_width_mm"))
+        << written.error().message;
+}
+
+TEST(ParseSweepManifest, BrokenLensSettingsAreRefusedByField) {
+    Sweep sweep;
+    sweep.header = withLensSettings(smallHeader());
+    auto json = formatSweepManifest(sweep);
+    ASSERT_TRUE(json) << json.error().message;
+    const std::pair<std::pair<const char*, const char*>, const char*> cases[] = {
+        {{"\"aperture_blades\": 6", "\"aperture_blades\": 2"},
+         "lens.aperture_blades: 2 is neither"},
+        {{"\"aperture_blades\": 6", "\"aperture_blades\": 65"}, "lens.aperture_blades: 65"},
+        {{"\"aperture_blades\": 6", "\"aperture_blades\": 4294967295"},
+         "lens.aperture_blades: 4294967295"},
+        {{"\"aperture_blades\": 6", "\"aperture_blades\": -6"}, "aperture_blades"},
+        {{"\"blade_rotation_deg\": 15", "\"blade_rotation_deg\": \"NaN\""},
+         "lens.blade_rotation_deg"},
+        {{"\"stop_semi_aperture_mm\": 4.3759765625", "\"stop_semi_aperture_mm\": 0"},
+         "lens.stop_semi_aperture_mm: 0 is not a finite number > 0"},
+        {{"\"sensor_width_mm\": 36", "\"sensor_width_mm\": -36"}, "lens.sensor_width_mm"},
+        {{"\"sensor_height_mm\": 24", "\"sensor_height_mm\": \"Infinity\""},
+         "lens.sensor_height_mm"},
+        {{"\"prescription_sha256\": \"aaaa", "\"prescription_sha256\": \"AAaa"},
+         "lens.prescription_sha256"},
+        {{"\"coat_unspecified_surfaces\": true", "\"coat_unspecified_surfaces\": 2"},
+         "coat_unspecified_surfaces"},
+    };
+    for (const auto& [edit, field] : cases) {
+        auto read = parseSweepManifest(replaced(*json, edit.first, edit.second), "m.json");
+        ASSERT_FALSE(read) << edit.second;
+        EXPECT_EQ(read.error().code, ErrorCode::ParseError);
+        EXPECT_TRUE(contains(read.error().message, field)) << read.error().message;
+    }
+    // The writer refuses them the same way.
+    sweep.header.lens.aperture_blades = 1;
+    auto refused = formatSweepManifest(sweep);
+    ASSERT_FALSE(refused);
+    EXPECT_EQ(refused.error().code, ErrorCode::InvalidArgument);
+    EXPECT_TRUE(contains(refused.error().message, "lens.aperture_blades: 1 is neither"));
 }
 
 TEST(ParseSweepManifest, MalformedJsonIsAParseError) {
