@@ -641,10 +641,10 @@ Status SweepFitter::processFrame(
     ghosts.insert(ghosts.end(), born_states.begin(), born_states.end());
     FrameFitReport report;
     if (!ghosts.empty()) {
-        // Priors: the live tracks' predictions; a ghost new from a detection has none (its
-        // detection is all there is), one new from a path has its seed's outline.
-        const std::span<const GhostState> priors(
-            ghosts.data(), options_.path_seeds ? ghosts.size() : predicted.size());
+        // Priors: the live tracks' predictions; new ghosts have none (their detection or seed
+        // is all there is; a seed's outline as a new ghost's prior kept ghosts whose seed the
+        // frame does not bear out, docs/path-tracking.md).
+        const std::span<const GhostState> priors(predicted);
         const auto t0 = Clock::now();
         auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame, priors, fixed);
         (extend ? result_.stages.extend_ms : result_.stages.fit_ms) += msSince(t0);
@@ -1108,6 +1108,10 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
     int64_t min_frames = options.min_track_frames;
     if (result.frame_count > 0) min_frames = std::min(min_frames, result.frame_count);
     model.ghosts.clear();
+    const double px_mm =
+        model.capture.width_px > 0
+            ? model.lens.sensor_width_mm / static_cast<double>(model.capture.width_px)
+            : 0.0;
     for (const GhostTrack& track : result.tracks) {
         const size_t n = track.samples.size();
         if (n == 0 || static_cast<int64_t>(n) < min_frames) continue;
@@ -1150,6 +1154,14 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                 parameter.lower_bound = std::max(*parameter.lower_bound, *info.lower_bound);
             if (info.upper_bound)
                 parameter.upper_bound = std::min(*parameter.upper_bound, *info.upper_bound);
+            // A falloff no narrower than the frame fit lets one be (a quarter pixel): narrower,
+            // a border's light shrinks to nothing whatever its intensity, the two trade freely,
+            // and a series of each drew a rim of 2700 DN/s half a millimetre wide between two
+            // frames where it had been a sliver (Nikon tele, 12.4 deg).
+            const std::string_view name = info.name;
+            if ((name == "inner_falloff_mm" || name == "outer_falloff_mm") && px_mm > 0.0)
+                parameter.lower_bound =
+                    std::max(*parameter.lower_bound, std::min(*lo, 0.25 * px_mm));
             if (*parameter.lower_bound > *parameter.upper_bound)
                 parameter.lower_bound = parameter.upper_bound;
             if (n == 1) {
