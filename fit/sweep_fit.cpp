@@ -1108,10 +1108,6 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
     int64_t min_frames = options.min_track_frames;
     if (result.frame_count > 0) min_frames = std::min(min_frames, result.frame_count);
     model.ghosts.clear();
-    const double px_mm =
-        model.capture.width_px > 0
-            ? model.lens.sensor_width_mm / static_cast<double>(model.capture.width_px)
-            : 0.0;
     for (const GhostTrack& track : result.tracks) {
         const size_t n = track.samples.size();
         if (n == 0 || static_cast<int64_t>(n) < min_frames) continue;
@@ -1154,14 +1150,6 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                 parameter.lower_bound = std::max(*parameter.lower_bound, *info.lower_bound);
             if (info.upper_bound)
                 parameter.upper_bound = std::min(*parameter.upper_bound, *info.upper_bound);
-            // A falloff no narrower than the frame fit lets one be (a quarter pixel): narrower,
-            // a border's light shrinks to nothing whatever its intensity, the two trade freely,
-            // and a series of each drew a rim of 2700 DN/s half a millimetre wide between two
-            // frames where it had been a sliver (Nikon tele, 12.4 deg).
-            const std::string_view name = info.name;
-            if ((name == "inner_falloff_mm" || name == "outer_falloff_mm") && px_mm > 0.0)
-                parameter.lower_bound =
-                    std::max(*parameter.lower_bound, std::min(*lo, 0.25 * px_mm));
             if (*parameter.lower_bound > *parameter.upper_bound)
                 parameter.lower_bound = parameter.upper_bound;
             if (n == 1) {

@@ -594,31 +594,6 @@ TEST(SweepFit, FixedDegreeAboveAShortTrackIsCapped) {
 // Beyond its fitted range a ghost fades out over one capture step: half way to the next captured
 // angle it is drawn at half its end intensity, at that angle (where it was not seen) not at all;
 // within the range nothing changes.
-// A falloff's series is kept at a quarter pixel or more (the frame fit's own bound), however far
-// its bounds are widened below the frames' values: narrower, a border's light vanishes whatever
-// its intensity, and the two trade without limit between frames.
-TEST(SweepFit, FalloffBoundsStayAtAQuarterPixel) {
-    SweepFitResult result = exactTracks([](double) { return false; });
-    result.tracks.pop_back();
-    for (auto& sample : result.tracks[0].samples) {
-        // 0.06 mm (a quarter of a 0.225 mm pixel is 0.05625) up to 2 mm.
-        sample.state.shading.inner_falloff_mm = 0.06 + sample.angle_deg / 3.0;
-        sample.state.shading.outer_falloff_mm = 0.06 + sample.angle_deg / 6.0;
-    }
-    auto model = buildModel(result, modelShell(0.0, 6.0), quickOptions());
-    ASSERT_TRUE(model) << model.error().message;
-    ASSERT_EQ(model->ghosts.size(), 1u);
-    const double quarter_px = 0.25 * kSensorW / kWidth;
-    int checked = 0;
-    for (const auto& p : model->ghosts[0].parameters) {
-        if (p.name != "inner_falloff_mm" && p.name != "outer_falloff_mm") continue;
-        ASSERT_TRUE(p.lower_bound);
-        EXPECT_DOUBLE_EQ(*p.lower_bound, quarter_px) << p.name;  // widened, it would be < 0
-        ++checked;
-    }
-    EXPECT_EQ(checked, 2);
-}
-
 TEST(SweepFit, GhostsFadeOutOverOneStepBeyondTheirRange) {
     const SweepFitResult result =
         exactTracks([](double angle) { return angle >= 1.0 && angle <= 3.0; });
