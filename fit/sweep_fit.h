@@ -16,6 +16,9 @@
 //      frame's ghost light, or went unmatched for max_missed frames. The sky is the lowest
 //      background of the probed frames; light above it everywhere in a frame is a ghost larger
 //      than the frame (a veil), followed like the others.
+//      With the lens's ghost paths as seeds (SweepFitOptions::path_seeds), tracks start from the
+//      seeds instead of from detections (a veil too is a path), one per path, and a path's
+//      outline is its shape's prior.
 //   3. Tracks born after the start are also followed back from where they were born, at most
 //      max_extension_frames (a ghost that separates from another was there before it was
 //      detected); the other ghosts stored there are held fixed.
@@ -51,7 +54,7 @@
 namespace flarelab::fit {
 
 // A ghost path of the lens's prescription at a head angle, where the optics core puts its ghost
-// (`fit --lens FILE --paths`): the stop's image through the path, before vignetting.
+// (`fit --lens FILE --paths`, drivers/path_seeds.h): an outline around what its rays light.
 struct PathSeed {
     int64_t path = 0;  // the path's identity: the same number at every angle
     render::GhostShapeParams shape;
