@@ -14,6 +14,7 @@
 #include <random>
 #include <sstream>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "fit/model_eval.h"
@@ -631,6 +632,58 @@ TEST(SweepFit, GhostsFadeOutOverOneStepBeyondTheirRange) {
     ASSERT_TRUE(inside);
     EXPECT_NEAR(inside->shading.border_rgb[0], trueState(kTwoGhosts[1], 2.0).shading.border_rgb[0],
                 0.05 * trueState(kTwoGhosts[1], 2.0).shading.border_rgb[0]);
+}
+
+// Between two captured angles a ghost's light is held to what it has at them, 1.25 times at most:
+// a border series that bulges between frames (each parameter has its own series) is scaled down
+// there, and nothing changes at the captured angles or where the light stays within the bound.
+TEST(SweepFit, AGhostsLightBetweenCapturedAnglesStaysNearWhatItHasAtThem) {
+    const SweepFitResult result = exactTracks([](double) { return false; });
+    auto model = buildModel(result, modelShell(0.0, 6.0), quickOptions());
+    ASSERT_TRUE(model) << model.error().message;
+    // The ghost's light on the test's frame, and its border.
+    const auto lightAt = [&](const FlareModel& m, double angle) {
+        auto at = modelGhostsAt(m, angle, 0.0);
+        EXPECT_TRUE(at && at->size() == 1u);
+        if (!at || at->empty()) return std::pair{-1.0, -1.0};
+        std::vector<GhostState> states = {at->front().state};
+        const ImageRGB image = renderGhostStates(states, testMapping(), kWidth, kHeight);
+        double sum = 0.0;
+        for (size_t i = 0; i < image.pixels.size(); i += 3) sum += image.pixels[i];
+        return std::pair{sum, at->front().state.shading.border_rgb[0]};
+    };
+    FlareModel bulging = *model;
+    bulging.capture.step_deg = 3.0;  // captured at 0, 3 and 6 deg
+    for (auto& p : bulging.ghosts[0].parameters) {
+        if (p.name.rfind("ln_border", 0) != 0) continue;
+        ASSERT_EQ(p.pieces.size(), 1u);
+        // A bump of +3 in ln (20 times the border) at 1.5 and 4.5 deg, nothing at 0, 3 and 6:
+        // (1 - T4(x)) / 2 * 3 on the piece's x = (angle - 3) / 3.
+        auto& c = p.pieces[0].coefficients;
+        c.resize(std::max<size_t>(c.size(), 5), 0.0);
+        c[0] += 1.5;
+        c[4] -= 1.5;
+        p.upper_bound.reset();
+    }
+    for (const double captured : {0.0, 3.0, 6.0})
+        EXPECT_NEAR(lightAt(bulging, captured).second, lightAt(*model, captured).second,
+                    1e-9 * lightAt(*model, captured).second)
+            << captured;
+    for (const auto& [between, before, after] :
+         {std::tuple{1.5, 0.0, 3.0}, std::tuple{4.5, 3.0, 6.0}}) {
+        const double plain = lightAt(*model, between).first;
+        const double held = lightAt(bulging, between).first;
+        const double neighbours =
+            std::max(lightAt(bulging, before).first, lightAt(bulging, after).first);
+        EXPECT_GT(held, plain) << between;  // scaled down, not to nothing
+        // 1.25 times the brighter neighbour, give or take the rough energy's error.
+        EXPECT_LT(held, 1.35 * neighbours) << between;
+    }
+    // The plain model's light hardly changes from frame to frame: nothing is scaled.
+    FlareModel coarse = *model;
+    coarse.capture.step_deg = 3.0;
+    for (const double a : {0.7, 1.5, 2.2, 4.5})
+        EXPECT_DOUBLE_EQ(lightAt(coarse, a).second, lightAt(*model, a).second) << a;
 }
 
 // The shading refit (step 5): a model whose shading series were compressed from per-frame fits
