@@ -25,7 +25,10 @@
 // track covered from 1.0 to 0.55 half a step away.
 // Evaluated between fitted angles, a value may leave its bounds; ghostStateFromParameters clamps
 // it back (extents and falloffs to at least kMinExtentMm, fractions to [0, 1], exponents to
-// [0.25, 4]), so any evaluation gives a valid ghost.
+// [0.25, 4]), so any evaluation gives a valid ghost. Between two captured angles inside its range
+// a ghost's light (estimated from its shape and shading) is held to 1.25 times the brighter of
+// the two by scaling its intensities: each parameter has its own series, and two that trade (a
+// thin bright rim against a wide dim one) can meet between frames in a combination no frame had.
 //
 // Constellation (DESIGN.md): a model fitted to a sweep at roll r0 is drawn for a light at
 // (theta, phi) by evaluating it at theta and rotating the ghosts about the optical axis by
