@@ -427,6 +427,23 @@ double modelError(const FlareModel& model, const std::vector<TrueGhost>& truth, 
 // Extremes the sweep fit must get through: frames missing in the middle of a sweep, a ghost
 // passing over the light.
 
+// Every track holds a sample at each of `angles`, its box centre within `tolerance_mm` of the
+// true ghost it starts on.
+void expectEveryFrameFollowed(const SweepFitResult& result,
+                              const std::vector<TrueGhost>& truth,
+                              const std::vector<double>& angles,
+                              double tolerance_mm) {
+    for (const auto& track : result.tracks) {
+        EXPECT_EQ(track.samples.size(), angles.size()) << describe(result);
+        const int g = nearestTruth(truth, track.samples.front().state, angles.front());
+        ASSERT_GE(g, 0);
+        for (const auto& sample : track.samples)
+            EXPECT_NEAR(boxCentreX(sample.state),
+                        trueState(truth[g], sample.angle_deg).shape.centre_x_mm, tolerance_mm)
+                << "ghost " << g << " at " << sample.angle_deg;
+    }
+}
+
 TEST(SweepFit, AGapOfMissingFramesIsBridged) {
     // 0 .. 6 deg at 0.5 deg with 2.0 .. 3.5 missing (four frames, a third of the sweep's middle):
     // each ghost keeps one track across the gap, and the model predicts inside it.
@@ -437,15 +454,7 @@ TEST(SweepFit, AGapOfMissingFramesIsBridged) {
     auto result = fitSweepFrames(syntheticSource(kTwoGhosts, angles), options);
     ASSERT_TRUE(result) << result.error().message;
     ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
-    for (const auto& track : result->tracks) {
-        EXPECT_EQ(track.samples.size(), angles.size()) << describe(*result);
-        const int g = nearestTruth(kTwoGhosts, track.samples.front().state, angles.front());
-        ASSERT_GE(g, 0);
-        for (const auto& sample : track.samples)
-            EXPECT_NEAR(boxCentreX(sample.state),
-                        trueState(kTwoGhosts[g], sample.angle_deg).shape.centre_x_mm, 0.15)
-                << "ghost " << g << " at " << sample.angle_deg;
-    }
+    expectEveryFrameFollowed(*result, kTwoGhosts, angles, 0.15);
     auto model = buildModel(*result, modelShell(0.0, 6.0), options);
     ASSERT_TRUE(model) << model.error().message;
     ASSERT_EQ(model->ghosts.size(), 2u);
@@ -463,15 +472,7 @@ TEST(SweepFit, AGhostPassingOverTheLightKeepsItsTrack) {
     auto result = fitSweepFrames(syntheticSource(truth, angles), options);
     ASSERT_TRUE(result) << result.error().message;
     ASSERT_EQ(result->tracks.size(), 2u) << describe(*result);
-    for (const auto& track : result->tracks) {
-        EXPECT_EQ(track.samples.size(), angles.size()) << describe(*result);
-        const int g = nearestTruth(truth, track.samples.front().state, angles.front());
-        ASSERT_GE(g, 0);
-        for (const auto& sample : track.samples)
-            EXPECT_NEAR(boxCentreX(sample.state),
-                        trueState(truth[g], sample.angle_deg).shape.centre_x_mm, 0.2)
-                << "ghost " << g << " at " << sample.angle_deg;
-    }
+    expectEveryFrameFollowed(*result, truth, angles, 0.2);
     auto model = buildModel(*result, modelShell(0.0, 6.0), options);
     ASSERT_TRUE(model) << model.error().message;
     for (const double a : {1.25, 2.5, 2.75, 3.25})
