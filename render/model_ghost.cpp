@@ -1,9 +1,17 @@
 #include "render/model_ghost.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstdint>
 #include <limits>
+#include <numbers>
+#include <optional>
 #include <utility>
+
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
 
 namespace flarelab::render {
 namespace {
@@ -237,6 +245,44 @@ std::shared_ptr<const GhostOutline> buildOutline(const BezierLoop& loop,
         const double len2 = o->edges_mm[i].squaredNorm();
         o->inverse_length2[i] = len2 > 0.0 ? 1.0 / len2 : 0.0;
     }
+    o->bend_angle.assign(static_cast<size_t>(chords), 0.0);
+    o->bend_radius_mm.assign(static_cast<size_t>(chords), std::numeric_limits<double>::infinity());
+    for (size_t i = 0; i < static_cast<size_t>(chords); ++i) {
+        const Vec2& e0 = o->edges_mm[i];
+        const Vec2& e1 = o->edges_mm[(i + 1) % static_cast<size_t>(chords)];
+        const double angle = std::atan2(e0.x() * e1.y() - e0.y() * e1.x(), e0.dot(e1));
+        o->bend_angle[i] = angle;
+        if (angle != 0.0) o->bend_radius_mm[i] = 0.5 * (e0.norm() + e1.norm()) / std::abs(angle);
+    }
+    // A joint where the segments meet at an angle (a corner: the chords' turn there says little
+    // of its sharpness) has no radius: on its inner side two points can be nearest.
+    for (size_t i = 0; i < static_cast<size_t>(chords); ++i) {
+        const size_t next = (i + 1) % static_cast<size_t>(chords);
+        if (o->chord_segment[i] == o->chord_segment[next]) continue;
+        const auto a = loop.segment(o->chord_segment[i]);
+        const auto b = loop.segment(o->chord_segment[next]);
+        Vec2 out = Vec2::Zero(), in = Vec2::Zero();
+        for (int k = 2; k >= 0 && out.squaredNorm() == 0.0; --k)
+            out = a[3] - a[static_cast<size_t>(k)];
+        for (int k = 1; k <= 3 && in.squaredNorm() == 0.0; ++k)
+            in = b[static_cast<size_t>(k)] - b[0];
+        const double angle = std::atan2(out.x() * in.y() - out.y() * in.x(), out.dot(in));
+        // A handle of no length at the joint: the curve's speed vanishes there and its
+        // curvature grows without bound, a corner in all but the direction.
+        const bool stops = (a[3] - a[2]).squaredNorm() == 0.0 || (b[1] - b[0]).squaredNorm() == 0.0;
+        if (std::abs(angle) > 1e-9 || stops) o->bend_radius_mm[i] = 0.0;
+    }
+    {
+        double left = 0.0, right = 0.0;
+        for (const double bend : o->bend_angle) {
+            if (bend > 0.0) left += bend;
+            if (bend < 0.0) right -= bend;
+        }
+        const double slack = 1.75e-4, turn = 2.0 * std::numbers::pi;
+        o->convex = (right <= slack && std::abs(left - turn) <= 1e-6 * turn) ||
+                    (left <= slack && std::abs(right - turn) <= 1e-6 * turn);
+        o->turns_left = left >= right;
+    }
     for (int s = 0; s < loop.segmentCount(); ++s) {
         const auto c = loop.segment(s);
         o->segment_power.push_back({c[3] - 3.0 * c[2] + 3.0 * c[1] - c[0],
@@ -250,6 +296,13 @@ std::shared_ptr<const GhostOutline> buildOutline(const BezierLoop& loop,
         for (int32_t i = begin + 1; i <= chunk.end; ++i) {
             chunk.lo_mm = chunk.lo_mm.cwiseMin(o->vertices_mm[static_cast<size_t>(i)]);
             chunk.hi_mm = chunk.hi_mm.cwiseMax(o->vertices_mm[static_cast<size_t>(i)]);
+        }
+        for (int32_t i = begin; i < chunk.end; ++i) {
+            const double bend = o->bend_angle[static_cast<size_t>(i)];
+            chunk.turn += std::abs(bend);
+            if (bend > 0.0) chunk.left += bend;
+            if (bend < 0.0) chunk.right -= bend;
+            chunk.radius_mm = std::min(chunk.radius_mm, o->bend_radius_mm[static_cast<size_t>(i)]);
         }
         o->chunks.push_back(chunk);
     }
@@ -279,6 +332,9 @@ struct Nearest {
     Vec2 point_mm = Vec2::Zero();
     int32_t chord = 0;
     double u = 0.0;  // where on the chord, in [0, 1]
+    // Set by refineOnCurve: the segment and parameter of point_mm on the curve.
+    int32_t segment = 0;
+    double t = 0.0;
 };
 
 double boxDistance2(const Vec2& lo, const Vec2& hi, const Vec2& q) {
@@ -440,8 +496,14 @@ std::array<double, 3> shadeFromNearest(
 
 // Two Newton steps on the segment with power-basis coefficients c from t, kept in [0, 1]; the
 // point reached.
-Vec2 newtonOnSegment(const std::array<Vec2, 4>& c, const Vec2& q, double& t) {
-    for (int step = 0; step < 2; ++step) {
+// `steps` Newton steps; `moved`, when given, gets how far the last one moved the point (mm).
+Vec2 newtonOnSegment(const std::array<Vec2, 4>& c,
+                     const Vec2& q,
+                     double& t,
+                     int steps = 2,
+                     double* moved = nullptr) {
+    if (moved) *moved = 0.0;
+    for (int step = 0; step < steps; ++step) {
         const Vec2 p = ((c[0] * t + c[1]) * t + c[2]) * t + c[3];
         const Vec2 d1 = (3.0 * t * c[0] + 2.0 * c[1]) * t + c[2];
         const Vec2 d2 = 6.0 * t * c[0] + 2.0 * c[1];
@@ -450,9 +512,182 @@ Vec2 newtonOnSegment(const std::array<Vec2, 4>& c, const Vec2& q, double& t) {
         const double h = gn + r.dot(d2);
         const double curvature = h > 0.0 ? h : gn;
         if (!(curvature > 0.0)) break;
-        t = std::clamp(t - r.dot(d1) / curvature, 0.0, 1.0);
+        const double next = std::clamp(t - r.dot(d1) / curvature, 0.0, 1.0);
+        // How far the step moved the point, to second order (where C' nearly vanishes, at a
+        // corner of coinciding control points, the first-order term alone would say nothing).
+        const double dt = std::abs(next - t);
+        if (moved) *moved = dt * (std::sqrt(gn) + 0.5 * dt * d2.norm());
+        t = next;
     }
     return ((c[0] * t + c[1]) * t + c[2]) * t + c[3];
+}
+
+// The nearest curve point of q on a branch (GhostBranch): Newton, three steps, from the
+// first-order prediction of its loop parameter, trying the neighbouring segment where it stops
+// at a joint. `ok` when the last step moved the point by less than `settled_mm`.
+struct Followed {
+    bool ok = false;
+    double distance_mm = 0.0;
+    Vec2 point_mm = Vec2::Zero();
+    int32_t segment = 0;
+    double t = 0.0;
+};
+Followed followBranch(const GhostOutline& o,
+                      const GhostBranch& b,
+                      const Vec2& q,
+                      double settled_mm) {
+    Followed f;
+    const int segments = static_cast<int>(o.segment_power.size());
+    double u = b.loop_u + b.gradient.dot(q - b.middle_mm);
+    if (segments < 1 || !std::isfinite(u)) return f;
+    const double length = static_cast<double>(segments);
+    u -= length * std::floor(u / length);
+    int segment = std::min(static_cast<int>(u), segments - 1);
+    double t = std::clamp(u - segment, 0.0, 1.0);
+    double moved = 0.0;
+    Vec2 p = newtonOnSegment(o.segment_power[static_cast<size_t>(segment)], q, t, 3, &moved);
+    if (segments > 1 && (t == 0.0 || t == 1.0)) {
+        segment = t == 0.0 ? (segment + segments - 1) % segments : (segment + 1) % segments;
+        t = t == 0.0 ? 1.0 : 0.0;
+        p = newtonOnSegment(o.segment_power[static_cast<size_t>(segment)], q, t, 3, &moved);
+    }
+    // A nearest point: inside its segment (not stopped at a joint), where the curve's direction
+    // is square to the way to q (to within `settled_mm` along it), no farther than the middle's
+    // distance plus the way to it allows, and, where the branch asks, with q on its outer side.
+    const auto& c = o.segment_power[static_cast<size_t>(segment)];
+    const Vec2 d1 = (3.0 * t * c[0] + 2.0 * c[1]) * t + c[2];
+    const Vec2 r = q - p;
+    const double speed = d1.norm();
+    f.ok = moved <= settled_mm && t > 0.0 && t < 1.0 && speed > 0.0 &&
+           std::abs(r.dot(d1)) <= settled_mm * speed &&
+           r.norm() <= b.distance_mm + (q - b.middle_mm).norm() + settled_mm &&
+           (b.outward == 0 || (d1.x() * r.y() - d1.y() * r.x()) * b.outward > 0.0);
+    f.distance_mm = (p - q).norm();
+    f.point_mm = p;
+    f.segment = segment;
+    f.t = t;
+    return f;
+}
+
+// The branch of the loop through segment/t seen from q: the derivative of the nearest point's
+// parameter across the sensor, from (C(t) - q) . C'(t) = 0. nullopt where the nearest point does
+// not move smoothly (q at or beyond the centre of curvature, a cusp).
+std::optional<GhostBranch> branchAt(const GhostOutline& o,
+                                    int32_t segment,
+                                    double t,
+                                    const Vec2& q) {
+    const auto& c = o.segment_power[static_cast<size_t>(segment)];
+    const Vec2 point = ((c[0] * t + c[1]) * t + c[2]) * t + c[3];
+    const Vec2 d1 = (3.0 * t * c[0] + 2.0 * c[1]) * t + c[2];
+    const Vec2 d2 = 6.0 * t * c[0] + 2.0 * c[1];
+    const double curvature = d1.squaredNorm() + (point - q).dot(d2);
+    if (!(curvature > 1e-3 * d1.squaredNorm()) || !std::isfinite(curvature)) return std::nullopt;
+    GhostBranch b;
+    b.loop_u = static_cast<double>(segment) + t;
+    b.middle_mm = q;
+    b.gradient = d1 / curvature;
+    b.distance_mm = (point - q).norm();
+    return b;
+}
+
+// The end of the single-branch tests: the stretch from chord `first` turns by `turn` in all
+// (`left` and `right` of it to each side), nowhere more sharply than `radius`. Gently enough for
+// every point within `farthest` of it: either side (0). Else, when it bends one way by less than
+// a half turn, for points on the outer side of the bend (the right of a left-turning stretch: -1;
+// the left of a right-turning one: +1), where the outward normals of a convex arc never cross, so
+// that a point lies on the outward normal of one point of it at most. nullopt otherwise.
+std::optional<int> branchKind(const GhostOutline& o,
+                              int32_t first,
+                              double turn,
+                              double left,
+                              double right,
+                              double radius,
+                              const Vec2& c,
+                              double farthest) {
+    if (turn <= 0.5 * std::numbers::pi && radius >= 2.0 * farthest) return 0;
+    if (!(turn < std::numbers::pi)) return std::nullopt;
+    // Only where the region lies on the outer side (judged at c from the first chord; each point
+    // is checked again where Newton lands).
+    const Vec2& e = o.edges_mm[static_cast<size_t>(first)];
+    const Vec2 towards = c - o.vertices_mm[static_cast<size_t>(first)];
+    const double side = e.x() * towards.y() - e.y() * towards.x();
+    const double slack = 1.75e-4;  // a hundredth of a degree the other way in all
+    if (right <= slack && side < 0.0) return -1;
+    if (left <= slack && side > 0.0) return +1;
+    return std::nullopt;
+}
+
+// Whether the candidate chords of a region (every chord that can be nearest to one of its
+// points; chord indices ascending) form one branch for it: they run along the loop without a gap,
+// and either the region lies on the outer side of a stretch that turns one way by less than a
+// half turn, or the stretch turns by at most a right angle and nowhere more sharply than twice
+// the farthest point's distance from the curve (`farthest`) allows. Then every point's nearest
+// point lies on that stretch and is the only point there where the distance stops changing. `c`
+// is a point of the region, which lies on one side of the stretch.
+// Returns nullopt when they do not, else the side a point must lie on (GhostBranch::outward).
+std::optional<int> singleBranch(
+    const GhostOutline& o, const int32_t* index, size_t count, const Vec2& c, double farthest) {
+    if (count == 0) return std::nullopt;
+    const int32_t total = static_cast<int32_t>(o.edges_mm.size());
+    int gaps = 0;
+    size_t gap_at = 0;
+    for (size_t k = 1; k < count; ++k)
+        if (index[k] != index[k - 1] + 1) {
+            ++gaps;
+            gap_at = k;
+        }
+    if (!(gaps == 0 || (gaps == 1 && index[0] == 0 && index[count - 1] == total - 1)))
+        return std::nullopt;
+    const int32_t first = gaps == 0 ? index[0] : index[gap_at];
+    double turn = 0.0, left = 0.0, right = 0.0;
+    double radius = std::numeric_limits<double>::infinity();
+    for (size_t k = 0; k + 1 < count; ++k) {
+        const size_t i = static_cast<size_t>((first + static_cast<int32_t>(k)) % total);
+        const double bend = o.bend_angle[i];
+        turn += std::abs(bend);
+        if (bend > 0.0) left += bend;
+        if (bend < 0.0) right -= bend;
+        radius = std::min(radius, o.bend_radius_mm[i]);
+    }
+    return branchKind(o, first, turn, left, right, radius, c, farthest);
+}
+
+// singleBranch on whole chunks: the chunks whose boxes lie within `reach` of c (a superset of the
+// chords within reach, so a stricter test), their turns summed per chunk. A few box tests per
+// chunk of the loop, no chord's.
+std::optional<int> singleBranchOfChunks(const GhostOutline& o,
+                                        const Vec2& c,
+                                        double reach,
+                                        double farthest) {
+    const double reach2 = reach * reach * (1.0 + 1e-12) + 1e-300;
+    const size_t n = o.chunks.size();
+    int64_t first = -1, previous = -1;
+    int gaps = 0;
+    size_t found = 0;
+    bool has_zero = false, has_last = false;
+    double turn = 0.0, left = 0.0, right = 0.0;
+    double radius = std::numeric_limits<double>::infinity();
+    for (size_t k = 0; k < n; ++k) {
+        const auto& chunk = o.chunks[k];
+        if (boxDistance2(chunk, c) > reach2) continue;
+        if (previous >= 0 && static_cast<int64_t>(k) != previous + 1) {
+            ++gaps;
+            first = static_cast<int64_t>(k);
+        }
+        if (previous < 0) first = static_cast<int64_t>(k);
+        has_zero = has_zero || k == 0;
+        has_last = has_last || k + 1 == n;
+        previous = static_cast<int64_t>(k);
+        ++found;
+        turn += chunk.turn;
+        left += chunk.left;
+        right += chunk.right;
+        radius = std::min(radius, chunk.radius_mm);
+        if (gaps > 1) return std::nullopt;
+    }
+    if (found == 0 || !(gaps == 0 || (gaps == 1 && has_zero && has_last))) return std::nullopt;
+    return branchKind(o, o.chunks[static_cast<size_t>(first)].begin, turn, left, right, radius, c,
+                      farthest);
 }
 
 // The curve's own distance near the chord's: Newton on (C(t) - q) . C'(t) = 0 from the chord
@@ -467,8 +702,11 @@ void refineOnCurve(const GhostPrimitive& g, const Vec2& q, Nearest& n, bool& in)
     const size_t i = static_cast<size_t>(n.chord);
     const int segment = o.chord_segment[i];
     double t = o.chord_t[i][0] + n.u * (o.chord_t[i][1] - o.chord_t[i][0]);
+    const double t_chord = t;
     Vec2 p = newtonOnSegment(o.segment_power[static_cast<size_t>(segment)], q, t);
     double d = (p - q).norm();
+    int at_segment = segment;
+    double at_t = t;
     // Stopped at a joint: the nearest point may lie just across it, on the neighbouring segment
     // (the chords on both sides of a joint are equally near a point whose foot is the joint, and
     // either may be the one found).
@@ -481,11 +719,18 @@ void refineOnCurve(const GhostPrimitive& g, const Vec2& q, Nearest& n, bool& in)
         if (d2 < d) {
             d = d2;
             p = p2;
+            at_segment = other;
+            at_t = u;
         }
     }
     if (d <= n.distance_mm + o.tolerance_mm) {
         n.distance_mm = d;
         n.point_mm = p;
+        n.segment = at_segment;
+        n.t = at_t;
+    } else {
+        n.segment = segment;
+        n.t = t_chord;
     }
     if (n.distance_mm <= 2.0 * o.tolerance_mm) in = windingNumber(g.loop_mm, q) != 0;
 }
@@ -496,6 +741,300 @@ std::array<double, 3> fastValue(const GhostPrimitive& g, int64_t x, int64_t y) {
     bool in = inside(*g.outline, x, y);
     refineOnCurve(g, q, n, in);
     return shadeFromNearest(g, q, n.distance_mm, n.point_mm, in);
+}
+
+// ---------------------------------------------------------------------------
+// Edge tiles along one branch of the curve, four pixels at a time
+
+// Where the nearest points of a tile's pixels all lie on one short run of the loop (one branch,
+// gently curved), each pixel's nearest point is found by Newton on that segment of the curve from
+// a prediction, with no search of the chords; the pixel means follow in vectors of four. Lanes
+// Newton cannot settle (a joint, no convergence) are left to the per-pixel path.
+// Four-double vectors stay inside always-inlined functions and the kernels compiled for them, so
+// the ABI note GCC gives for AVX-sized values is moot here.
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic ignored "-Wpsabi"
+#endif
+using Double4 = double __attribute__((vector_size(32)));  // GCC's and Clang's vector extension
+using Mask4 = long long __attribute__((vector_size(32)));
+
+struct BranchTile {
+    std::array<Vec2, 4> power;          // the segment, C(t) = ((a t + b) t + c) t + d, origin q_m
+    double t_m = 0.0;                   // the middle pixel's nearest point's parameter
+    Vec2 gradient_t = Vec2::Zero();     // d t / d q at the middle pixel
+    double px_x = 1.0, px_y = 1.0;      // pixels per mm
+    int64_t mx = 0, my = 0;             // the middle pixel
+    double half_x = 0.0, half_y = 0.0;  // half a pixel, mm
+    double converged_mm = 0.0;          // the last Newton step moves the point less than this
+    double mm_per_px = 0.0;
+    double near_mm = 0.0;      // within this of the curve the side needs the winding number
+    int outward = 0;           // GhostBranch::outward
+    double distance_mm = 0.0;  // GhostBranch::distance_mm
+};
+
+// s^e = exp(e ln s) for four s in [0, 1] and e > 0 (0 at s = 0), through glibc's vector math
+// library (libmvec): its AVX2 variants where the processor has AVX2 (called out of line, by
+// pointer, so that no AVX vector crosses a call compiled without AVX), its SSE ones otherwise.
+#if defined(__x86_64__) && defined(__GLIBC__)
+extern "C" {
+__m256d _ZGVdN4v_log(__m256d);
+__m256d _ZGVdN4v_exp(__m256d);
+__m128d _ZGVbN2v_log(__m128d);
+__m128d _ZGVbN2v_exp(__m128d);
+}
+[[gnu::target("avx2")]] void powUnitAvx2(const double* s, const double* e, double* out) {
+    const __m256d v = _mm256_loadu_pd(s);
+    const __m256d one = _mm256_set1_pd(1.0);
+    const __m256d positive = _mm256_cmp_pd(v, _mm256_setzero_pd(), _CMP_GT_OQ);
+    const __m256d safe = _mm256_blendv_pd(one, v, positive);
+    const __m256d r = _ZGVdN4v_exp(_mm256_mul_pd(_mm256_loadu_pd(e), _ZGVdN4v_log(safe)));
+    _mm256_storeu_pd(out, _mm256_and_pd(r, positive));
+}
+void powUnitSse(const double* s, const double* e, double* out) {
+    for (int h = 0; h < 4; h += 2) {
+        double safe[2];
+        for (int j = 0; j < 2; ++j) safe[j] = s[h + j] > 0.0 ? s[h + j] : 1.0;
+        const __m128d r =
+            _ZGVbN2v_exp(_mm_mul_pd(_mm_loadu_pd(e + h), _ZGVbN2v_log(_mm_loadu_pd(safe))));
+        _mm_storeu_pd(out + h, r);
+        for (int j = 0; j < 2; ++j)
+            if (!(s[h + j] > 0.0)) out[h + j] = 0.0;
+    }
+}
+struct Avx2Math {
+    static constexpr auto pow = &powUnitAvx2;
+};
+struct BaseMath {
+    static constexpr auto pow = &powUnitSse;
+};
+#else
+void powUnitScalar(const double* s, const double* e, double* out) {
+    for (int j = 0; j < 4; ++j) out[j] = s[j] > 0.0 ? std::pow(s[j], e[j]) : 0.0;
+}
+struct BaseMath {
+    static constexpr auto pow = &powUnitScalar;
+};
+#endif
+
+// s^e for s in [0, 1] and e > 0 (0 at s = 0).
+template <typename Math>
+[[gnu::always_inline]] inline Double4 powUnit(Double4 s, Double4 e) {
+    double in[4], exponent[4], out[4];
+    __builtin_memcpy(in, &s, sizeof in);
+    __builtin_memcpy(exponent, &e, sizeof exponent);
+    Math::pow(in, exponent, out);
+    Double4 r;
+    __builtin_memcpy(&r, out, sizeof out);
+    return r;
+}
+
+struct VectorShading {
+    Double4 fo, fi, eo, ei;
+};
+
+// Eq. 6.4's second antiderivatives (transferAntiderivatives' `second`) at x, both weights.
+template <typename Math>
+[[gnu::always_inline]] inline void secondAntiderivative(const VectorShading& v,
+                                                        Double4 x,
+                                                        Double4& border,
+                                                        Double4& inner) {
+    const Double4 zero = {}, one = zero + 1.0, half = zero + 0.5;
+    const Mask4 out = x > zero;
+    const Double4 y = out ? x : -x;
+    const Double4 f = out ? v.fo : v.fi, e = out ? v.eo : v.ei;
+    const Double4 e1 = e + one, e2 = e + 2.0;
+    Double4 s = y / f;
+    s = s < one ? s : one;
+    const Double4 p = powUnit<Math>(s, e2);
+    const Double4 k = f * f / (e1 * e2);
+    const Double4 r = y - f;
+    const Mask4 within = y < f;
+    const Double4 p2 = k * p;
+    const Double4 beyond_border = half * f * f - k + f * e / e1 * r;
+    const Double4 b = within ? half * y * y - p2 : beyond_border;
+    const Double4 i = within ? p2 : k + f / e1 * r + half * r * r;
+    border = b;
+    inner = out ? zero : i;
+}
+
+// The pixel means' weights on the border and inner intensities (boxTransferWeights, or the
+// variance form shadeFromNearest uses away from the edge and the falloffs' ends) for signed
+// distances sd and half spreads a, c.
+template <typename Math>
+[[gnu::always_inline]] inline void pixelWeights(
+    const VectorShading& v, Double4 sd, Double4 a, Double4 c, Double4& w_border, Double4& w_inner) {
+    const Double4 zero = {}, one = zero + 1.0;
+    const Mask4 in = sd < zero;
+    const Double4 dist = in ? -sd : sd;
+    const Double4 reach = a + c;
+    const Double4 fs = in ? v.fi : v.fo, es = in ? v.ei : v.eo;
+    // Away from the edge and the falloff's end: one power.
+    const Mask4 within = dist + reach <= fs;
+    Double4 q = dist / fs;
+    q = q < one ? q : one;
+    const Double4 p = powUnit<Math>(q, es);
+    const Double4 variance = (a * a + c * c) / 3.0;
+    const Double4 safe = dist > zero ? dist : one;
+    Double4 w = within ? p + 0.5 * variance * es * (es - one) * p / (safe * safe) : one;
+    Double4 wb = one - w, wi = in ? w : zero;
+    const Mask4 far = (dist > 4.0 * reach) & (within | (dist - reach >= fs));
+    const Mask4 all_out = sd - reach >= v.fo;
+    const Mask4 all_in = sd + reach <= -v.fi;
+    const Mask4 box = ~far & ~all_out & ~all_in;
+    bool any_box = false;
+    for (int j = 0; j < 4; ++j) any_box = any_box || box[j] != 0;
+    if (any_box) {
+        const Double4 big = a > c ? a : c;
+        Double4 small = a > c ? c : a;
+        small = small > 1e-6 * big ? small : 1e-6 * big;
+        Double4 b1, i1, b2, i2, b3, i3, b4, i4;
+        secondAntiderivative<Math>(v, sd + big + small, b1, i1);
+        secondAntiderivative<Math>(v, sd + big - small, b2, i2);
+        secondAntiderivative<Math>(v, sd - big + small, b3, i3);
+        secondAntiderivative<Math>(v, sd - big - small, b4, i4);
+        const Double4 scale = 0.25 / (big * small);
+        wb = box ? (b1 - b2 - b3 + b4) * scale : wb;
+        wi = box ? (i1 - i2 - i3 + i4) * scale : wi;
+    }
+    w_border = all_out ? zero : (all_in ? zero : wb);
+    w_inner = all_out ? zero : (all_in ? one : wi);
+}
+
+// One row of a branch tile: pixels x0..x1 of row y, whose sides (inside the loop or not) are
+// `in`; adds the pixel means to rgb (pixel x0 first) and sets done[x - x0] for the pixels it
+// drew (the rest are left to the caller).
+template <typename Math>
+[[gnu::always_inline]] inline void branchRowBody(const BranchTile& b,
+                                                 const GhostShading& shading,
+                                                 int64_t y,
+                                                 int64_t x0,
+                                                 int64_t x1,
+                                                 const uint8_t* in,
+                                                 float* rgb,
+                                                 uint8_t* done) {
+    const Double4 zero = {}, one = zero + 1.0;
+    const VectorShading v{zero + shading.outer_falloff_mm, zero + shading.inner_falloff_mm,
+                          zero + shading.outer_exponent, zero + shading.inner_exponent};
+    const Double4 qy = zero + static_cast<double>(y - b.my) / b.px_y;
+    const Double4 ax = zero + b.power[0].x(), ay = zero + b.power[0].y();
+    const Double4 bx = zero + b.power[1].x(), by = zero + b.power[1].y();
+    const Double4 cx = zero + b.power[2].x(), cy = zero + b.power[2].y();
+    const Double4 dx = zero + b.power[3].x(), dy = zero + b.power[3].y();
+    for (int64_t x = x0; x <= x1; x += 4) {
+        Double4 qx;
+        for (int j = 0; j < 4; ++j)
+            qx[j] = static_cast<double>(std::min(x + j, x1) - b.mx) / b.px_x;
+        Double4 t = b.t_m + b.gradient_t.x() * qx + b.gradient_t.y() * qy;
+        t = t > zero ? t : zero;
+        t = t < one ? t : one;
+        const Double4 sx = ((ax * t + bx) * t + cx) * t + dx;
+        const Double4 sy = ((ay * t + by) * t + cy) * t + dy;
+        Double4 move = zero;
+        for (int step = 0; step < 3; ++step) {
+            const Double4 px = ((ax * t + bx) * t + cx) * t + dx;
+            const Double4 py = ((ay * t + by) * t + cy) * t + dy;
+            const Double4 d1x = (3.0 * ax * t + 2.0 * bx) * t + cx;
+            const Double4 d1y = (3.0 * ay * t + 2.0 * by) * t + cy;
+            const Double4 d2x = 6.0 * ax * t + 2.0 * bx, d2y = 6.0 * ay * t + 2.0 * by;
+            const Double4 rx = px - qx, ry = py - qy;
+            const Double4 gn = d1x * d1x + d1y * d1y;
+            const Double4 h = gn + rx * d2x + ry * d2y;
+            const Double4 curvature = h > zero ? h : gn;
+            const Double4 safe = curvature > zero ? curvature : one;
+            Double4 next = t - (rx * d1x + ry * d1y) / safe;
+            next = curvature > zero ? next : t;
+            next = next > zero ? next : zero;
+            next = next < one ? next : one;
+            const Double4 dt = next > t ? next - t : t - next;
+            const Double4 bend = d2x * d2x + d2y * d2y;
+            Double4 bend_norm;
+            for (int j = 0; j < 4; ++j) bend_norm[j] = std::sqrt(bend[j]);
+            Double4 speed;
+            for (int j = 0; j < 4; ++j) speed[j] = std::sqrt(gn[j]);
+            move = dt * (speed + 0.5 * dt * bend_norm);
+            t = next;
+        }
+        const Double4 px = ((ax * t + bx) * t + cx) * t + dx;
+        const Double4 py = ((ay * t + by) * t + cy) * t + dy;
+        const Double4 rx = qx - px, ry = qy - py;
+        const Double4 d2 = rx * rx + ry * ry;
+        Double4 dist;
+        for (int j = 0; j < 4; ++j) dist[j] = std::sqrt(d2[j]);
+        const Double4 wander = (px - sx) * (px - sx) + (py - sy) * (py - sy);
+        Double4 from_middle;
+        for (int j = 0; j < 4; ++j) from_middle[j] = std::sqrt(qx[j] * qx[j] + qy[j] * qy[j]);
+        Mask4 ok = (move <= b.converged_mm) & (t > zero) & (t < one) &
+                   (wander <= b.mm_per_px * b.mm_per_px) & (dist > b.near_mm) &
+                   (dist <= b.distance_mm + from_middle + b.converged_mm);
+        // Square to the curve at the point (rx, ry run from it to the pixel), and on the outer
+        // side where the branch asks.
+        const Double4 tx = (3.0 * ax * t + 2.0 * bx) * t + cx;
+        const Double4 ty = (3.0 * ay * t + 2.0 * by) * t + cy;
+        Double4 along = tx * rx + ty * ry;
+        along = along < zero ? -along : along;
+        Double4 speed2 = tx * tx + ty * ty, speed;
+        for (int j = 0; j < 4; ++j) speed[j] = std::sqrt(speed2[j]);
+        ok &= (speed > zero) & (along <= b.converged_mm * speed);
+        if (b.outward != 0) ok &= (tx * ry - ty * rx) * static_cast<double>(b.outward) > zero;
+        const Double4 safe = dist > zero ? dist : one;
+        Double4 a = b.half_x * (rx / safe), c = b.half_y * (ry / safe);
+        a = a < zero ? -a : a;
+        c = c < zero ? -c : c;
+        Double4 sd;
+        for (int j = 0; j < 4; ++j) sd[j] = x + j <= x1 && in[x + j - x0] ? -dist[j] : dist[j];
+        Double4 wb, wi;
+        pixelWeights<Math>(v, sd, a, c, wb, wi);
+        for (int j = 0; j < 4 && x + j <= x1; ++j) {
+            if (!ok[j]) continue;
+            float* pixel = rgb + (x + j - x0) * 3;
+            for (size_t k = 0; k < 3; ++k)
+                pixel[k] += static_cast<float>(shading.border_rgb[k] * wb[j] +
+                                               shading.inner_rgb[k] * wi[j]);
+            done[x + j - x0] = 1;
+        }
+    }
+}
+
+using BranchRow = void (*)(const BranchTile&,
+                           const GhostShading&,
+                           int64_t,
+                           int64_t,
+                           int64_t,
+                           const uint8_t*,
+                           float*,
+                           uint8_t*);
+void branchRowBase(const BranchTile& b,
+                   const GhostShading& s,
+                   int64_t y,
+                   int64_t x0,
+                   int64_t x1,
+                   const uint8_t* in,
+                   float* rgb,
+                   uint8_t* done) {
+    branchRowBody<BaseMath>(b, s, y, x0, x1, in, rgb, done);
+}
+#if defined(__x86_64__) && defined(__GLIBC__)
+[[gnu::target("avx2")]] void branchRowAvx2(const BranchTile& b,
+                                           const GhostShading& s,
+                                           int64_t y,
+                                           int64_t x0,
+                                           int64_t x1,
+                                           const uint8_t* in,
+                                           float* rgb,
+                                           uint8_t* done) {
+    branchRowBody<Avx2Math>(b, s, y, x0, x1, in, rgb, done);
+}
+#endif
+BranchRow branchRow() {
+#if defined(__x86_64__) && defined(__GLIBC__)
+    static const BranchRow row = [] {
+        __builtin_cpu_init();
+        return __builtin_cpu_supports("avx2") != 0 ? &branchRowAvx2 : &branchRowBase;
+    }();
+    return row;
+#else
+    return &branchRowBase;
+#endif
 }
 
 }  // namespace
@@ -627,7 +1166,8 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
                                 int64_t x1,
                                 int64_t y1,
                                 bool finest,
-                                GhostSampleMemo* memo) {
+                                GhostSampleMemo* memo,
+                                const GhostBranch* branch) {
     GhostBlockCover cover;
     const auto fx0 = static_cast<double>(x0), fx1 = static_cast<double>(x1);
     const auto fy0 = static_cast<double>(y0), fy1 = static_cast<double>(y1);
@@ -660,23 +1200,67 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
     const double h = o.reach_mm + 2.0 * o.tolerance_mm;
     GhostSampleMemo::Entry local_mid;
     GhostSampleMemo::Entry& mid = *entryAt(cover.node_x[1], cover.node_y[1], local_mid);
+    const double settled_mm = 1e-3 * o.tolerance_mm;
     if (!mid.has_distance) {
         // The middle is a pixel centre, a pixel edge or a corner; its side is that of the
         // nearest pixel centre (from the spans) unless the outline passes between them, which
         // it can only within half a pixel's diagonal (and the chords' sagitta) of the middle.
-        Nearest n = nearest(o, c);
         bool in = inside(o, static_cast<int64_t>(std::floor(cover.node_x[1] + 0.5)),
                          static_cast<int64_t>(std::floor(cover.node_y[1] + 0.5)));
-        refineOnCurve(g, c, n, in);
+        Nearest n;
+        const Followed f = branch ? followBranch(o, *branch, c, settled_mm) : Followed{};
+        if (f.ok) {  // on the enclosing block's branch: Newton found it
+            n.distance_mm = f.distance_mm;
+            n.point_mm = f.point_mm;
+            n.segment = f.segment;
+            n.t = f.t;
+            if (n.distance_mm <= 2.0 * o.tolerance_mm) in = windingNumber(g.loop_mm, c) != 0;
+        } else {
+            n = nearest(o, c);
+            refineOnCurve(g, c, n, in);
+        }
         mid.has_distance = true;
         mid.chord = n.chord;
+        mid.segment = n.segment;
+        mid.t = n.t;
         mid.side_known = n.distance_mm > h || n.distance_mm <= 2.0 * o.tolerance_mm;
         mid.signed_distance_mm = in ? -n.distance_mm : n.distance_mm;
         if (mid.side_known) mid.value = shadeFromNearest(g, c, n.distance_mm, n.point_mm, in);
     }
+    // Whether the block lies on one branch of the loop (passed on to its parts, and used for its
+    // own samples): within a block on one branch, from the middle's nearest point; else from the
+    // chords near the block. Not for the smallest blocks that will be drawn per pixel, which have
+    // no parts.
+    const auto findBranch = [&] {
+        if (cover.branch) return;
+        const double distance = std::abs(mid.signed_distance_mm);
+        if (branch) {
+            cover.branch = branchAt(o, mid.segment, mid.t, c);
+            if (cover.branch)
+                cover.branch->outward = branch->outward;
+            else
+                cover.branch = *branch;
+            return;
+        }
+        const double slack = 2.0 * o.tolerance_mm;
+        // Outside a convex loop every point has one nearest point (the block lies outside when
+        // its middle does, farther than the block's radius).
+        std::optional<int> kind;
+        if (o.convex && mid.signed_distance_mm > r + slack)
+            kind = o.turns_left ? -1 : +1;  // outside is to the right of a left-turning loop
+        else
+            kind = singleBranchOfChunks(o, c, distance + 2.0 * r + slack, distance + r + slack);
+        if (kind) {
+            cover.branch = branchAt(o, mid.segment, mid.t, c);
+            if (cover.branch) cover.branch->outward = *kind;
+        }
+    };
     // Unknown side: the middle lies within h of the outline, where no block is Outside or
     // inside the inner falloff (r is at least the half pixel diagonal) and every block is Edge.
-    if (!mid.side_known) return cover;
+    if (!mid.side_known) {
+        if (!finest) findBranch();
+        return cover;
+    }
     const double d = mid.signed_distance_mm;
     if (d - r >= s.outer_falloff_mm + h) {
         cover.kind = GhostBlockKind::Outside;
@@ -693,12 +1277,19 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
     }
     // The edge, where a pixel's mean bends the value within a pixel, is drawn per pixel; so are
     // the ends of the falloffs, where eq. 6.4's slope jumps, except in the smallest blocks.
-    if (std::abs(d) - r <= 2.0 * h) return cover;
+    if (std::abs(d) - r <= 2.0 * h) {
+        if (!finest) findBranch();
+        return cover;
+    }
     const bool in = d < 0.0;
     if (!finest) {
         const double f = in ? s.inner_falloff_mm : s.outer_falloff_mm;
-        if (std::abs(d) - r <= f + h && std::abs(d) + r >= f - h) return cover;
+        if (std::abs(d) - r <= f + h && std::abs(d) + r >= f - h) {
+            findBranch();
+            return cover;
+        }
     }
+    findBranch();
     // Nine nodes carry the block, four points between them check it. Every one lies on the
     // middle's side, more than 2 h from the outline.
     const double bound = std::abs(d) + o.tolerance_mm;
@@ -707,11 +1298,26 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
         GhostSampleMemo::Entry& e = *entryAt(x, y, local);
         if (!e.has_distance || !e.side_known) {
             const Vec2 q = point(x, y);
+            if (cover.branch) {
+                // Newton on the block's branch; a point no nearer than the middle's distance
+                // plus the way to it allows is not the nearest, and is searched after all.
+                const Followed f = followBranch(o, *cover.branch, q, settled_mm);
+                if (f.ok && f.distance_mm <= std::abs(d) + (q - c).norm() + o.tolerance_mm) {
+                    e.has_distance = e.side_known = true;
+                    e.segment = f.segment;
+                    e.t = f.t;
+                    e.signed_distance_mm = in ? -f.distance_mm : f.distance_mm;
+                    e.value = shadeFromNearest(g, q, f.distance_mm, f.point_mm, in);
+                    return e.value;
+                }
+            }
             Nearest n = nearest(o, q, bound + (q - c).norm(), mid.chord / kChunkChords);
             bool side = in;
             refineOnCurve(g, q, n, side);
             e.has_distance = e.side_known = true;
             e.chord = n.chord;
+            e.segment = n.segment;
+            e.t = n.t;
             e.signed_distance_mm = side ? -n.distance_mm : n.distance_mm;
             e.value = shadeFromNearest(g, q, n.distance_mm, n.point_mm, side);
         }
@@ -794,27 +1400,101 @@ void addGhostBlock(const GhostPrimitive& g,
     d2.resize(padded);
     const ChordKernel kernel = chordKernel();
     const ChordArrays chords{ax.data(), ay.data(), ex.data(), ey.data(), inv.data()};
+    // A pixel the slow way: the nearest of the candidates, refined on the curve, its side.
+    const auto exactAt = [&](int64_t x, int64_t y, const Vec2& q, Nearest& n, bool& in) {
+        const float lowest = kernel(chords, padded, static_cast<float>(q.x() - c.x()),
+                                    static_cast<float>(q.y() - c.y()), d2.data());
+        size_t best = 0;  // the first that is the nearest
+        while (best + 1 < count && d2[best] != lowest) ++best;
+        n = Nearest{};
+        n.chord = index[best];
+        const Vec2& a = o.vertices_mm[static_cast<size_t>(n.chord)];
+        const Vec2& e = o.edges_mm[static_cast<size_t>(n.chord)];
+        n.u =
+            std::clamp((q - a).dot(e) * o.inverse_length2[static_cast<size_t>(n.chord)], 0.0, 1.0);
+        n.point_mm = a + n.u * e;
+        n.distance_mm = (n.point_mm - q).norm();
+        in = inside(o, x, y);
+        refineOnCurve(g, q, n, in);
+    };
+    const auto addExact = [&](int64_t x, int64_t y) {
+        const Vec2 q = pixelCentreMm(g.mapping, x, y);
+        Nearest n;
+        bool in = false;
+        exactAt(x, y, q, n, in);
+        const auto v = shadeFromNearest(g, q, n.distance_mm, n.point_mm, in);
+        float* pixel = rgb + (y - y0) * row_stride + (x - x0) * 3;
+        for (size_t k = 0; k < 3; ++k) pixel[k] += static_cast<float>(v[k]);
+    };
+    const auto perPixel = [&] {
+        for (int64_t y = y0; y <= y1; ++y)
+            for (int64_t x = x0; x <= x1; ++x) addExact(x, y);
+    };
+    if (count == 0) return perPixel();
+    // On one branch, every pixel's nearest point is found by Newton from a prediction (the
+    // middle pixel's, searched); on one segment, four pixels at a time.
+    const double farthest = reach - r;  // the middle's distance plus the tile's radius
+    const std::optional<int> kind = singleBranch(o, index.data(), count, c, farthest);
+    if (!kind) return perPixel();
+    Nearest middle;
+    {
+        bool in = false;
+        exactAt(mid.x, mid.y, c, middle, in);
+    }
+    auto branch = branchAt(o, middle.segment, middle.t, c);
+    if (!branch) return perPixel();
+    branch->outward = *kind;
+    const double settled_mm = 1e-3 * o.tolerance_mm;
+    bool one_segment = true;
+    for (size_t k = 0; k < count; ++k)
+        one_segment =
+            one_segment && o.chord_segment[static_cast<size_t>(index[k])] == middle.segment;
+    if (!one_segment) {
+        // Across a joint: one pixel at a time, Newton on whichever segment the prediction names.
+        for (int64_t y = y0; y <= y1; ++y)
+            for (int64_t x = x0; x <= x1; ++x) {
+                const Vec2 q = pixelCentreMm(g.mapping, x, y);
+                const Followed f = followBranch(o, *branch, q, settled_mm);
+                if (!f.ok || !(f.distance_mm > 2.0 * o.tolerance_mm)) {
+                    addExact(x, y);
+                    continue;
+                }
+                const auto v = shadeFromNearest(g, q, f.distance_mm, f.point_mm, inside(o, x, y));
+                float* pixel = rgb + (y - y0) * row_stride + (x - x0) * 3;
+                for (size_t k = 0; k < 3; ++k) pixel[k] += static_cast<float>(v[k]);
+            }
+        return;
+    }
+    BranchTile b;
+    b.mx = mid.x;
+    b.my = mid.y;
+    {
+        const auto& p = o.segment_power[static_cast<size_t>(middle.segment)];
+        b.t_m = middle.t;
+        b.gradient_t = branch->gradient;
+        b.outward = branch->outward;
+        b.distance_mm = branch->distance_mm;
+        b.power = {p[0], p[1], p[2], p[3] - c};
+    }
+    b.px_x = g.mapping.px_per_mm_x;
+    b.px_y = g.mapping.px_per_mm_y;
+    b.half_x = 0.5 / b.px_x;
+    b.half_y = 0.5 / b.px_y;
+    b.converged_mm = 1e-3 * o.tolerance_mm;
+    b.mm_per_px = 1.0 / std::min(b.px_x, b.px_y);
+    b.near_mm = 2.0 * o.tolerance_mm;
+    const BranchRow row_kernel = branchRow();
+    std::array<uint8_t, 256> in{}, done{};
+    const int64_t width = x1 - x0 + 1;
+    if (width > static_cast<int64_t>(in.size())) return perPixel();
     for (int64_t y = y0; y <= y1; ++y) {
-        float* row = rgb + (y - y0) * row_stride;
-        for (int64_t x = x0; x <= x1; ++x, row += 3) {
-            const Vec2 q = pixelCentreMm(g.mapping, x, y);
-            const float lowest = kernel(chords, padded, static_cast<float>(q.x() - c.x()),
-                                        static_cast<float>(q.y() - c.y()), d2.data());
-            size_t best = 0;  // the first that is the nearest
-            while (best + 1 < count && d2[best] != lowest) ++best;
-            Nearest n;
-            n.chord = index[best];
-            const Vec2& a = o.vertices_mm[static_cast<size_t>(n.chord)];
-            const Vec2& e = o.edges_mm[static_cast<size_t>(n.chord)];
-            n.u = std::clamp((q - a).dot(e) * o.inverse_length2[static_cast<size_t>(n.chord)], 0.0,
-                             1.0);
-            n.point_mm = a + n.u * e;
-            n.distance_mm = (n.point_mm - q).norm();
-            bool in = inside(o, x, y);
-            refineOnCurve(g, q, n, in);
-            const auto v = shadeFromNearest(g, q, n.distance_mm, n.point_mm, in);
-            for (size_t k = 0; k < 3; ++k) row[k] += static_cast<float>(v[k]);
+        for (int64_t x = x0; x <= x1; ++x) {
+            in[static_cast<size_t>(x - x0)] = inside(o, x, y) ? 1 : 0;
+            done[static_cast<size_t>(x - x0)] = 0;
         }
+        row_kernel(b, g.shading, y, x0, x1, in.data(), rgb + (y - y0) * row_stride, done.data());
+        for (int64_t x = x0; x <= x1; ++x)
+            if (!done[static_cast<size_t>(x - x0)]) addExact(x, y);
     }
 }
 

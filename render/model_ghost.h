@@ -56,6 +56,10 @@ struct GhostOutline {
     struct Chunk {
         Eigen::Vector2d lo_mm, hi_mm;  // box of the chunk's chords
         int32_t begin = 0, end = 0;    // chords begin..end-1; chord i runs vertex i -> i + 1
+        // Over the chunk's chords' ends (bend_angle): the sum of the turns' sizes, of the left
+        // and of the right turns, and the smallest radius.
+        double turn = 0.0, left = 0.0, right = 0.0;
+        double radius_mm = std::numeric_limits<double>::infinity();
     };
     std::vector<Eigen::Vector2d> vertices_mm;  // closed: the last vertex repeats the first
     std::vector<Eigen::Vector2d> edges_mm;     // chord i: vertex i + 1 minus vertex i
@@ -68,6 +72,16 @@ struct GhostOutline {
     std::vector<int32_t> chord_segment;
     std::vector<std::array<double, 2>> chord_t;
     std::vector<Chunk> chunks;
+    // Where chord i meets chord i + 1 (the last meets the first): the angle it turns (radians,
+    // positive to the left) and the radius of curvature that implies, half their lengths' sum
+    // over the angle's size (infinite where it runs straight on). The edge tiles' single-branch
+    // test reads them.
+    std::vector<double> bend_angle;
+    std::vector<double> bend_radius_mm;
+    // The loop turns one way only, once around (a convex outline): every point outside it has
+    // one nearest point.
+    bool convex = false;
+    bool turns_left = true;  // the loop's turns sum to a left turn (counter-clockwise)
     // Boxes over runs of chunks, for the nearest-chord search: levels[l][i] bounds chunks
     // i 2^(l+1) .. (i + 1) 2^(l+1) - 1; the last level is one box.
     std::vector<std::vector<std::array<Eigen::Vector2d, 2>>> levels;
@@ -125,6 +139,25 @@ inline std::array<double, 3> quadraticWeights(double n0, double n1, double n2, d
             (x - n0) * (x - n2) / ((n1 - n0) * (n1 - n2)),
             (x - n0) * (x - n1) / ((n2 - n0) * (n2 - n1))};
 }
+// A block whose pixels' nearest curve points all lie on one branch of the loop, where each has
+// one point at which the distance stops changing (coverGhostBlock checks it from the chords near
+// the block): the loop parameter (segment + t) of the block middle's nearest point and its
+// derivative across the sensor there. Newton from the first-order prediction
+// loop_u + gradient . (q - middle) then finds the nearest point of any point of the block with no
+// search. It holds in every part of the block.
+// Where the branch is one only for points on the outer side of its bend (`outward` +1: left of
+// the curve's direction, -1: right; 0: either side), a point Newton reaches with the point on the
+// other side is a local minimum of the distance on the far side, not the nearest.
+struct GhostBranch {
+    double loop_u = 0.0;
+    Eigen::Vector2d middle_mm = Eigen::Vector2d::Zero();
+    Eigen::Vector2d gradient = Eigen::Vector2d::Zero();  // per mm
+    int outward = 0;
+    // The middle's distance from the curve: no point q is farther than this plus |q - middle|
+    // (the distance is 1-Lipschitz), so a point Newton reaches beyond that is not the nearest.
+    double distance_mm = 0.0;
+};
+
 struct GhostBlockCover {
     GhostBlockKind kind = GhostBlockKind::Edge;
     // The nodes, in pixel-centre coordinates: the block's outer edges and its middle,
@@ -133,6 +166,9 @@ struct GhostBlockCover {
     std::array<double, 3> node_x{}, node_y{};
     // RGB at the nodes when Smooth: nodes[j][i] at (node_x[i], node_y[j])
     std::array<std::array<std::array<float, 3>, 3>, 3> nodes{};
+    // Set when the block (or the enclosing one whose branch was passed in) lies on one branch;
+    // the caller passes it on to the block's parts.
+    std::optional<GhostBranch> branch;
 };
 
 // The fast evaluation's values at points of a lattice, kept while one thread classifies one
@@ -157,6 +193,8 @@ public:
         bool side_known = false;  // false: too near the outline to take the side from a pixel
         int32_t chord = 0;        // the nearest chord of the outline
         double signed_distance_mm = 0.0;
+        int32_t segment = 0;  // the nearest curve point: segment and parameter
+        double t = 0.0;
         std::array<double, 3> value{};  // when side_known
     };
     // The entry of the point at pixel-centre coordinates (x, y), or null when it is not on the
@@ -178,13 +216,16 @@ private:
 // `finest`: the caller cannot split the block further, so it may be interpolated although the
 // outer or inner falloff's end crosses it (checked all the same). An exact ghost is never Smooth.
 // `memo`, when given, is set for this ghost (else ignored) and shares samples between calls.
+// `branch`, when given, is the cover.branch of a block that holds this one: the samples are then
+// found by Newton from it instead of searched (the same values, to rounding).
 GhostBlockCover coverGhostBlock(const GhostPrimitive& ghost,
                                 int64_t x0,
                                 int64_t y0,
                                 int64_t x1,
                                 int64_t y1,
                                 bool finest,
-                                GhostSampleMemo* memo = nullptr);
+                                GhostSampleMemo* memo = nullptr,
+                                const GhostBranch* branch = nullptr);
 
 // Adds the ghost's mean over the pixels x0..x1, y0..y1 (inside the ghost's range) to rgb: pixel
 // (x, y) at rgb + (y - y0) * row_stride + (x - x0) * 3. Fast or exact as the ghost was prepared.

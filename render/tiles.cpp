@@ -145,11 +145,12 @@ Status renderTiled(ImageRGB& image,
     // the lists and are drawn per pixel.
     const auto classify = [&](const auto& self, const GhostPrimitive& g, uint32_t index, int64_t ax,
                               int64_t ay, int64_t bx, int64_t by, int64_t& smooth_count,
-                              int64_t& edge_count, GhostSampleMemo* memo) -> void {
+                              int64_t& edge_count, GhostSampleMemo* memo,
+                              const GhostBranch* branch) -> void {
         const Range block = tilePixels(ax, ay, bx, by);
         const bool finest = ax == bx && ay == by;
         const GhostBlockCover cover =
-            coverGhostBlock(g, block.x0, block.y0, block.x1, block.y1, finest, memo);
+            coverGhostBlock(g, block.x0, block.y0, block.x1, block.y1, finest, memo, branch);
         if (cover.kind == GhostBlockKind::Outside) return;
         if (cover.kind == GhostBlockKind::Smooth) {
             addSmooth(cover, ax, ay, bx, by);
@@ -161,14 +162,16 @@ Status renderTiled(ImageRGB& image,
             ++edge_count;
             return;
         }
+        // The halves inherit the block's branch, if it lies on one.
+        const GhostBranch* inner = cover.branch ? &*cover.branch : nullptr;
         if (bx - ax >= by - ay) {
             const int64_t mid = ax + (bx - ax) / 2;
-            self(self, g, index, ax, ay, mid, by, smooth_count, edge_count, memo);
-            self(self, g, index, mid + 1, ay, bx, by, smooth_count, edge_count, memo);
+            self(self, g, index, ax, ay, mid, by, smooth_count, edge_count, memo, inner);
+            self(self, g, index, mid + 1, ay, bx, by, smooth_count, edge_count, memo, inner);
         } else {
             const int64_t mid = ay + (by - ay) / 2;
-            self(self, g, index, ax, ay, bx, mid, smooth_count, edge_count, memo);
-            self(self, g, index, ax, mid + 1, bx, by, smooth_count, edge_count, memo);
+            self(self, g, index, ax, ay, bx, mid, smooth_count, edge_count, memo, inner);
+            self(self, g, index, ax, mid + 1, bx, by, smooth_count, edge_count, memo, inner);
         }
     };
     const bool any_fast = std::any_of(ghosts.begin(), ghosts.end(),
@@ -194,7 +197,7 @@ Status renderTiled(ImageRGB& image,
             const bool lattice = dense % 4 == 0 && (cells_x + 1) * (cells_y + 1) <= (1 << 17);
             if (lattice) memo.reset(&g, ax * dense, ay * dense, cells_x, cells_y, dense / 4);
             classify(classify, g, index, ax, ay, bx, by, smooth_count, edge_count,
-                     lattice ? &memo : nullptr);
+                     lattice ? &memo : nullptr, nullptr);
             smooth_tiles += smooth_count;
             edge_tiles += edge_count;
             return;

@@ -7,6 +7,7 @@
 #include <limits>
 #include <numbers>
 #include <random>
+#include <span>
 #include <vector>
 
 #include "render/tiles.h"
@@ -363,6 +364,75 @@ TEST(ModelGhostFast, SharpEdgesMatchTheExactEvaluationClosely) {
     }
     const DrawnPair drawn = drawBoth(ghosts, 200, 133);
     EXPECT_LT(maxRelativeError(drawn.fast, drawn.exact), 2e-4);
+}
+
+// The shapes where a ghost's points can have more than one point of the curve at which the
+// distance stops changing, which the fast evaluation must not take for the nearest: corners
+// (handles of no length), a handle that stops the curve at a joint, long thin shapes (whose far
+// side is a local minimum of the distance for points beside them), shapes with a dent, and a tiny
+// one. With a bright interior and wide falloffs, so that a wrong distance anywhere in the ghost
+// shows. The reference is the exact evaluation with a denser Newton start (16 seeds x 12 steps a
+// segment).
+TEST(ModelGhostFast, CornersThinShapesAndDentsMatchTheExactEvaluation) {
+    const int64_t w = 480, h = 320;
+    const SensorToImage m = mappingFor(w, h);
+    std::vector<std::pair<GhostShapeParams, GhostShading>> ghosts;
+    const auto shade = [](double inner_falloff, double outer_falloff, double ei, double eo) {
+        GhostShading s;
+        s.border_rgb = {10.0, 8.0, 6.0};
+        s.inner_rgb = {400.0, 300.0, 200.0};
+        s.inner_falloff_mm = inner_falloff;
+        s.outer_falloff_mm = outer_falloff;
+        s.inner_exponent = ei;
+        s.outer_exponent = eo;
+        return s;
+    };
+    GhostShapeParams corners;  // every handle of no length: a diamond with four corners
+    corners.centre_x_mm = -9.0;
+    corners.centre_y_mm = -5.0;
+    corners.half_height_mm = 2.0;
+    corners.left_mm = 3.0;
+    corners.right_mm = 4.0;
+    corners.left_handle_x_mm = corners.left_handle_y_mm = 0.0;
+    corners.right_handle_x_mm = corners.right_handle_y_mm = 0.0;
+    ghosts.push_back({corners, shade(3.0, 1.5, 0.93, 2.0)});
+    GhostShapeParams stops = corners;  // handles of no length at the tips only
+    stops.centre_x_mm = 6.0;
+    stops.left_handle_x_mm = 2.4;
+    stops.right_handle_x_mm = 0.3;
+    stops.left_handle_y_mm = 0.0;
+    stops.right_handle_y_mm = 1.2;
+    ghosts.push_back({stops, shade(8.0, 0.8, 0.5, 0.25)});
+    GhostShapeParams thin = circleGhostShape(0.0, 6.0, 1.0);  // 16 mm long, 0.8 mm high
+    thin.half_height_mm = 0.4;
+    thin.left_mm = 7.0;
+    thin.right_mm = 9.0;
+    thin.left_handle_x_mm = 3.5;
+    thin.right_handle_x_mm = 5.0;
+    thin.left_handle_y_mm = thin.right_handle_y_mm = 0.2;
+    ghosts.push_back({thin, shade(4.0, 2.5, 1.3, 0.6)});
+    GhostShapeParams dent = circleGhostShape(-2.0, -4.0, 2.5);  // handles past the tips: a dent
+    dent.left_handle_x_mm = 4.0;
+    dent.left_handle_y_mm = 0.1;
+    ghosts.push_back({dent, shade(2.0, 3.0, 3.0, 1.0)});
+    ghosts.push_back({circleGhostShape(12.0, -8.0, 0.02), shade(0.5, 0.5, 1.0, 1.0)});
+    std::vector<GhostPrimitive> fast, exact;
+    GhostDrawOptions exact_options;
+    exact_options.evaluation = GhostEvaluation::Exact;
+    exact_options.distance = {16, 12};
+    for (const auto& [shape, s] : ghosts) {
+        auto f = prepareGhostPrimitive(toBezierLoop(shape), s, m, w, h);
+        auto e = prepareGhostPrimitive(toBezierLoop(shape), s, m, w, h, exact_options);
+        ASSERT_TRUE(f && e);
+        fast.push_back(*f);
+        exact.push_back(*e);
+    }
+    for (size_t i = 0; i < ghosts.size(); ++i) {  // each ghost alone, so none hides another's
+        ImageRGB a(w, h), b(w, h);
+        ASSERT_TRUE(renderTiled(a, {}, std::span(fast).subspan(i, 1), optics::ApertureShape{}));
+        ASSERT_TRUE(renderTiled(b, {}, std::span(exact).subspan(i, 1), optics::ApertureShape{}));
+        EXPECT_LT(maxRelativeError(a, b), 3e-3) << "ghost " << i;
+    }
 }
 
 // 1 x 1: the one pixel, inside a ghost larger than the image, on an edge, or near a tiny ghost.
