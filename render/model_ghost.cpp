@@ -759,11 +759,15 @@ using Double4 = double __attribute__((vector_size(32)));  // GCC's and Clang's v
 using Mask4 = long long __attribute__((vector_size(32)));
 
 struct BranchTile {
-    std::array<Vec2, 4> power;          // the segment, C(t) = ((a t + b) t + c) t + d, origin q_m
-    double t_m = 0.0;                   // the middle pixel's nearest point's parameter
-    Vec2 gradient_t = Vec2::Zero();     // d t / d q at the middle pixel
+    // The middle's segment and the ones before and after it, C(t) = ((a t + b) t + c) t + d with
+    // the origin at the middle: power[1] is the middle's; a pixel whose predicted parameter runs
+    // off its ends starts on the neighbour.
+    std::array<std::array<Vec2, 4>, 3> power;
+    double t_m = 0.0;                   // the middle's nearest point's parameter
+    Vec2 gradient_t = Vec2::Zero();     // d t / d q at the middle
     double px_x = 1.0, px_y = 1.0;      // pixels per mm
-    int64_t mx = 0, my = 0;             // the middle pixel
+    double first_x = 0.0;               // the row's first pixel centre, mm from the middle
+    double row_y = 0.0;                 // the row's pixel centres, mm from the middle
     double half_x = 0.0, half_y = 0.0;  // half a pixel, mm
     double converged_mm = 0.0;          // the last Newton step moves the point less than this
     double mm_per_px = 0.0;
@@ -815,6 +819,25 @@ struct BaseMath {
     static constexpr auto pow = &powUnitScalar;
 };
 #endif
+
+// Square roots of four doubles (SSE2, which every x86-64 has; one lane at a time elsewhere).
+[[gnu::always_inline]] inline Double4 sqrt4(Double4 x) {
+#if defined(__x86_64__)
+    using Half = double __attribute__((vector_size(16)));
+    Half lo, hi;
+    __builtin_memcpy(&lo, &x, sizeof lo);
+    __builtin_memcpy(&hi, reinterpret_cast<const char*>(&x) + sizeof lo, sizeof hi);
+    lo = (Half)_mm_sqrt_pd((__m128d)lo);
+    hi = (Half)_mm_sqrt_pd((__m128d)hi);
+    Double4 out;
+    __builtin_memcpy(&out, &lo, sizeof lo);
+    __builtin_memcpy(reinterpret_cast<char*>(&out) + sizeof lo, &hi, sizeof hi);
+    return out;
+#else
+    for (int j = 0; j < 4; ++j) x[j] = std::sqrt(x[j]);
+    return x;
+#endif
+}
 
 // s^e for s in [0, 1] and e > 0 (0 at s = 0).
 template <typename Math>
@@ -915,21 +938,39 @@ template <typename Math>
     const Double4 zero = {}, one = zero + 1.0;
     const VectorShading v{zero + shading.outer_falloff_mm, zero + shading.inner_falloff_mm,
                           zero + shading.outer_exponent, zero + shading.inner_exponent};
-    const Double4 qy = zero + static_cast<double>(y - b.my) / b.px_y;
-    const Double4 ax = zero + b.power[0].x(), ay = zero + b.power[0].y();
-    const Double4 bx = zero + b.power[1].x(), by = zero + b.power[1].y();
-    const Double4 cx = zero + b.power[2].x(), cy = zero + b.power[2].y();
-    const Double4 dx = zero + b.power[3].x(), dy = zero + b.power[3].y();
+    (void)y;
+    const Double4 qy = zero + b.row_y;
     for (int64_t x = x0; x <= x1; x += 4) {
         Double4 qx;
         for (int j = 0; j < 4; ++j)
-            qx[j] = static_cast<double>(std::min(x + j, x1) - b.mx) / b.px_x;
+            qx[j] = b.first_x + static_cast<double>(std::min(x + j, x1) - x0) / b.px_x;
         Double4 t = b.t_m + b.gradient_t.x() * qx + b.gradient_t.y() * qy;
+        // Each lane on the segment its prediction names: the middle's, or the one before or
+        // after it.
+        const Mask4 before = t<zero, after = t> one;
+        t = before ? t + one : (after ? t - one : t);
+        bool all_middle = true;
+        for (int j = 0; j < 4; ++j) all_middle = all_middle && !before[j] && !after[j];
+        const auto pick = [&](int k, bool xs) {
+            const auto component = [&](size_t segment) {
+                const Vec2& v = b.power[segment][static_cast<size_t>(k)];
+                return xs ? v.x() : v.y();
+            };
+            Double4 v = zero + component(1);
+            if (all_middle) return v;
+            for (int j = 0; j < 4; ++j)
+                if (before[j] || after[j]) v[j] = component(before[j] ? 0 : 2);
+            return v;
+        };
+        const Double4 ax = pick(0, true), ay = pick(0, false);
+        const Double4 bx = pick(1, true), by = pick(1, false);
+        const Double4 cx = pick(2, true), cy = pick(2, false);
+        const Double4 dx = pick(3, true), dy = pick(3, false);
         t = t > zero ? t : zero;
         t = t < one ? t : one;
         const Double4 sx = ((ax * t + bx) * t + cx) * t + dx;
         const Double4 sy = ((ay * t + by) * t + cy) * t + dy;
-        Double4 move = zero;
+        Double4 last_dt = zero, last_speed2 = zero, last_bend2 = zero;
         for (int step = 0; step < 3; ++step) {
             const Double4 px = ((ax * t + bx) * t + cx) * t + dx;
             const Double4 py = ((ay * t + by) * t + cy) * t + dy;
@@ -945,24 +986,20 @@ template <typename Math>
             next = curvature > zero ? next : t;
             next = next > zero ? next : zero;
             next = next < one ? next : one;
-            const Double4 dt = next > t ? next - t : t - next;
-            const Double4 bend = d2x * d2x + d2y * d2y;
-            Double4 bend_norm;
-            for (int j = 0; j < 4; ++j) bend_norm[j] = std::sqrt(bend[j]);
-            Double4 speed;
-            for (int j = 0; j < 4; ++j) speed[j] = std::sqrt(gn[j]);
-            move = dt * (speed + 0.5 * dt * bend_norm);
+            last_dt = next > t ? next - t : t - next;
+            last_speed2 = gn;
+            last_bend2 = d2x * d2x + d2y * d2y;
             t = next;
         }
+        // How far the last step moved the point, to second order.
+        const Double4 move = last_dt * (sqrt4(last_speed2) + 0.5 * last_dt * sqrt4(last_bend2));
         const Double4 px = ((ax * t + bx) * t + cx) * t + dx;
         const Double4 py = ((ay * t + by) * t + cy) * t + dy;
         const Double4 rx = qx - px, ry = qy - py;
         const Double4 d2 = rx * rx + ry * ry;
-        Double4 dist;
-        for (int j = 0; j < 4; ++j) dist[j] = std::sqrt(d2[j]);
+        const Double4 dist = sqrt4(d2);
         const Double4 wander = (px - sx) * (px - sx) + (py - sy) * (py - sy);
-        Double4 from_middle;
-        for (int j = 0; j < 4; ++j) from_middle[j] = std::sqrt(qx[j] * qx[j] + qy[j] * qy[j]);
+        const Double4 from_middle = sqrt4(qx * qx + qy * qy);
         Mask4 ok = (move <= b.converged_mm) & (t > zero) & (t < one) &
                    (wander <= b.mm_per_px * b.mm_per_px) & (dist > b.near_mm) &
                    (dist <= b.distance_mm + from_middle + b.converged_mm);
@@ -972,8 +1009,7 @@ template <typename Math>
         const Double4 ty = (3.0 * ay * t + 2.0 * by) * t + cy;
         Double4 along = tx * rx + ty * ry;
         along = along < zero ? -along : along;
-        Double4 speed2 = tx * tx + ty * ty, speed;
-        for (int j = 0; j < 4; ++j) speed[j] = std::sqrt(speed2[j]);
+        const Double4 speed = sqrt4(tx * tx + ty * ty);
         ok &= (speed > zero) & (along <= b.converged_mm * speed);
         if (b.outward != 0) ok &= (tx * ry - ty * rx) * static_cast<double>(b.outward) > zero;
         const Double4 safe = dist > zero ? dist : one;
@@ -1258,7 +1294,7 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
     // Unknown side: the middle lies within h of the outline, where no block is Outside or
     // inside the inner falloff (r is at least the half pixel diagonal) and every block is Edge.
     if (!mid.side_known) {
-        if (!finest) findBranch();
+        if (!finest || branch) findBranch();
         return cover;
     }
     const double d = mid.signed_distance_mm;
@@ -1278,7 +1314,7 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
     // The edge, where a pixel's mean bends the value within a pixel, is drawn per pixel; so are
     // the ends of the falloffs, where eq. 6.4's slope jumps, except in the smallest blocks.
     if (std::abs(d) - r <= 2.0 * h) {
-        if (!finest) findBranch();
+        if (!finest || branch) findBranch();
         return cover;
     }
     const bool in = d < 0.0;
@@ -1355,53 +1391,62 @@ void addGhostBlock(const GhostPrimitive& g,
                    int64_t x1,
                    int64_t y1,
                    float* rgb,
-                   int64_t row_stride) {
+                   int64_t row_stride,
+                   const GhostBranch* given) {
     if (!g.outline) {
         for (int64_t y = y0; y <= y1; ++y) addGhostRow(g, y, x0, x1, rgb + (y - y0) * row_stride);
         return;
     }
     const GhostOutline& o = *g.outline;
-    // The chords that can be nearest to some pixel of the block: within the middle pixel's
-    // distance plus twice the block's radius of it.
     const BlockMiddle mid = blockMiddle(g, x0, y0, x1, y1);
     const Vec2 c = mid.centre_mm;
     const double r = mid.radius_mm;
-    const double reach = nearest(o, c).distance_mm + 2.0 * r;
-    const double reach2 = reach * reach * (1.0 + 1e-12) + 1e-300;
-    // The candidates in single precision relative to the block's middle pixel (a few pixels of
-    // millimetres: rounding far below the sagitta), in arrays the compiler vectorizes; only the
-    // nearest one is recomputed in double.
+    // The chords that can be nearest to some pixel of the block: within the middle pixel's
+    // distance plus twice the block's radius of it. In single precision relative to the block's
+    // middle pixel (a few pixels of millimetres: rounding far below the sagitta), in arrays the
+    // compiler vectorizes; only the nearest one is recomputed in double. Gathered when a pixel
+    // first needs them.
     thread_local std::vector<float> ax, ay, ex, ey, inv, d2;
     thread_local std::vector<int32_t> index;
-    ax.clear(), ay.clear(), ex.clear(), ey.clear(), inv.clear(), index.clear();
-    for (const auto& chunk : o.chunks) {
-        if (boxDistance2(chunk, c) > reach2) continue;
-        for (int32_t i = chunk.begin; i < chunk.end; ++i) {
-            const Vec2& a = o.vertices_mm[static_cast<size_t>(i)];
-            const Vec2& e = o.edges_mm[static_cast<size_t>(i)];
-            const double t =
-                std::clamp((c - a).dot(e) * o.inverse_length2[static_cast<size_t>(i)], 0.0, 1.0);
-            if ((a + t * e - c).squaredNorm() > reach2) continue;
-            ax.push_back(static_cast<float>(a.x() - c.x()));
-            ay.push_back(static_cast<float>(a.y() - c.y()));
-            ex.push_back(static_cast<float>(e.x()));
-            ey.push_back(static_cast<float>(e.y()));
-            const float len2f = ex.back() * ex.back() + ey.back() * ey.back();
-            inv.push_back(len2f > 0.0f ? 1.0f / len2f : 0.0f);
-            index.push_back(i);
+    bool gathered = false;
+    size_t count = 0, padded = 0;
+    double reach = 0.0;
+    const auto gather = [&] {
+        if (gathered) return;
+        gathered = true;
+        reach = nearest(o, c).distance_mm + 2.0 * r;
+        const double reach2 = reach * reach * (1.0 + 1e-12) + 1e-300;
+        ax.clear(), ay.clear(), ex.clear(), ey.clear(), inv.clear(), index.clear();
+        for (const auto& chunk : o.chunks) {
+            if (boxDistance2(chunk, c) > reach2) continue;
+            for (int32_t i = chunk.begin; i < chunk.end; ++i) {
+                const Vec2& a = o.vertices_mm[static_cast<size_t>(i)];
+                const Vec2& e = o.edges_mm[static_cast<size_t>(i)];
+                const double t = std::clamp(
+                    (c - a).dot(e) * o.inverse_length2[static_cast<size_t>(i)], 0.0, 1.0);
+                if ((a + t * e - c).squaredNorm() > reach2) continue;
+                ax.push_back(static_cast<float>(a.x() - c.x()));
+                ay.push_back(static_cast<float>(a.y() - c.y()));
+                ex.push_back(static_cast<float>(e.x()));
+                ey.push_back(static_cast<float>(e.y()));
+                const float len2f = ex.back() * ex.back() + ey.back() * ey.back();
+                inv.push_back(len2f > 0.0f ? 1.0f / len2f : 0.0f);
+                index.push_back(i);
+            }
         }
-    }
-    const size_t count = index.size();
-    // Padded to whole vectors with chords of no length far away (squared distance about 1e36,
-    // finite, never the nearest).
-    const size_t padded = (count + kLanes - 1) / kLanes * kLanes;
-    ax.resize(padded, 1e18f), ay.resize(padded, 1e18f), ex.resize(padded, 0.0f);
-    ey.resize(padded, 0.0f), inv.resize(padded, 0.0f);
-    d2.resize(padded);
+        count = index.size();
+        // Padded to whole vectors with chords of no length far away (squared distance about
+        // 1e36, finite, never the nearest).
+        padded = (count + kLanes - 1) / kLanes * kLanes;
+        ax.resize(padded, 1e18f), ay.resize(padded, 1e18f), ex.resize(padded, 0.0f);
+        ey.resize(padded, 0.0f), inv.resize(padded, 0.0f);
+        d2.resize(padded);
+    };
     const ChordKernel kernel = chordKernel();
-    const ChordArrays chords{ax.data(), ay.data(), ex.data(), ey.data(), inv.data()};
     // A pixel the slow way: the nearest of the candidates, refined on the curve, its side.
     const auto exactAt = [&](int64_t x, int64_t y, const Vec2& q, Nearest& n, bool& in) {
+        gather();
+        const ChordArrays chords{ax.data(), ay.data(), ex.data(), ey.data(), inv.data()};
         const float lowest = kernel(chords, padded, static_cast<float>(q.x() - c.x()),
                                     static_cast<float>(q.y() - c.y()), d2.data());
         size_t best = 0;  // the first that is the nearest
@@ -1430,52 +1475,42 @@ void addGhostBlock(const GhostPrimitive& g,
         for (int64_t y = y0; y <= y1; ++y)
             for (int64_t x = x0; x <= x1; ++x) addExact(x, y);
     };
-    if (count == 0) return perPixel();
-    // On one branch, every pixel's nearest point is found by Newton from a prediction (the
-    // middle pixel's, searched); on one segment, four pixels at a time.
-    const double farthest = reach - r;  // the middle's distance plus the tile's radius
-    const std::optional<int> kind = singleBranch(o, index.data(), count, c, farthest);
-    if (!kind) return perPixel();
-    Nearest middle;
-    {
+    // On one branch (given by the classification of the tile, or found here from the
+    // candidates), every pixel's nearest point is found by Newton from a prediction, four pixels
+    // at a time; the pixels Newton does not settle are searched.
+    std::optional<GhostBranch> branch;
+    if (given) {
+        branch = *given;
+    } else {
+        gather();
+        if (count == 0) return perPixel();
+        const std::optional<int> kind = singleBranch(o, index.data(), count, c, reach - r);
+        if (!kind) return perPixel();
+        Nearest middle;
         bool in = false;
         exactAt(mid.x, mid.y, c, middle, in);
+        branch = branchAt(o, middle.segment, middle.t, c);
+        if (!branch) return perPixel();
+        branch->outward = *kind;
     }
-    auto branch = branchAt(o, middle.segment, middle.t, c);
-    if (!branch) return perPixel();
-    branch->outward = *kind;
-    const double settled_mm = 1e-3 * o.tolerance_mm;
-    bool one_segment = true;
-    for (size_t k = 0; k < count; ++k)
-        one_segment =
-            one_segment && o.chord_segment[static_cast<size_t>(index[k])] == middle.segment;
-    if (!one_segment) {
-        // Across a joint: one pixel at a time, Newton on whichever segment the prediction names.
-        for (int64_t y = y0; y <= y1; ++y)
-            for (int64_t x = x0; x <= x1; ++x) {
-                const Vec2 q = pixelCentreMm(g.mapping, x, y);
-                const Followed f = followBranch(o, *branch, q, settled_mm);
-                if (!f.ok || !(f.distance_mm > 2.0 * o.tolerance_mm)) {
-                    addExact(x, y);
-                    continue;
-                }
-                const auto v = shadeFromNearest(g, q, f.distance_mm, f.point_mm, inside(o, x, y));
-                float* pixel = rgb + (y - y0) * row_stride + (x - x0) * 3;
-                for (size_t k = 0; k < 3; ++k) pixel[k] += static_cast<float>(v[k]);
-            }
-        return;
-    }
+    const int segments = static_cast<int>(o.segment_power.size());
+    const int64_t width = x1 - x0 + 1;
+    if (segments < 1 || width > 256 || !std::isfinite(branch->loop_u)) return perPixel();
     BranchTile b;
-    b.mx = mid.x;
-    b.my = mid.y;
     {
-        const auto& p = o.segment_power[static_cast<size_t>(middle.segment)];
-        b.t_m = middle.t;
-        b.gradient_t = branch->gradient;
-        b.outward = branch->outward;
-        b.distance_mm = branch->distance_mm;
-        b.power = {p[0], p[1], p[2], p[3] - c};
+        const double length = static_cast<double>(segments);
+        const double u = branch->loop_u - length * std::floor(branch->loop_u / length);
+        const int segment = std::min(static_cast<int>(u), segments - 1);
+        b.t_m = std::clamp(u - segment, 0.0, 1.0);
+        for (int k = 0; k < 3; ++k) {
+            const auto& p =
+                o.segment_power[static_cast<size_t>((segment + segments - 1 + k) % segments)];
+            b.power[static_cast<size_t>(k)] = {p[0], p[1], p[2], p[3] - branch->middle_mm};
+        }
     }
+    b.gradient_t = branch->gradient;
+    b.outward = branch->outward;
+    b.distance_mm = branch->distance_mm;
     b.px_x = g.mapping.px_per_mm_x;
     b.px_y = g.mapping.px_per_mm_y;
     b.half_x = 0.5 / b.px_x;
@@ -1485,13 +1520,14 @@ void addGhostBlock(const GhostPrimitive& g,
     b.near_mm = 2.0 * o.tolerance_mm;
     const BranchRow row_kernel = branchRow();
     std::array<uint8_t, 256> in{}, done{};
-    const int64_t width = x1 - x0 + 1;
-    if (width > static_cast<int64_t>(in.size())) return perPixel();
     for (int64_t y = y0; y <= y1; ++y) {
         for (int64_t x = x0; x <= x1; ++x) {
             in[static_cast<size_t>(x - x0)] = inside(o, x, y) ? 1 : 0;
             done[static_cast<size_t>(x - x0)] = 0;
         }
+        const Vec2 first = pixelCentreMm(g.mapping, x0, y) - branch->middle_mm;
+        b.first_x = first.x();
+        b.row_y = first.y();
         row_kernel(b, g.shading, y, x0, x1, in.data(), rgb + (y - y0) * row_stride, done.data());
         for (int64_t x = x0; x <= x1; ++x)
             if (!done[static_cast<size_t>(x - x0)]) addExact(x, y);

@@ -229,13 +229,16 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& ghost,
 
 // Adds the ghost's mean over the pixels x0..x1, y0..y1 (inside the ghost's range) to rgb: pixel
 // (x, y) at rgb + (y - y0) * row_stride + (x - x0) * 3. Fast or exact as the ghost was prepared.
+// `branch`, when given, is the block's GhostBranch from coverGhostBlock (the block's pixels lie
+// in the region it holds for); else the block finds whether it lies on one.
 void addGhostBlock(const GhostPrimitive& ghost,
                    int64_t x0,
                    int64_t y0,
                    int64_t x1,
                    int64_t y1,
                    float* rgb,
-                   int64_t row_stride);
+                   int64_t row_stride,
+                   const GhostBranch* branch = nullptr);
 
 // The fast evaluation of one pixel (any pixel of the image; zero outside the range). For an
 // exact ghost, the exact value.

@@ -90,6 +90,9 @@ Status renderTiled(ImageRGB& image,
     // tile's coarse tile, like the lists.
     using Nodes = std::array<float, 27>;  // [j][i][channel]
     std::vector<Nodes> smooth_nodes;
+    // The branch (model_ghost.h) of a fast ghost's edge tile, where its classification found one:
+    // the tile's pixels then need no search.
+    std::vector<std::vector<std::pair<uint32_t, GhostBranch>>> dense_branches(dense_lists.size());
     std::vector<uint8_t> has_smooth;
     std::atomic<int64_t> smooth_tiles{0}, edge_tiles{0};
     const auto tilePixels = [&](int64_t ax, int64_t ay, int64_t bx, int64_t by) {
@@ -158,7 +161,9 @@ Status renderTiled(ImageRGB& image,
             return;
         }
         if (finest) {
-            dense_lists[static_cast<size_t>(ay * dense_x + ax)].push_back(index);
+            const size_t tile = static_cast<size_t>(ay * dense_x + ax);
+            dense_lists[tile].push_back(index);
+            if (cover.branch) dense_branches[tile].push_back({index, *cover.branch});
             ++edge_count;
             return;
         }
@@ -292,8 +297,12 @@ Status renderTiled(ImageRGB& image,
                 const int64_t x0 = std::max(tx, g.x0), x1 = std::min(tx1, g.x1);
                 const int64_t y0 = std::max(ty, g.y0), y1 = std::min(ty1, g.y1);
                 if (x0 > x1 || y0 > y1) continue;
+                const GhostBranch* branch = nullptr;
+                for (const auto& [which, b] : dense_branches[static_cast<size_t>(t)])
+                    if (which == index) branch = &b;
                 addGhostBlock(g, x0, y0, x1, y1,
-                              accumulator.data() + ((y0 - ty) * dense + (x0 - tx)) * 3, dense * 3);
+                              accumulator.data() + ((y0 - ty) * dense + (x0 - tx)) * 3, dense * 3,
+                              branch);
                 continue;
             }
             const Primitive& p = primitives[index];
