@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <numbers>
 #include <span>
 #include <string>
@@ -179,11 +180,17 @@ Error invalid(std::string message) {
     return makeError(ErrorCode::InvalidArgument, std::move(message));
 }
 
+std::string number(double value) {
+    char buffer[32];
+    std::snprintf(buffer, sizeof buffer, "%.10g", value);
+    return buffer;
+}
+
 Status checkRange(const char* field, double value, double low, double high, const char* unit) {
     if (!std::isfinite(value)) return invalid(std::string(field) + " is not a finite number");
     if (value < low || value > high)
-        return invalid(std::string(field) + " " + std::to_string(value) + " " + unit +
-                       " is outside [" + std::to_string(low) + ", " + std::to_string(high) + "]");
+        return invalid(std::string(field) + " " + number(value) + " " + unit + " is outside [" +
+                       number(low) + ", " + number(high) + "]");
     return Ok{};
 }
 
