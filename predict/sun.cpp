@@ -19,7 +19,7 @@ constexpr double kRad = 180.0 / std::numbers::pi;
 // Limits of the time scales (SunTimeScale).
 constexpr double kMaxAbsDeltaT_s = 100000.0;
 constexpr double kMaxAbsDut1_s = 1.0;
-// The most positions one timeline may hold (80 bytes each: 800 MB).
+// The most positions one timeline may hold (72 bytes each: 720 MB).
 constexpr int64_t kMaxTimelinePositions = 10'000'000;
 // Geocentric nodes of a timeline, interpolated between (sunTimeline).
 constexpr std::chrono::microseconds kNodeSpacing = std::chrono::hours{1};
@@ -31,13 +31,13 @@ double wrap360(double deg) {
 // asin whose argument rounding may push past ±1 (the sun at the zenith, a site at a pole).
 double safeAsin(double x) { return std::asin(std::clamp(x, -1.0, 1.0)); }
 
-// Σ A cos(B + C τ) over one series (eq. 9 of the paper).
+// Σ A cos(B + C τ) over one series (section 3.2 of the paper).
 double sumSeries(std::span<const detail::PeriodicTerm> terms, double tau) {
     double sum = 0.0;
     for (const detail::PeriodicTerm& t : terms) sum += t.a * std::cos(t.b + t.c * tau);
     return sum;
 }
-// (S0 + S1 τ + S2 τ² + ...) / 1e8 (eq. 10-11 of the paper), Horner's scheme.
+// (S0 + S1 τ + S2 τ² + ...) / 1e8 (section 3.2), by Horner's scheme.
 template <size_t N>
 double evaluateSeries(const std::span<const detail::PeriodicTerm> (&series)[N], double tau) {
     double value = 0.0;
@@ -47,10 +47,10 @@ double evaluateSeries(const std::span<const detail::PeriodicTerm> (&series)[N], 
 
 // What does not depend on the site: the sun's geocentric apparent place at one TT instant.
 struct Geocentric {
-    double ra_deg = 0.0;                     // α, apparent right ascension (eq. 28)
-    double dec_deg = 0.0;                    // δ, apparent declination (eq. 30)
-    double distance_au = 0.0;                // R (eq. 11 with the R series)
-    double equation_of_equinoxes_deg = 0.0;  // Δψ cos ε, apparent less mean sidereal time (eq. 15)
+    double ra_deg = 0.0;                     // α, apparent right ascension (3.9)
+    double dec_deg = 0.0;                    // δ, apparent declination (3.10)
+    double distance_au = 0.0;                // R, from the R series (3.2)
+    double equation_of_equinoxes_deg = 0.0;  // Δψ cos ε: apparent less mean sidereal time (3.8)
 };
 
 // jce: Julian ephemeris centuries from J2000.0 (TT).
@@ -67,7 +67,7 @@ Geocentric geocentricSun(double jce) {
     const double b_rad = evaluateSeries(kB, jme);
     const double r_au = evaluateSeries(kR, jme);
 
-    // Geocentric: the Earth seen from the sun turned around (eq. 13-14), radians.
+    // Geocentric: the Earth seen from the sun turned around (section 3.3), radians.
     const double theta = l_rad + std::numbers::pi;
     const double beta = -b_rad;
 
@@ -91,7 +91,7 @@ Geocentric geocentricSun(double jce) {
     const double dpsi_deg = dpsi / 36e6;
     const double deps_deg = deps / 36e6;
 
-    // True obliquity of the ecliptic (eq. 24-25): Laskar's polynomial in U = τ / 10, arcsec.
+    // True obliquity of the ecliptic (section 3.5): Laskar's polynomial in U = τ / 10, arcsec.
     const double u = jme / 10.0;
     static constexpr double kObliquity[] = {84381.448, -4680.93, -1.55, 1999.25, -51.38, -249.67,
                                             -39.05,    7.12,     27.87, 5.79,    2.45};
@@ -99,11 +99,11 @@ Geocentric geocentricSun(double jce) {
     for (size_t i = std::size(kObliquity); i-- > 0;) eps0_arcsec = eps0_arcsec * u + kObliquity[i];
     const double eps = (eps0_arcsec / 3600.0 + deps_deg) * kDeg;
 
-    // Aberration (eq. 26) and the apparent longitude (eq. 27).
+    // Aberration (section 3.6) and the apparent longitude (3.7).
     const double aberration_deg = -20.4898 / (3600.0 * r_au);
     const double lambda = theta + (dpsi_deg + aberration_deg) * kDeg;
 
-    // Equatorial coordinates (eq. 28-30).
+    // Equatorial coordinates (sections 3.9-3.10).
     const double alpha = std::atan2(
         std::sin(lambda) * std::cos(eps) - std::tan(beta) * std::sin(eps), std::cos(lambda));
     const double delta = safeAsin(std::sin(beta) * std::cos(eps) +
@@ -117,7 +117,7 @@ Geocentric geocentricSun(double jce) {
     return g;
 }
 
-// Mean sidereal time at Greenwich (eq. 12-13 of the paper), degrees in [0, 360); d: UT1 days
+// Mean sidereal time at Greenwich (section 3.8 of the paper), degrees in [0, 360); d: UT1 days
 // since J2000.0. The 360° a day is taken out of d's fraction first, so that years far from 2000
 // keep their precision.
 double meanSiderealDeg(double d) {
@@ -133,7 +133,7 @@ SunPosition topocentric(const SunSite& site, const Geocentric& g, double apparen
     const double h = wrap360(apparent_sidereal_deg + site.longitude_deg - g.ra_deg) * kDeg;
     const double delta = g.dec_deg * kDeg;
 
-    // Parallax (eq. 33-38): the equatorial horizontal parallax and the site's geocentric place
+    // Parallax (section 3.12): the equatorial horizontal parallax and the site's geocentric place
     // on the ellipsoid (0.99664719 = b/a, Earth radius 6378140 m).
     const double xi = 8.794 / (3600.0 * g.distance_au) * kDeg;
     const double u = std::atan(0.99664719 * std::tan(phi));
@@ -146,7 +146,7 @@ SunPosition topocentric(const SunSite& site, const Geocentric& g, double apparen
         std::atan2((std::sin(delta) - y * sin_xi) * std::cos(dalpha), denominator);
     const double h_topo = h - dalpha;
 
-    // Elevation without refraction (eq. 41), then the refraction (eq. 42), where the sun's upper
+    // Elevation without refraction, then the refraction (section 3.14), where the sun's upper
     // limb is above the refracted horizon (the paper's 0.26667° radius plus 0.5667°).
     const double e0_deg = safeAsin(std::sin(phi) * std::sin(delta_topo) +
                                    std::cos(phi) * std::cos(delta_topo) * std::cos(h_topo)) *
@@ -158,7 +158,7 @@ SunPosition topocentric(const SunSite& site, const Geocentric& g, double apparen
     }
     const double e_deg = e0_deg + refraction_deg;
 
-    // Azimuth (eq. 45-46): the astronomers' Γ from south, turned to Φ from north.
+    // Azimuth (section 3.15): the astronomers' Γ from south, turned to Φ from north.
     const double gamma = std::atan2(
         std::sin(h_topo), std::cos(h_topo) * std::sin(phi) - std::tan(delta_topo) * std::cos(phi));
 
