@@ -6,7 +6,7 @@
 // atmospheric refraction) for any UTC instant of the years -2000..6000, by NREL's Solar Position
 // Algorithm: Reda & Andreas, "Solar position algorithm for solar radiation applications", NREL
 // technical report TP-560-34302 (2004, revised 2008); "the paper" below. Its stated uncertainty is
-// ±0.0003° over those years; flarelab reproduces the paper's worked example (its table A5.1) to
+// ±0.0003° over those years; flarelab reproduces the paper's worked example (its appendix) to
 // better than 1e-5° (tests/predict/sun_test.cpp). Why SPA and not libnova: docs/sun.md.
 //
 // Angles are degrees at this interface (DESIGN.md), radians inside sun.cpp.

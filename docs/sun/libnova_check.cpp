@@ -1,6 +1,6 @@
 // The measurement behind docs/sun.md's choice of SPA over libnova: libnova 0.16's solar position,
 // with its parallax and refraction, against the SPA paper's test case (Reda & Andreas 2004,
-// table A5.1). Not part of the build; with libnova-dev installed:
+// appendix). Not part of the build; with libnova-dev installed:
 //   g++ -O2 -std=c++20 docs/sun/libnova_check.cpp -lnova -o /tmp/libnova_check &&
 //   /tmp/libnova_check
 #include <libnova/libnova.h>

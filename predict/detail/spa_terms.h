@@ -2,14 +2,14 @@
 //  flarelab predict: the periodic terms of NREL's Solar Position Algorithm
 // ============================================================================
 //
-// Published data, transcribed from Reda & Andreas, "Solar position algorithm for solar radiation
-// applications", NREL/TP-560-34302 (2004, revised 2008): table A4.2 (the Earth's heliocentric
-// longitude L, latitude B and radius R, a reduction of VSOP87 by Bretagnon & Francou) and table
-// A4.3 (the nutation in longitude and obliquity, after Meeus, "Astronomical Algorithms", table
-// 22.A). Private to predict/sun.cpp.
+// Published data from the appendix of Reda & Andreas, "Solar position algorithm for solar
+// radiation applications", NREL/TP-560-34302 (2004, revised 2008): the Earth periodic terms (the
+// Earth's heliocentric longitude L, latitude B and radius R, a reduction of VSOP87 by Bretagnon &
+// Francou) and the periodic terms of the nutation in longitude and obliquity (as in Meeus,
+// "Astronomical Algorithms", chapter 22). Private to predict/sun.cpp.
 #pragma once
 
-#include <array>
+#include <iterator>  // std::size
 
 namespace flarelab::predict::detail {
 

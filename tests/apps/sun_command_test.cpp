@@ -22,7 +22,7 @@ bool contains(const std::string& text, const std::string& part) {
     return text.find(part) != std::string::npos;
 }
 
-// The worked example of Reda & Andreas (2004), table A5.1.
+// The worked example of Reda & Andreas (2004), in its appendix.
 const std::vector<std::string> kGolden = {"--lat",         "39.742476",
                                           "--lon",         "-105.1786",
                                           "--elevation",   "1830.14",

@@ -23,7 +23,7 @@ SunPosition sunAt(const SunSite& site, UtcInstant t, const SunTimeScale& scale =
     return p ? *p : SunPosition{};
 }
 
-// Site and instant of the paper's worked example (Reda & Andreas 2004, table A5.1).
+// Site and instant of the paper's worked example (Reda & Andreas 2004, appendix).
 SunSite golden() {
     SunSite s;
     s.latitude_deg = 39.742476;

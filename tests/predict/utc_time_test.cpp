@@ -108,7 +108,7 @@ TEST(FormatIso8601, RoundTripsThroughTheParser) {
 }
 
 TEST(JulianDay, MatchesTheSpaPapersExample) {
-    // Table A5.1 of Reda & Andreas: JD 2452930.312847 for 2003-10-17 12:30:30 at UTC-7.
+    // The worked example of Reda & Andreas: JD 2452930.312847 for 2003-10-17 12:30:30 at UTC-7.
     EXPECT_NEAR(julianDay(parsed("2003-10-17T12:30:30-07:00")), 2452930.312847, 1e-6);
     EXPECT_DOUBLE_EQ(julianDay(at(2000, 1, 1, 12, 0, 0)), 2451545.0);
     // Meeus, Astronomical Algorithms, example 7.a's neighbours: 1957-10-04.81 is JD 2436116.31;
