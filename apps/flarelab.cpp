@@ -13,6 +13,7 @@
 #include "apps/merge_command.h"
 #include "apps/model_command.h"
 #include "apps/simulate_command.h"
+#include "apps/sun_command.h"
 #include "apps/sweep_command.h"
 
 int main(int argc, char** argv) {
@@ -31,6 +32,7 @@ int main(int argc, char** argv) {
         flarelab::apps::addBenchCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addRigCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addJobCommands(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addSunCommand(app, std::cout, std::cerr, exit_code);
         CLI11_PARSE(app, argc, argv);
         return exit_code;
     } catch (const std::exception& e) {

@@ -25,7 +25,7 @@ cd "$(dirname "$0")/.."
 out=${FLARELAB_OUT:-out}/bench
 mkdir -p "$out"
 for tool in bench/optics_bench bench/quad_bench bench/model_ghost_bench bench/ghost_divergence \
-    bench/adaptive_grid_bench apps/flarelab; do
+    bench/adaptive_grid_bench bench/sun_bench apps/flarelab; do
     if [[ ! -x $build/$tool ]]; then
         echo "bench: $build/$tool is missing (a sanitizer build has no benchmarks)" >&2
         exit 1
@@ -41,8 +41,9 @@ echo "bench: optics_bench, $repetitions repetitions of at least $min_time s each
     --benchmark_out_format=json
 mv "$out/optics_bench.json.tmp" "$out/optics_bench.json"
 
-# The renderer's kernels (issue 19): quads and the area integration, model playback.
-for kernels in quad_bench model_ghost_bench; do
+# The renderer's kernels (issue 19): quads and the area integration, model playback; the sun's
+# position and timelines (issue 21).
+for kernels in quad_bench model_ghost_bench sun_bench; do
     echo "bench: $kernels, $repetitions repetitions of at least $min_time s each"
     "$build/bench/$kernels" \
         --benchmark_repetitions="$repetitions" \
