@@ -260,42 +260,36 @@ Status renderTiled(ImageRGB& image,
         const int64_t tx1 = std::min(image.width, tx + dense) - 1;
         const int64_t ty1 = std::min(image.height, ty + dense) - 1;
         // The tile's pixels are summed here, each in the order of the list, and written once.
-        const int64_t w = tx1 - tx + 1;
         thread_local std::vector<float> accumulator;
-        accumulator.resize(static_cast<size_t>(dense) * dense * 3);
+        accumulator.assign(static_cast<size_t>(dense) * dense * 3, 0.0f);
         if (smooth) {  // the fast ghosts' smooth parts first, biquadratic between the nodes
-            // Along each row of nodes j, the quadratic in x at every pixel of the tile (profile
-            // j); then each pixel row is the quadratic in y through the three profiles, in runs
-            // of w * 3 floats the compiler vectorizes.
             const Nodes& nodes = smooth_nodes[static_cast<size_t>(t)];
             const double xm = static_cast<double>(midPixel(tx, tx1));
             const double ym = static_cast<double>(midPixel(ty, ty1));
-            thread_local std::vector<float> profiles;
-            profiles.resize(static_cast<size_t>(3 * dense * 3));
+            std::array<std::array<float, 3>, 256> wx;
             for (int64_t x = tx; x <= tx1; ++x) {
-                const auto wx = quadraticWeights(static_cast<double>(tx), xm,
-                                                 static_cast<double>(tx1), static_cast<double>(x));
-                for (size_t j = 0; j < 3; ++j)
-                    for (size_t k = 0; k < 3; ++k)
-                        profiles[(j * static_cast<size_t>(dense) + static_cast<size_t>(x - tx)) *
-                                     3 +
-                                 k] = static_cast<float>(wx[0] * nodes[(j * 3 + 0) * 3 + k] +
-                                                         wx[1] * nodes[(j * 3 + 1) * 3 + k] +
-                                                         wx[2] * nodes[(j * 3 + 2) * 3 + k]);
+                const auto w = quadraticWeights(static_cast<double>(tx), xm,
+                                                static_cast<double>(tx1), static_cast<double>(x));
+                for (size_t i = 0; i < 3; ++i)
+                    wx[static_cast<size_t>(x - tx)][i] = static_cast<float>(w[i]);
             }
-            const float* p0 = profiles.data();
-            const float* p1 = p0 + dense * 3;
-            const float* p2 = p1 + dense * 3;
             for (int64_t y = ty; y <= ty1; ++y) {
                 const auto wy = quadraticWeights(static_cast<double>(ty), ym,
                                                  static_cast<double>(ty1), static_cast<double>(y));
-                const float w0 = static_cast<float>(wy[0]), w1 = static_cast<float>(wy[1]);
-                const float w2 = static_cast<float>(wy[2]);
-                float* __restrict row = accumulator.data() + (y - ty) * dense * 3;
-                for (int64_t n = 0; n < w * 3; ++n) row[n] = w0 * p0[n] + w1 * p1[n] + w2 * p2[n];
+                float column[3][3];  // [node i][channel]
+                for (size_t i = 0; i < 3; ++i)
+                    for (size_t k = 0; k < 3; ++k)
+                        column[i][k] = static_cast<float>(wy[0] * nodes[(0 + i) * 3 + k] +
+                                                          wy[1] * nodes[(3 + i) * 3 + k] +
+                                                          wy[2] * nodes[(6 + i) * 3 + k]);
+                float* row = accumulator.data() + (y - ty) * dense * 3;
+                for (int64_t x = tx; x <= tx1; ++x) {
+                    const auto& w = wx[static_cast<size_t>(x - tx)];
+                    for (size_t k = 0; k < 3; ++k)
+                        row[(x - tx) * 3 + static_cast<int64_t>(k)] =
+                            w[0] * column[0][k] + w[1] * column[1][k] + w[2] * column[2][k];
+                }
             }
-        } else {
-            std::fill(accumulator.begin(), accumulator.end(), 0.0f);
         }
         for (const uint32_t index : list) {
             if (index >= quad_count) {
