@@ -74,8 +74,9 @@ struct GhostOutline {
     std::vector<Chunk> chunks;
     // Where chord i meets chord i + 1 (the last meets the first): the angle it turns (radians,
     // positive to the left) and the radius of curvature that implies, half their lengths' sum
-    // over the angle's size (infinite where it runs straight on). The edge tiles' single-branch
-    // test reads them.
+    // over the angle's size (infinite where it runs straight on; zero at a joint where the
+    // segments meet at an angle or a handle of no length stops the curve). The single-branch
+    // tests read them.
     std::vector<double> bend_angle;
     std::vector<double> bend_radius_mm;
     // The loop turns one way only, once around (a convex outline): every point outside it has
