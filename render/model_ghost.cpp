@@ -524,7 +524,8 @@ Vec2 newtonOnSegment(const std::array<Vec2, 4>& c,
 
 // The nearest curve point of q on a branch (GhostBranch): Newton, three steps, from the
 // first-order prediction of its loop parameter, trying the neighbouring segment where it stops
-// at a joint. `ok` when the last step moved the point by less than `settled_mm`.
+// at a joint. `ok` when the point passes the checks below (the last step moved it by less than
+// `settled_mm` among them); else the caller searches.
 struct Followed {
     bool ok = false;
     double distance_mm = 0.0;
