@@ -924,13 +924,12 @@ template <typename Math>
     w_inner = all_out ? zero : (all_in ? one : wi);
 }
 
-// One row of a branch tile: pixels x0..x1 of row y, whose sides (inside the loop or not) are
-// `in`; adds the pixel means to rgb (pixel x0 first) and sets done[x - x0] for the pixels it
+// One row of a branch tile (BranchTile::row_y): pixels x0..x1, whose sides (inside the loop or not)
+// are `in`; adds the pixel means to rgb (pixel x0 first) and sets done[x - x0] for the pixels it
 // drew (the rest are left to the caller).
 template <typename Math>
 [[gnu::always_inline]] inline void branchRowBody(const BranchTile& b,
                                                  const GhostShading& shading,
-                                                 int64_t y,
                                                  int64_t x0,
                                                  int64_t x1,
                                                  const uint8_t* in,
@@ -939,7 +938,6 @@ template <typename Math>
     const Double4 zero = {}, one = zero + 1.0;
     const VectorShading v{zero + shading.outer_falloff_mm, zero + shading.inner_falloff_mm,
                           zero + shading.outer_exponent, zero + shading.inner_exponent};
-    (void)y;
     const Double4 qy = zero + b.row_y;
     for (int64_t x = x0; x <= x1; x += 4) {
         Double4 qx;
@@ -1032,34 +1030,26 @@ template <typename Math>
     }
 }
 
-using BranchRow = void (*)(const BranchTile&,
-                           const GhostShading&,
-                           int64_t,
-                           int64_t,
-                           int64_t,
-                           const uint8_t*,
-                           float*,
-                           uint8_t*);
+using BranchRow = void (*)(
+    const BranchTile&, const GhostShading&, int64_t, int64_t, const uint8_t*, float*, uint8_t*);
 void branchRowBase(const BranchTile& b,
                    const GhostShading& s,
-                   int64_t y,
                    int64_t x0,
                    int64_t x1,
                    const uint8_t* in,
                    float* rgb,
                    uint8_t* done) {
-    branchRowBody<BaseMath>(b, s, y, x0, x1, in, rgb, done);
+    branchRowBody<BaseMath>(b, s, x0, x1, in, rgb, done);
 }
 #if defined(__x86_64__) && defined(__GLIBC__)
 [[gnu::target("avx2")]] void branchRowAvx2(const BranchTile& b,
                                            const GhostShading& s,
-                                           int64_t y,
                                            int64_t x0,
                                            int64_t x1,
                                            const uint8_t* in,
                                            float* rgb,
                                            uint8_t* done) {
-    branchRowBody<Avx2Math>(b, s, y, x0, x1, in, rgb, done);
+    branchRowBody<Avx2Math>(b, s, x0, x1, in, rgb, done);
 }
 #endif
 BranchRow branchRow() {
@@ -1529,7 +1519,7 @@ void addGhostBlock(const GhostPrimitive& g,
         const Vec2 first = pixelCentreMm(g.mapping, x0, y) - branch->middle_mm;
         b.first_x = first.x();
         b.row_y = first.y();
-        row_kernel(b, g.shading, y, x0, x1, in.data(), rgb + (y - y0) * row_stride, done.data());
+        row_kernel(b, g.shading, x0, x1, in.data(), rgb + (y - y0) * row_stride, done.data());
         for (int64_t x = x0; x <= x1; ++x)
             if (!done[static_cast<size_t>(x - x0)]) addExact(x, y);
     }

@@ -92,7 +92,7 @@ Status renderTiled(ImageRGB& image,
     std::vector<Nodes> smooth_nodes;
     // The branch (model_ghost.h) of a fast ghost's edge tile, where its classification found one:
     // the tile's pixels then need no search.
-    std::vector<std::vector<std::pair<uint32_t, GhostBranch>>> dense_branches(dense_lists.size());
+    std::vector<std::vector<std::pair<uint32_t, GhostBranch>>> dense_branches;
     std::vector<uint8_t> has_smooth;
     std::atomic<int64_t> smooth_tiles{0}, edge_tiles{0};
     const auto tilePixels = [&](int64_t ax, int64_t ay, int64_t bx, int64_t by) {
@@ -183,6 +183,7 @@ Status renderTiled(ImageRGB& image,
                                       [](const GhostPrimitive& g) { return g.outline != nullptr; });
     if (any_fast) {
         smooth_nodes.assign(dense_lists.size(), Nodes{});
+        dense_branches.resize(dense_lists.size());
         has_smooth.assign(dense_lists.size(), 0);
     }
     const auto add_to_dense = [&](uint32_t index, int64_t tx0, int64_t ty0, int64_t tx1,
@@ -298,8 +299,9 @@ Status renderTiled(ImageRGB& image,
                 const int64_t y0 = std::max(ty, g.y0), y1 = std::min(ty1, g.y1);
                 if (x0 > x1 || y0 > y1) continue;
                 const GhostBranch* branch = nullptr;
-                for (const auto& [which, b] : dense_branches[static_cast<size_t>(t)])
-                    if (which == index) branch = &b;
+                if (g.outline)  // fast ghosts only; dense_branches is empty without one
+                    for (const auto& [which, b] : dense_branches[static_cast<size_t>(t)])
+                        if (which == index) branch = &b;
                 addGhostBlock(g, x0, y0, x1, y1,
                               accumulator.data() + ((y0 - ty) * dense + (x0 - tx)) * 3, dense * 3,
                               branch);

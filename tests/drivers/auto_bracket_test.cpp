@@ -8,17 +8,13 @@
 #include "drivers/sim_camera.h"
 #include "hdr/merge.h"
 #include "optics/prescription.h"
+#include "tests/test_lenses.h"
 #include "tests/test_paths.h"
 
 namespace flarelab::drivers {
 namespace {
 
-const optics::Lens& heliar() {
-    static const optics::Lens lens = *optics::Lens::make(
-        *optics::loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv")),
-        optics::CameraDescription{});
-    return lens;
-}
+using flarelab::testing::heliar;
 
 // The Heliar's light on axis at 160 x 107 (small render grids). Its core reaches some 1e11 e-/s,
 // so only a camera with a shortest exposure far below the simulated default 10 us keeps it from

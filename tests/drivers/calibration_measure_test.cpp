@@ -7,17 +7,13 @@
 
 #include "drivers/sim_camera.h"
 #include "optics/prescription.h"
+#include "tests/test_lenses.h"
 #include "tests/test_paths.h"
 
 namespace flarelab::drivers {
 namespace {
 
-const optics::Lens& heliar() {
-    static const optics::Lens lens = *optics::Lens::make(
-        *optics::loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv")),
-        optics::CameraDescription{});
-    return lens;
-}
+using flarelab::testing::heliar;
 
 // The Heliar's flare at 3 deg on 240 x 160 pixels (small render grids): a point light, its
 // ghosts and the background span five decades, the scene a calibration wants. The sensor as

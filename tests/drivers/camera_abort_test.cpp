@@ -15,6 +15,7 @@
 #include "drivers/v4l2_dump.h"
 #include "drivers/v4l2_playback.h"
 #include "optics/prescription.h"
+#include "tests/test_lenses.h"
 #include "tests/test_paths.h"
 
 namespace flarelab::drivers {
@@ -22,12 +23,7 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-const optics::Lens& heliar() {
-    static const optics::Lens lens = *optics::Lens::make(
-        *optics::loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv")),
-        optics::CameraDescription{});
-    return lens;
-}
+using flarelab::testing::heliar;
 
 SimCameraOptions tiny() {
     SimCameraOptions o;

@@ -10,17 +10,13 @@
 #include "optics/ghosts.h"
 #include "optics/prescription.h"
 #include "render/ghost_quads.h"
+#include "tests/test_lenses.h"
 #include "tests/test_paths.h"
 
 namespace flarelab::drivers {
 namespace {
 
-const optics::Lens& heliar() {
-    static const optics::Lens lens = *optics::Lens::make(
-        *optics::loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv")),
-        optics::CameraDescription{});
-    return lens;
-}
+using flarelab::testing::heliar;
 
 struct Box {
     double x0 = std::numeric_limits<double>::infinity(), y0 = x0;

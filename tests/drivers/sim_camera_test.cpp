@@ -8,17 +8,13 @@
 #include <cstdio>
 
 #include "optics/prescription.h"
+#include "tests/test_lenses.h"
 #include "tests/test_paths.h"
 
 namespace flarelab::drivers {
 namespace {
 
-const optics::Lens& heliar() {
-    static const optics::Lens lens = *optics::Lens::make(
-        *optics::loadPrescription(flarelab::testing::lensPath("heliar-tronnier.csv")),
-        optics::CameraDescription{});
-    return lens;
-}
+using flarelab::testing::heliar;
 
 // 64 x 43 with small grids: milliseconds per render.
 SimCameraOptions tiny() {
