@@ -64,15 +64,22 @@ TEST(Stall, AJournalWriteThatHangsHoldsNoLockTheRigGoesOnAndNothingIsAnnouncedEa
     ASSERT_TRUE(gate->someoneWaits(60.0)) << "no journal write came";
     // Meanwhile calls are answered and the rig goes on to the sweep's end.
     // (Up to 60 s: a sanitizer build renders the simulated frames several times slower.)
+    // The frame count is told only after the manifest naming the frame is written, so both are
+    // waited for: the last frame can be on disk a moment before it is counted.
+    v1::ListJobsResponse list;
     for (int i = 0; i < 1200; ++i) {
         auto manifest = hdr::readSweepManifest(job.output_dir());
-        if (manifest && manifest->frames.size() == 31u) break;
+        auto ctx = context("lister", 5.0);
+        list.Clear();
+        if (manifest && manifest->frames.size() == 31u && stub->ListJobs(ctx.get(), {}, &list).ok() &&
+            list.jobs_size() == 1 && list.jobs(0).frames_done() == 31u)
+            break;
         std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
     auto manifest = hdr::readSweepManifest(job.output_dir());
     ASSERT_TRUE(manifest);
     EXPECT_EQ(manifest->frames.size(), 31u) << "the capture waited on the journal";
-    v1::ListJobsResponse list;
+    list.Clear();
     auto ctx = context("lister", 5.0);
     ASSERT_TRUE(stub->ListJobs(ctx.get(), {}, &list).ok());
     ASSERT_EQ(list.jobs_size(), 1);
