@@ -169,18 +169,19 @@ private:
     std::vector<double> normal_u_, normal_v_;  // edge normals over the apothem
 };
 
-// One edge of a convex quad as a line function. The two quads that share an edge compute it from
-// the same endpoints in the same (canonical) order, so their values are exact negatives; a pixel
+// One edge of a convex quad as a line function, (c + gy py) + gx px, positive inside the quad.
+// The two quads that share an edge compute its coefficients from the same endpoints in the same
+// (canonical) order and differ only in their sign, so their values are exact negatives; a pixel
 // centre exactly on the edge belongs to the quad for which `closed` is true, so it is counted
-// once (a fill rule), never twice and never not at all.
+// once (a fill rule), never twice and never not at all. Along a row, c + gy py is fixed: a
+// pixel costs one product and one sum per edge.
 struct EdgeFunction {
-    double ax = 0.0, ay = 0.0, dx = 0.0, dy = 0.0;  // canonical start point and direction
-    double sign = 1.0;                              // +1 or -1: the quad's inside is positive
+    double c = 0.0, gx = 0.0, gy = 0.0;
     bool closed = true;
     double reach = 0.0;  // how far `at` changes from a pixel's centre to its corners
-    double at(double px, double py) const { return sign * (dx * (py - ay) - dy * (px - ax)); }
-    double gradX() const { return -sign * dy; }
-    double gradY() const { return sign * dx; }
+    double at(double px, double py) const { return (c + gy * py) + gx * px; }
+    double gradX() const { return gx; }
+    double gradY() const { return gy; }
 };
 
 // A quad ready to draw into one channel of a width x height image: the range of pixels it can
@@ -227,6 +228,18 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
 // ghost) evaluated a row at a time in a loop the compiler vectorizes.
 void addPrimitiveRow(
     const Primitive& p, int64_t x0, int64_t x1, int64_t y, const StopMask& stop, float* out);
+
+// addPrimitiveRow for the rows y0..y1 (out: pixel (x0, y0)'s channel, rows `stride` floats
+// apart), the same values bit for bit; a block wholly inside an unmasked convex primitive (the
+// common case) skips the per-pixel tests.
+void addPrimitiveBlock(const Primitive& p,
+                       int64_t x0,
+                       int64_t y0,
+                       int64_t x1,
+                       int64_t y1,
+                       const StopMask& stop,
+                       float* out,
+                       int64_t stride);
 
 // The light of a convex primitive at the point (px, py), per pixel area: 0 outside the quad, the
 // stop shape or a clear aperture; a point exactly on an edge shared by two quads belongs to one

@@ -310,10 +310,9 @@ Status renderTiled(ImageRGB& image,
             const Primitive& p = primitives[index];
             const int64_t x0 = std::max(tx, p.x0), x1 = std::min(tx1, p.x1);
             const int64_t y0 = std::max(ty, p.y0), y1 = std::min(ty1, p.y1);
-            for (int64_t y = y0; y <= y1; ++y)
-                addPrimitiveRow(
-                    p, x0, x1, y, stop,
-                    accumulator.data() + ((y - ty) * dense + (x0 - tx)) * 3 + p.channel);
+            addPrimitiveBlock(p, x0, y0, x1, y1, stop,
+                              accumulator.data() + ((y0 - ty) * dense + (x0 - tx)) * 3 + p.channel,
+                              dense * 3);
         }
         for (int64_t y = ty; y <= ty1; ++y) {
             float* pixel = image.at(tx, y);
