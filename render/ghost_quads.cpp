@@ -529,6 +529,7 @@ AreaCentroid measure(const Polygon& poly) {
 // with Wachspress weights at (px, py), and, when asked, their gradients in pixels: the weights
 // are w_i = C_i A_{i+1} A_{i+2} with linear A, so dw_i = C_i (A_{i+2} dA_{i+1} + A_{i+1} dA_{i+2})
 // and d(sum w f / sum w) = (sum dw f - f sum dw) / sum w. false where the weights vanish.
+// Without the gradient only the throughput (value[0]) is set.
 struct Attributes {
     std::array<double, 4> value{}, dx{}, dy{};
 };
@@ -551,9 +552,14 @@ bool interpolateConvex(const Primitive& p, double px, double py, bool gradient, 
             sums[3] += weights[i] * c[static_cast<size_t>(i)].aperture_ratio;
         }
     };
+    if (!gradient) {  // only the throughput is asked for (an unmasked primitive)
+        double t = 0.0;
+        for (int i = 0; i < 4; ++i) t += w[i] * c[static_cast<size_t>(i)].throughput;
+        out.value[0] = t / total;
+        return true;
+    }
     mix(w, out.value);
     for (double& v : out.value) v /= total;
-    if (!gradient) return true;
     double wx[4], wy[4];
     double total_x = 0.0, total_y = 0.0;
     for (int i = 0; i < 4; ++i) {
@@ -615,7 +621,7 @@ double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask&
         if (!stop_clear) {
             const double u = at.value[1], v = at.value[2];
             if (stop.blades() == 0) {
-                const double r = std::hypot(u, v);
+                const double r = std::sqrt(u * u + v * v);  // stop coordinates: near 1, no overflow
                 // Near the stop's centre the radius has no gradient, and no edge is near.
                 if (r > 1e-9 && !keep(1.0 - r, -(u * at.dx[1] + v * at.dx[2]) / r,
                                       -(u * at.dy[1] + v * at.dy[2]) / r))
