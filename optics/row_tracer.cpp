@@ -132,7 +132,7 @@ namespace {
 template <typename T>
 struct Lanes {
     std::vector<T> px, py, pz, dx, dy, dz, throughput, alive, cut, ratio2, stop_u, stop_v, cos_i;
-    std::vector<double> b1, b2, factor;  // the coated reflectance is summed in double
+    std::vector<double> factor;  // the coated reflectance is summed in double
     explicit Lanes(size_t n)
         : px(n),
           py(n),
@@ -147,8 +147,6 @@ struct Lanes {
           stop_u(n, T(0)),
           stop_v(n, T(0)),
           cos_i(n, T(0)),
-          b1(n),
-          b2(n),
           factor(n) {}
 };
 
@@ -176,8 +174,6 @@ template <typename T>
     T* __restrict cut = w.cut.data();
     T* __restrict ratio2 = w.ratio2.data();
     T* __restrict cosi = w.cos_i.data();
-    double* __restrict b1 = w.b1.data();
-    double* __restrict b2 = w.b2.data();
     double* __restrict factor = w.factor.data();
     for (size_t k = 0; k < in.step_count; ++k) {
         const RowTracer::Step& s = in.steps[k];
@@ -267,6 +263,17 @@ template <typename T>
                 dz[i] = eta * dz[i] + f * nz;
             }
         }
+        if constexpr (std::is_same_v<T, float>) {
+            if (reflect || refract) {
+#pragma GCC ivdep
+                for (size_t i = 0; i < n; ++i) {
+                    const T inv = T(1) / std::sqrt(dx[i] * dx[i] + dy[i] * dy[i] + dz[i] * dz[i]);
+                    dx[i] *= inv;
+                    dy[i] *= inv;
+                    dz[i] *= inv;
+                }
+            }
+        }
         if (!in.fresnel) continue;
         if (!s.coated) {
             // fresnelUncoated, lane-wise; T = 1 - R (no absorption).
@@ -291,28 +298,33 @@ template <typename T>
         const T lo = static_cast<T>(poly.lo);
         const double scale = 2.0 / (1.0 - poly.lo);
         const double offset = (1.0 + poly.lo) / (1.0 - poly.lo);
-#pragma GCC ivdep
-        for (size_t i = 0; i < n; ++i) {
-            b1[i] = 0.0;
-            b2[i] = 0.0;
-        }
-        for (size_t j = degree; j >= 1; --j) {
-            const double a = poly.coefficients[j];
-#pragma GCC ivdep
-            for (size_t i = 0; i < n; ++i) {
-                const double x = static_cast<double>(cosi[i]) * scale - offset;
-                const double b0 = 2.0 * x * b1[i] - b2[i] + a;
-                b2[i] = b1[i];
-                b1[i] = b0;
+        // Clenshaw's recurrence, eight lanes at a time with the whole recurrence in registers
+        // (a pass over all lanes per coefficient stored and loaded them at every step).
+        const double* coefficient = poly.coefficients.data();
+        const double a0 = coefficient[0];
+        const auto clenshaw = [&]<size_t kLanes>(size_t i0) {
+            double x[kLanes], p1[kLanes], p2[kLanes];
+            for (size_t k = 0; k < kLanes; ++k) {
+                x[k] = static_cast<double>(cosi[i0 + k]) * scale - offset;
+                p1[k] = 0.0;
+                p2[k] = 0.0;
             }
-        }
-        const double a0 = poly.coefficients[0];
-#pragma GCC ivdep
-        for (size_t i = 0; i < n; ++i) {
-            const double x = static_cast<double>(cosi[i]) * scale - offset;
-            const double r = x * b1[i] - b2[i] + a0;
-            factor[i] = reflect ? r : 1.0 - r;
-        }
+            for (size_t j = degree; j >= 1; --j) {
+                const double a = coefficient[j];
+                for (size_t k = 0; k < kLanes; ++k) {
+                    const double b0 = 2.0 * x[k] * p1[k] - p2[k] + a;
+                    p2[k] = p1[k];
+                    p1[k] = b0;
+                }
+            }
+            for (size_t k = 0; k < kLanes; ++k) {
+                const double r = x[k] * p1[k] - p2[k] + a0;
+                factor[i0 + k] = reflect ? r : 1.0 - r;
+            }
+        };
+        size_t i0 = 0;
+        for (; i0 + 8 <= n; i0 += 8) clenshaw.template operator()<8>(i0);
+        for (; i0 < n; ++i0) clenshaw.template operator()<1>(i0);
 #pragma GCC ivdep
         for (size_t i = 0; i < n; ++i) thr[i] *= cosi[i] >= lo ? static_cast<T>(factor[i]) : T(1);
         // Lanes below the fitted range (near internal reflection, rare): the exact formula, one

@@ -11,9 +11,13 @@
 //   - precision: float lanes by default (double on request). The intersection keeps each ray's z
 //     relative to the vertex of the surface it heads for, so no coordinate grows with the lens's
 //     length, and the quadratic is PathTracer's cancellation-free form;
-//   - directions are not normalized again after a reflection or a refraction: with unit normal
-//     and unit direction both keep unit length exactly in exact arithmetic, and in float the drift
-//     stays at the rounding level over any path a lens has (the test bounds it);
+//   - double lanes do not normalize directions again after a reflection or a refraction (with
+//     unit normal and unit direction both keep unit length in exact arithmetic); float lanes do,
+//     after every bend: the intersection's quadratic assumes a unit direction, and float's drift
+//     in the length, some 1e-7 a bend, moved a ray's sensor position by up to 1e-4 mm over a long
+//     path (renormalizing cut the rays of a Canon 200 frame that had to be traced in double
+//     from 3.4 M to 1.8 M, and the worst float error over every shipped lens from 0.0078 px to
+//     0.0067 px);
 //   - a coated surface's reflectance is a Chebyshev polynomial in the incidence cosine, fitted per
 //     surface and wavelength to the exact thin-film formula (fresnel.h) on the cosines where that
 //     formula is smooth; below the fitted range (near total or frustrated internal reflection)
