@@ -808,22 +808,27 @@ void narrowSpan(int64_t& lo, int64_t& hi, double r, double g, double threshold, 
 
 }  // namespace
 
-void addPrimitiveRow(
-    const Primitive& p, int64_t x0, int64_t x1, int64_t y, const StopMask& stop, float* out) {
-    if (p.splat || p.supersample > 0 || !p.convex) {
-        for (int64_t x = x0; x <= x1; ++x)
-            out[(x - x0) * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
-        return;
-    }
-    // As convexAreaValue decides: outside when an edge function at the centre is at or below
-    // -reach, wholly inside when every one is at least its reach (then the pixel's part is the
-    // whole square, its centroid the centre, and unmasked primitives need no more than the
-    // throughput there). Along the row each edge function is monotone, so both sets are spans:
-    // [lo, hi] not outside, [in_lo, in_hi] wholly inside.
-    const bool masked = !(p.stop_radius <= stop.inscribedRadius()) || !p.vignette_clear;
+namespace {
+
+// A convex primitive's row, for the edges whose bit in `check` is set (the others are known to
+// be at least their reach over the row): as convexAreaValue decides, a pixel is outside when an
+// edge function at its centre is at or below -reach, wholly inside when every one is at least
+// its reach (then the pixel's part is the whole square, its centroid the centre, and unmasked
+// primitives need no more than the throughput there). Along the row each edge function is
+// monotone, so both sets are spans: [lo, hi] not outside, [in_lo, in_hi] wholly inside.
+void addConvexRow(const Primitive& p,
+                  int64_t x0,
+                  int64_t x1,
+                  int64_t y,
+                  const StopMask& stop,
+                  bool masked,
+                  unsigned check,
+                  float* out) {
     const double cy = static_cast<double>(y) + 0.5;
     int64_t lo = x0, hi = x1, in_lo = x0, in_hi = masked ? x0 - 1 : x1;
-    for (const EdgeFunction& e : p.edge) {
+    for (size_t i = 0; i < 4; ++i) {
+        if (!(check & (1u << i))) continue;
+        const EdgeFunction& e = p.edge[i];
         const double r = e.c + e.gy * cy, g = e.gx, reach = e.reach;
         const auto at = [&](int64_t x) { return r + g * (static_cast<double>(x) + 0.5); };
         narrowSpan(lo, hi, r, g, -reach, [&](int64_t x) { return at(x) > -reach; });
@@ -840,6 +845,23 @@ void addPrimitiveRow(
         out[(x - x0) * 3] += static_cast<float>(convexAreaValue(p, x, y, stop));
 }
 
+bool drawnConvex(const Primitive& p) { return p.convex && !p.splat && p.supersample == 0; }
+bool isMasked(const Primitive& p, const StopMask& stop) {
+    return !(p.stop_radius <= stop.inscribedRadius()) || !p.vignette_clear;
+}
+
+}  // namespace
+
+void addPrimitiveRow(
+    const Primitive& p, int64_t x0, int64_t x1, int64_t y, const StopMask& stop, float* out) {
+    if (!drawnConvex(p)) {
+        for (int64_t x = x0; x <= x1; ++x)
+            out[(x - x0) * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
+        return;
+    }
+    addConvexRow(p, x0, x1, y, stop, isMasked(p, stop), 0xfu, out);
+}
+
 void addPrimitiveBlock(const Primitive& p,
                        int64_t x0,
                        int64_t y0,
@@ -848,27 +870,36 @@ void addPrimitiveBlock(const Primitive& p,
                        const StopMask& stop,
                        float* out,
                        int64_t stride) {
-    const bool masked = !(p.stop_radius <= stop.inscribedRadius()) || !p.vignette_clear;
-    if (p.convex && !p.splat && p.supersample == 0 && !masked) {
-        // The edge functions are linear, so over the block's pixel centres each is least at one
-        // of the four corner centres; with a margin for rounding (far above the few ulps of the
-        // products), every pixel is then wholly inside, as addPrimitiveRow would find it.
-        const double xs[2] = {static_cast<double>(x0) + 0.5, static_cast<double>(x1) + 0.5};
-        const double ys[2] = {static_cast<double>(y0) + 0.5, static_cast<double>(y1) + 0.5};
-        bool inside = true;
-        for (const EdgeFunction& e : p.edge) {
-            for (const double cy : ys)
-                for (const double cx : xs) {
-                    const double size = std::abs(e.c) + std::abs(e.gy * cy) + std::abs(e.gx * cx);
-                    inside = inside && e.at(cx, cy) >= e.reach + 1e-12 * size;
-                }
-        }
-        if (inside) {
-            insideRows()(p, x0, y0, x1, y1, out, stride);
-            return;
-        }
+    if (!drawnConvex(p)) {
+        for (int64_t y = y0; y <= y1; ++y)
+            addPrimitiveRow(p, x0, x1, y, stop, out + (y - y0) * stride);
+        return;
     }
-    for (int64_t y = y0; y <= y1; ++y) addPrimitiveRow(p, x0, x1, y, stop, out + (y - y0) * stride);
+    // The edge functions are linear, so over the block's pixel centres each is least at one of
+    // the four corner centres; with a margin for rounding (far above the few ulps of the
+    // products), an edge at least its reach there is at least its reach at every pixel, as
+    // addPrimitiveRow would find it, and its tests can be left out. With no edge left, and no
+    // stop edge or clear aperture to cut, every pixel is wholly inside.
+    const double xs[2] = {static_cast<double>(x0) + 0.5, static_cast<double>(x1) + 0.5};
+    const double ys[2] = {static_cast<double>(y0) + 0.5, static_cast<double>(y1) + 0.5};
+    unsigned check = 0;
+    for (size_t i = 0; i < 4; ++i) {
+        const EdgeFunction& e = p.edge[i];
+        bool clear = true;
+        for (const double cy : ys)
+            for (const double cx : xs) {
+                const double size = std::abs(e.c) + std::abs(e.gy * cy) + std::abs(e.gx * cx);
+                clear = clear && e.at(cx, cy) >= e.reach + 1e-12 * size;
+            }
+        if (!clear) check |= 1u << i;
+    }
+    const bool masked = isMasked(p, stop);
+    if (check == 0 && !masked) {
+        insideRows()(p, x0, y0, x1, y1, out, stride);
+        return;
+    }
+    for (int64_t y = y0; y <= y1; ++y)
+        addConvexRow(p, x0, x1, y, stop, masked, check, out + (y - y0) * stride);
 }
 
 void rasterizeReference(ImageRGB& image,
