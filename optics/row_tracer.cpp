@@ -4,6 +4,7 @@
 #include <cmath>
 #include <map>
 #include <mutex>
+#include <optional>
 
 #include "common/check.h"
 #include "common/units.h"
@@ -72,7 +73,8 @@ FresnelPolynomial fitCoatedReflectance(double n1,
             smallest = std::min(smallest, exact_values[i]);
         }
         const double tolerance = std::max(1e-13, relative_tolerance * smallest);
-        for (int degree = 6; degree <= 36; degree += 6) {
+        // The polynomial of `degree` when it meets the tolerance on the dense check.
+        const auto fit = [&](int degree) -> std::optional<FresnelPolynomial> {
             FresnelPolynomial p;
             p.lo = lo;
             p.coefficients = chebyshevFit(exact, lo, degree);
@@ -80,10 +82,28 @@ FresnelPolynomial fitCoatedReflectance(double n1,
             for (int i = 0; i <= kCheck && worst <= tolerance; ++i)
                 worst =
                     std::max(worst, std::abs(p(lo + (1.0 - lo) * i / kCheck) - exact_values[i]));
-            if (worst > tolerance) continue;
+            if (worst > tolerance) return std::nullopt;
             p.max_abs_error = worst;
             p.max_rel_error = worst / std::max(smallest, 1e-300);
             return p;
+        };
+        // Every lane pays for each degree at every coated surface: the first passing degree in
+        // steps of 6, then the lowest below it that passes too (bisection; the error falls
+        // with the degree, and whatever is returned has passed the check).
+        for (int degree = 6; degree <= 36; degree += 6) {
+            std::optional<FresnelPolynomial> best = fit(degree);
+            if (!best) continue;
+            int fails = degree - 6, passes = degree;  // fails: a degree known (or taken) to fail
+            while (passes - fails > 1) {
+                const int mid = (fails + passes) / 2;
+                if (auto p = fit(mid)) {
+                    best = std::move(p);
+                    passes = mid;
+                } else {
+                    fails = mid;
+                }
+            }
+            return *best;
         }
     }
     // Not even near normal incidence: no polynomial, the exact formula everywhere.
