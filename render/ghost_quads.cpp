@@ -686,9 +686,6 @@ double primitiveValueAt(const Primitive& primitive, int64_t x, int64_t y, const 
 
 namespace {
 
-// The pixels x0..x1 of row y wholly inside an unmasked convex primitive, each the
-// Wachspress-interpolated throughput at its centre (convexAreaValue's value for a pixel no edge
-// cuts, in its order of operations): no tests, one loop the compiler vectorizes.
 // std::max(0.0, x) as a value: 0 for NaN.
 [[gnu::always_inline]] inline double positive(double x) { return x > 0.0 ? x : 0.0; }
 
@@ -805,10 +802,6 @@ void narrowSpan(int64_t& lo, int64_t& hi, double r, double g, double threshold, 
         hi = k;
     }
 }
-
-}  // namespace
-
-namespace {
 
 // A convex primitive's row, for the edges whose bit in `check` is set (the others are known to
 // be at least their reach over the row): as convexAreaValue decides, a pixel is outside when an
