@@ -141,7 +141,9 @@ void addSimulateCommand(CLI::App& app, std::ostream& out, std::ostream& err, int
     cmd->add_flag("--reference", state->reference,
                   "draw ghost by ghost (the baseline) instead of with tiles");
     cmd->add_option("--merge", state->merge,
-                    "primitive merge: none, light (4 steps, gamma 0.001) or heavy (4, 0.1)")
+                    "primitive merge: none (every quad: the truth, slowest), light (4 steps, "
+                    "gamma 0.001: the README's timed frames, 71.6 dB (Heliar) and 81.5 dB "
+                    "(Canon 200) PSNR against none) or heavy (4, 0.1)")
         ->check(CLI::IsMember({"none", "light", "heavy"}))
         ->capture_default_str();
     cmd->add_option("--merge-steps", state->merge_steps, "merge steps (0..7), overrides --merge")
