@@ -66,20 +66,23 @@ TEST(Stall, AJournalWriteThatHangsHoldsNoLockTheRigGoesOnAndNothingIsAnnouncedEa
     // (Up to 60 s: a sanitizer build renders the simulated frames several times slower.)
     // The frame count is told only after the manifest naming the frame is written, so both are
     // waited for: the last frame can be on disk a moment before it is counted.
-    v1::ListJobsResponse list;
-    for (int i = 0; i < 1200; ++i) {
-        auto manifest = hdr::readSweepManifest(job.output_dir());
+    constexpr size_t kFrames = 31;  // 0 to 6 deg in 0.2 deg steps
+    const auto counted = [&] {
+        v1::ListJobsResponse jobs;
         auto ctx = context("lister", 5.0);
-        list.Clear();
-        if (manifest && manifest->frames.size() == 31u && stub->ListJobs(ctx.get(), {}, &list).ok() &&
-            list.jobs_size() == 1 && list.jobs(0).frames_done() == 31u)
-            break;
+        if (!stub->ListJobs(ctx.get(), {}, &jobs).ok() || jobs.jobs_size() != 1) return false;
+        return jobs.jobs(0).frames_done() == kFrames;
+    };
+    const auto written = [&] {
+        const auto manifest = hdr::readSweepManifest(job.output_dir());
+        return manifest && manifest->frames.size() == kFrames;
+    };
+    for (int i = 0; i < 1200 && !(written() && counted()); ++i)
         std::this_thread::sleep_for(std::chrono::milliseconds(50));
-    }
     auto manifest = hdr::readSweepManifest(job.output_dir());
     ASSERT_TRUE(manifest);
     EXPECT_EQ(manifest->frames.size(), 31u) << "the capture waited on the journal";
-    list.Clear();
+    v1::ListJobsResponse list;
     auto ctx = context("lister", 5.0);
     ASSERT_TRUE(stub->ListJobs(ctx.get(), {}, &list).ok());
     ASSERT_EQ(list.jobs_size(), 1);
