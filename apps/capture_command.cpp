@@ -30,6 +30,7 @@ struct CaptureState {
     bool sim = false;
     std::string camera_uri;  // empty: "sim:" with --sim
     std::string head_uri;
+    std::string format;     // the camera's raw format (hdr::parseRawFormat); empty: its default
     double pixel_um = 0.0;  // the sensor's pixel pitch, for cameras other than the simulated one
     std::string lens_file;
     CameraFlags camera;
@@ -153,6 +154,18 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     }
     drivers::Camera& camera = *rig->camera;
     drivers::Head& head = *rig->head;
+    if (!s.format.empty()) {
+        const std::optional<hdr::RawFormat> format = hdr::parseRawFormat(s.format);
+        if (!format) {
+            err << "flarelab: capture: --format " << s.format
+                << " is not mono, bayer-rggb, bayer-bggr, bayer-grbg or bayer-gbrg\n";
+            return 1;
+        }
+        if (Status ok = camera.setFormat(*format); !ok) {
+            err << "flarelab: capture: --format " << s.format << ": " << ok.error().message << "\n";
+            return 1;
+        }
+    }
     const drivers::CameraCapabilities caps = camera.capabilities();
     for (const std::string& note : camera.notes()) err << "flarelab: note: " << note << "\n";
     // A camera known not to be linear is merged only through its response curve.
@@ -225,6 +238,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     header.camera.description = camera.identity().model;
     header.camera.serial = camera.identity().serial;
     header.camera.bit_depth = caps.bit_depth;
+    header.camera.raw_format = camera.format();
     // The sensor's geometry, so that a fit maps pixels to sensor mm: the simulated camera's own;
     // for other cameras what --pixel-um says.
     if (s.pixel_um > 0.0)
@@ -406,6 +420,10 @@ void addCaptureCommand(CLI::App& app, std::ostream& out, std::ostream& err, int&
     cmd->add_option("--lens", state->lens_file,
                     "the lens (CSV, format v1): the simulated camera's, or the one a real camera "
                     "wears, for the sweep's description");
+    cmd->add_option("--format", state->format,
+                    "the camera's raw format: mono, or a Bayer mosaic (bayer-rggb, bayer-bggr, "
+                    "bayer-grbg, bayer-gbrg; frames are demosaiced to RGB); default: the camera's. "
+                    "The simulated camera has mono (its green channel) and bayer-rggb");
     cmd->add_option("--pixel-um", state->pixel_um,
                     "pixel pitch of a real camera's sensor in micrometres (the fit maps pixels to "
                     "sensor mm with it)");

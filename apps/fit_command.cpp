@@ -376,8 +376,16 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
             return 1;
         }
     }
-    auto truth =
-        drivers::simulatedGhostTruth(*lens, model->capture.width_px, model->capture.height_px);
+    bool recorded = false;
+    const bool colour = fit::fittedInColour(*model, &recorded);
+    if (!recorded)
+        err << "flarelab: score: note: " << s.model << " (model format " << model->format_version
+            << ") does not record the camera's raw format; its ghosts' colour channels "
+            << (colour ? "differ, so it is scored against the colour (RGB) truth"
+                       : "agree, so it is scored against the monochrome (green) truth")
+            << "\n";
+    auto truth = drivers::simulatedGhostTruth(*lens, model->capture.width_px,
+                                              model->capture.height_px, {}, colour);
     if (!truth) {
         err << "flarelab: score: " << truth.error().message << "\n";
         return 1;

@@ -121,6 +121,7 @@ void printText(const hdr::Sweep& s, bool checked, std::ostream& out) {
     if (!h.camera.serial.empty()) out << ", serial " << h.camera.serial;
     if (h.camera.pixel_pitch_um) out << ", " << *h.camera.pixel_pitch_um << " um pixels";
     if (h.camera.bit_depth) out << ", " << *h.camera.bit_depth << " bit";
+    if (h.camera.raw_format) out << ", raw format " << hdr::rawFormatName(*h.camera.raw_format);
     out << "\n";
 
     const hdr::SweepCapture& c = h.capture;

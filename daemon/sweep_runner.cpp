@@ -336,6 +336,7 @@ Result<hdr::SweepWriter> SweepJob::openSweep() {
         header.camera.description = camera_->identity().model;
         header.camera.serial = camera_->identity().serial;
         header.camera.bit_depth = camera_->capabilities().bit_depth;
+        header.camera.raw_format = camera_->format();
         if (c.pixel_pitch_um() > 0.0)
             header.camera.pixel_pitch_um = c.pixel_pitch_um();
         else if (lens)

@@ -441,15 +441,10 @@ Status SimCamera::setFormat(hdr::RawFormat format) {
     return Ok{};
 }
 
-Result<const std::vector<float>*> SimCamera::rate(double angle_deg) {
-    for (const auto& [angle, plane] : cache_)
-        if (angle == angle_deg) return &plane;
+Result<ImageRGB> SimCamera::renderPower(double angle_deg, bool green_only) {
     if (!finite(angle_deg))
         return makeError(ErrorCode::Internal, name() + ": head angle is not finite");
-
     const int64_t w = options_.width_px, h = options_.height_px;
-    const bool mono = format_ == hdr::RawFormat::Mono;
-    const bool green_only = mono && options_.mono == MonoResponse::Green;
     render::Light light;
     light.theta_deg = std::abs(angle_deg);
     light.phi_deg = angle_deg < 0.0 ? 180.0 : 0.0;
@@ -457,7 +452,6 @@ Result<const std::vector<float>*> SimCamera::rate(double angle_deg) {
     if (green_only) light.rgb[0] = light.rgb[2] = 0.0f;
     const bool dark = light.rgb[0] == 0.0f && light.rgb[1] == 0.0f && light.rgb[2] == 0.0f;
 
-    const auto start = std::chrono::steady_clock::now();
     auto image = render::renderScene(
         lens_, dark ? std::span<const render::Light>{} : std::span<const render::Light>(&light, 1),
         options_.render);
@@ -481,12 +475,28 @@ Result<const std::vector<float>*> SimCamera::rate(double angle_deg) {
             }
         }
     }
+    return std::move(*image);
+}
 
+double SimCamera::powerToRate() const {
     // Power per pixel to image-plane irradiance (per mm^2 of sensor), then to electrons.
     const optics::CameraDescription& sensor = lens_.camera();
-    const double pixel_area_mm2 = (sensor.sensor_width_mm / static_cast<double>(w)) *
-                                  (sensor.sensor_height_mm / static_cast<double>(h));
-    const double to_e_s = options_.quantum_scale / pixel_area_mm2;
+    const double pixel_area_mm2 =
+        (sensor.sensor_width_mm / static_cast<double>(options_.width_px)) *
+        (sensor.sensor_height_mm / static_cast<double>(options_.height_px));
+    return options_.quantum_scale / pixel_area_mm2;
+}
+
+Result<const std::vector<float>*> SimCamera::rate(double angle_deg) {
+    for (const auto& [angle, plane] : cache_)
+        if (angle == angle_deg) return &plane;
+    const int64_t w = options_.width_px, h = options_.height_px;
+    const bool green_only =
+        format_ == hdr::RawFormat::Mono && options_.mono == MonoResponse::Green;
+    const auto start = std::chrono::steady_clock::now();
+    auto image = renderPower(angle_deg, green_only);
+    if (!image) return image.error();
+    const double to_e_s = powerToRate();
     std::vector<float> plane(static_cast<size_t>(w * h));
     bool all_finite = true;
     for (int64_t y = 0; y < h; ++y)
@@ -518,6 +528,20 @@ Result<std::vector<float>> SimCamera::meanRate_e_s(double angle_deg) {
     auto plane = rate(angle_deg);
     if (!plane) return plane.error();
     return **plane;
+}
+
+Result<ImageRGB> SimCamera::meanRateRgb_e_s(double angle_deg) {
+    auto image = renderPower(angle_deg, false);
+    if (!image) return image.error();
+    const double to_e_s = powerToRate();
+    for (float& v : image->pixels) {
+        const double e_s = v * to_e_s + options_.background_e_s;
+        if (!std::isfinite(e_s))
+            return makeError(ErrorCode::Internal, name() + ": the rendered image at " +
+                                                      fmt(angle_deg) + " deg is not finite");
+        v = static_cast<float>(std::max(0.0, e_s));
+    }
+    return std::move(*image);
 }
 
 Result<hdr::RawFrame> SimCamera::capture(double timeout_s) {

@@ -201,6 +201,9 @@ public:
     // The noise-free electron rate (e/s) of every pixel, dark current excluded, for the light at
     // head angle angle_deg: what the sensor integrates (cached like captures).
     Result<std::vector<float>> meanRate_e_s(double angle_deg);
+    // The same for a sensor that sees every colour at every pixel (red, green, blue at 650, 550,
+    // 450 nm), whatever the format: what a Bayer sensor's demosaiced frames estimate. Not cached.
+    Result<ImageRGB> meanRateRgb_e_s(double angle_deg);
     int64_t renders() const { return renders_; }  // renderScene calls so far (cache misses)
     double lastRender_ms() const { return last_render_ms_; }
     const std::shared_ptr<SimClock>& clock() const { return clock_; }
@@ -234,6 +237,9 @@ private:
                                                     AngleSource angles,
                                                     std::shared_ptr<SimClock> clock);
     Result<const std::vector<float>*> rate(double angle_deg);
+    // The scene at the head angle: power per pixel and channel (green alone when green_only).
+    Result<ImageRGB> renderPower(double angle_deg, bool green_only);
+    double powerToRate() const;  // e/s per unit of rendered power in a pixel
     std::string name() const;
 
     optics::Lens lens_;

@@ -10,8 +10,10 @@ namespace flarelab::drivers {
 Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
                                              int64_t width,
                                              int64_t height,
-                                             const std::vector<optics::GhostPath>& only_paths) {
+                                             const std::vector<optics::GhostPath>& only_paths,
+                                             bool colour) {
     SimCameraOptions options;
+    if (colour) options.format = hdr::RawFormat::BayerRGGB;  // all three channels traced
     options.render.only_paths = only_paths;
     options.width_px = width;
     options.height_px = height;
@@ -23,15 +25,22 @@ Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
     std::shared_ptr<SimCamera> camera(std::move(*made));
     const double to_dn = 1.0 / options.electrons_per_dn;
     return fit::TruthSource(
-        [camera, lens, width, height, to_dn](double angle_deg) -> Result<fit::TruthFrame> {
-            auto rate = camera->meanRate_e_s(angle_deg);
-            if (!rate) return rate.error();
+        [camera, lens, width, height, to_dn, colour](double angle_deg) -> Result<fit::TruthFrame> {
             fit::TruthFrame t;
-            t.image = ImageRGB(width, height);
-            for (size_t i = 0; i < rate->size(); ++i)
-                for (int c = 0; c < 3; ++c)
-                    t.image.pixels[3 * i + static_cast<size_t>(c)] =
-                        static_cast<float>((*rate)[i] * to_dn);
+            if (colour) {
+                auto rgb = camera->meanRateRgb_e_s(angle_deg);
+                if (!rgb) return rgb.error();
+                t.image = std::move(*rgb);
+                for (float& v : t.image.pixels) v = static_cast<float>(v * to_dn);
+            } else {
+                auto rate = camera->meanRate_e_s(angle_deg);
+                if (!rate) return rate.error();
+                t.image = ImageRGB(width, height);
+                for (size_t i = 0; i < rate->size(); ++i)
+                    for (int c = 0; c < 3; ++c)
+                        t.image.pixels[3 * i + static_cast<size_t>(c)] =
+                            static_cast<float>((*rate)[i] * to_dn);
+            }
             render::Light light;
             light.theta_deg = std::abs(angle_deg);
             light.phi_deg = angle_deg < 0.0 ? 180.0 : 0.0;

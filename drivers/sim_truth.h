@@ -8,6 +8,11 @@
 // background or dark current, in DN per second at unity gain, the unit of the merged frames the
 // model was fitted to; with where the light's own image lands. The camera renders with the same
 // settings as the capture did (simRenderDefaults), so nothing but the noise differs.
+//
+// Colour: a monochrome capture's camera sees the green channel (550 nm; drivers/sim_camera.h),
+// copied to R, G and B as the mono frames are; a colour (Bayer) capture's frames are demosaiced
+// RGB, and its truth is red, green and blue (650, 550, 450 nm) at every pixel, what the
+// demosaicing estimates.
 #pragma once
 
 #include <cstdint>
@@ -24,6 +29,7 @@ namespace flarelab::drivers {
 Result<fit::TruthSource> simulatedGhostTruth(const optics::Lens& lens,
                                              int64_t width,
                                              int64_t height,
-                                             const std::vector<optics::GhostPath>& only_paths = {});
+                                             const std::vector<optics::GhostPath>& only_paths = {},
+                                             bool colour = false);
 
 }  // namespace flarelab::drivers

@@ -169,7 +169,7 @@ std::string formatList(const std::vector<OfferedFormat>& formats) {
     return out.empty() ? "none" : out;
 }
 
-std::string rawFormatName(hdr::RawFormat f) {
+std::string formatDisplayName(hdr::RawFormat f) {
     switch (f) {
         case hdr::RawFormat::Mono:
             return "grey";
@@ -816,7 +816,7 @@ Status V4l2Camera::setFormat(hdr::RawFormat layout) {
         }
     if (!wanted)
         return deviceErr(DeviceFault::OutOfRange,
-                         "format " + rawFormatName(layout) + " is not offered");
+                         "format " + formatDisplayName(layout) + " is not offered");
     const V4l2FormatInfo* old = format_;
     const int64_t old_width = width_, old_height = height_;
     stopStreaming();
@@ -1154,7 +1154,7 @@ DeviceListing describeV4l2Device(V4l2Device& device, const std::string& uri) {
             continue;
         }
         d.details.push_back("format: " + std::string(info->name) + " (" + f.description + "), " +
-                            rawFormatName(info->raw_format) + " " + std::to_string(info->bits) +
+                            formatDisplayName(info->raw_format) + " " + std::to_string(info->bits) +
                             " bit, " + info->layout_note + (info->raw ? "" : ", not raw") +
                             "; sizes " + sizesText(enumerateSizes(device, f.fourcc)));
     }

@@ -9,6 +9,7 @@
 #include <string>
 
 #include "fit/polyfit.h"
+#include "hdr/raw_frame.h"
 #include "render/model_ghost.h"
 
 namespace flarelab::fit {
@@ -330,6 +331,29 @@ Result<ImageRGB> renderModel(const FlareModel& model,
     double turn = std::remainder(roll_deg - model.capture.roll_deg, 360.0);
     if (std::abs(std::abs(turn) - 180.0) < 1e-12) turn = 0.0;
     return renderRotatedGhostStates(states, turn, mapping, width, height, options);
+}
+
+bool fittedInColour(const FlareModel& model, bool* recorded) {
+    if (recorded) *recorded = !model.capture.raw_format.empty();
+    if (!model.capture.raw_format.empty()) {
+        const std::optional<hdr::RawFormat> format = hdr::parseRawFormat(model.capture.raw_format);
+        return format && hdr::isBayer(*format);  // validateModel refuses other names
+    }
+    for (const ModelGhost& g : model.ghosts) {
+        const auto find = [&](const std::string& name) -> const ModelParameter* {
+            for (const ModelParameter& p : g.parameters)
+                if (p.name == name) return &p;
+            return nullptr;
+        };
+        for (const char* kind : {"ln_border_rgb", "ln_inner_rgb"}) {
+            const ModelParameter* red = find(std::string(kind) + "[0]");
+            for (const char* channel : {"[1]", "[2]"}) {
+                const ModelParameter* other = find(std::string(kind) + channel);
+                if (red && other && red->pieces != other->pieces) return true;
+            }
+        }
+    }
+    return false;
 }
 
 }  // namespace flarelab::fit

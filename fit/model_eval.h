@@ -83,6 +83,11 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
                                                 double angle_deg,
                                                 double roll_deg);
 
+// Whether the model was fitted to colour frames: from capture.raw_format where the model records
+// it (a Bayer mosaic: colour), else from its ghosts (a fit of monochrome frames gives every ghost
+// the same series in R, G and B). `recorded` (when not null) says which.
+bool fittedInColour(const FlareModel& model, bool* recorded = nullptr);
+
 struct ModelRenderOptions {
     render::FastDistanceOptions distance{4, 4};  // the exact evaluation's
     // Fast: flattened loop, blocks skipped, filled or interpolated, per pixel only at the edges;

@@ -1,5 +1,6 @@
 #include "fit/model_file.h"
 
+
 #include <fcntl.h>
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
@@ -23,6 +24,7 @@
 #include "common/check.h"
 #include "common/file_descriptor.h"
 #include "common/utf8.h"
+#include "hdr/raw_frame.h"
 #include "proto/model.pb.h"
 
 namespace flarelab::fit {
@@ -181,6 +183,16 @@ Status checkHeader(const FlareModel& m, const Checker& check) {
             return check.fail(field, std::to_string(side) + " is outside 1.." +
                                          std::to_string(kModelMaxSide) + " pixels");
     if (auto ok = check.text("capture.camera", c.camera); !ok) return ok;
+    if (!c.raw_format.empty()) {
+        if (m.format_version < 3)
+            return check.fail("capture.raw_format",
+                              "is a field of format version 3, not of version " +
+                                  std::to_string(m.format_version));
+        if (!hdr::parseRawFormat(c.raw_format))
+            return check.fail("capture.raw_format",
+                              quotedText(c.raw_format) +
+                                  " is not mono, bayer-rggb, bayer-bggr, bayer-grbg or bayer-gbrg");
+    }
 
     if (auto ok = check.finite("valid_range.from_deg", m.valid_from_deg); !ok) return ok;
     if (auto ok = check.finite("valid_range.to_deg", m.valid_to_deg); !ok) return ok;
@@ -354,6 +366,7 @@ FlareModel fromProto(const v1::FlareModel& m) {
     model.capture.width_px = c.width_px();
     model.capture.height_px = c.height_px();
     model.capture.camera = c.camera();
+    if (c.has_raw_format()) model.capture.raw_format = c.raw_format();
     model.valid_from_deg = m.valid_range().from_deg();
     model.valid_to_deg = m.valid_range().to_deg();
     model.ghosts.reserve(static_cast<size_t>(m.ghosts_size()));
@@ -414,6 +427,7 @@ v1::FlareModel toProto(const FlareModel& model) {
     c->set_width_px(static_cast<uint32_t>(model.capture.width_px));
     c->set_height_px(static_cast<uint32_t>(model.capture.height_px));
     c->set_camera(model.capture.camera);
+    if (!model.capture.raw_format.empty()) c->set_raw_format(model.capture.raw_format);
     m.mutable_valid_range()->set_from_deg(model.valid_from_deg);
     m.mutable_valid_range()->set_to_deg(model.valid_to_deg);
     for (const ModelGhost& ghost : model.ghosts) {
@@ -794,7 +808,10 @@ std::string describeModel(const FlareModel& m, const std::string& path) {
     const ModelCapture& c = m.capture;
     out << "capture: " << c.from_deg << " to " << c.to_deg << " deg in steps of " << c.step_deg
         << " deg, roll " << c.roll_deg << " deg, " << c.width_px << "x" << c.height_px
-        << " pixels, camera " << orNotDescribed(c.camera) << "\n";
+        << " pixels, camera " << orNotDescribed(c.camera) << ", "
+        << (c.raw_format.empty() ? std::string("raw format not recorded")
+                                 : "raw format " + c.raw_format)
+        << "\n";
     out << "brackets: ";
     if (c.exposure_times_s.empty())
         out << "none";

@@ -10,25 +10,27 @@
 // else in fit/ sees protobuf. Each parameter of a ghost is a list of pieces, each a Chebyshev
 // series on its normalized angle (the formula is at the top of model.proto).
 //
-// Format versions. Version 2, which the fit writes, adds to the lens the camera settings the
+// Format versions. Version 2 adds to the lens the camera settings the
 // sweep recorded (version 3 of hdr/sweep.h): aperture blades and their rotation, the stop
 // semi-aperture used and whether unspecified surfaces got the default coating, so that `flarelab
-// score` simulates the capture's own lens again. Both versions are read.
+// score` simulates the capture's own lens again. Version 3, which the fit writes, adds the
+// camera's raw format (capture.raw_format, version 4 of hdr/sweep.h), so that a score simulates
+// a colour capture in colour. Every version is read.
 //
-// Rules of the format (both versions). A model breaking any of them is refused with an Error
+// Rules of the format (every version). A model breaking any of them is refused with an Error
 // naming the file (or stand-in) and the field path ("ghosts[2].parameters[5].pieces[0].
 // coefficients"):
-//   - format_version is 1 or 2 (another version: Unsupported). Fields the reader does not know
+//   - format_version is 1, 2 or 3 (another version: Unsupported). Fields the reader does not know
 //     are refused (ParseError), in binary files as in JSON: a writer that adds a field raises the
 //     version, so nothing is dropped silently; so are version 2's lens fields in a version 1
-//     model. JSON field names may be written as in the .proto or in lowerCamelCase.
+//     model and version 3's capture.raw_format in an older one. JSON field names may be written as in the .proto or in lowerCamelCase.
 //   - every number is finite; strings hold no NUL, are valid UTF-8 and at most
 //     kModelMaxStringBytes long; created is RFC 3339 or empty.
 //   - lens: f_number, focal_length_mm, stop_semi_aperture_mm (when present), sensor_width_mm,
 //     sensor_height_mm > 0; aperture_blades (when present) 0 or 3..kModelMaxApertureBlades;
 //     prescription_sha256 empty or 64 lowercase hex digits.
 //   - capture: from_deg <= to_deg, step_deg > 0, exposure times > 0, width_px and height_px
-//     1..32768.
+//     1..32768; raw_format empty or one of mono, bayer-rggb, bayer-bggr, bayer-grbg, bayer-gbrg.
 //   - valid_range: from_deg < to_deg, inside capture.from_deg..capture.to_deg.
 //   - 0..kModelMaxGhosts ghosts with unique ids; each has 1..kModelMaxParameters parameters with
 //     unique, non-empty names; lower_bound <= upper_bound when both are present.
@@ -56,7 +58,7 @@
 
 namespace flarelab::fit {
 
-inline constexpr int kModelFormatVersion = 2;        // what the fit writes
+inline constexpr int kModelFormatVersion = 3;        // what the fit writes
 inline constexpr int kModelOldestFormatVersion = 1;  // the oldest version still read
 inline constexpr int64_t kModelMaxFileBytes = int64_t{64} << 20;
 inline constexpr size_t kModelMaxGhosts = 4096;
@@ -93,6 +95,9 @@ struct ModelCapture {
     int64_t width_px = 0;
     int64_t height_px = 0;
     std::string camera;
+    // Version 3: the sensor's raw format as hdr::rawFormatName writes it ("mono", "bayer-rggb",
+    // ...); empty when the sweep did not record it.
+    std::string raw_format;
     bool operator==(const ModelCapture&) const = default;
 };
 

@@ -1266,6 +1266,8 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     model.capture.width_px = header.capture.width_px;
     model.capture.height_px = header.capture.height_px;
     model.capture.camera = header.camera.description;
+    if (header.camera.raw_format)
+        model.capture.raw_format = std::string(hdr::rawFormatName(*header.camera.raw_format));
     model.valid_from_deg = first;
     model.valid_to_deg = last;
     auto t_stage = Clock::now();

@@ -11,7 +11,9 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
+#include <string_view>
 #include <vector>
 
 namespace flarelab::hdr {
@@ -23,6 +25,13 @@ enum class RawFormat {
     BayerGRBG,
     BayerGBRG,
 };
+
+// The format's name in raw files and sweep manifests: mono, bayer-rggb, bayer-bggr, bayer-grbg,
+// bayer-gbrg; and back (nullopt for any other text).
+std::string_view rawFormatName(RawFormat format);
+std::optional<RawFormat> parseRawFormat(std::string_view name);
+// A colour mosaic (any Bayer pattern), not a single channel.
+inline bool isBayer(RawFormat format) { return format != RawFormat::Mono; }
 
 // What RawFrame::timestamp_ns marks on the camera's clock.
 enum class TimestampMark {

@@ -47,6 +47,22 @@ const std::array<std::pair<TimestampMark, std::string_view>, 4> kMarks = {{
     {TimestampMark::FrameArrival, "frame-arrival"},
 }};
 
+}  // namespace
+
+std::string_view rawFormatName(RawFormat format) {
+    for (const auto& [f, name] : kFormats)
+        if (f == format) return name;
+    return "mono";  // every enumerator is in the table
+}
+
+std::optional<RawFormat> parseRawFormat(std::string_view name) {
+    for (const auto& [f, n] : kFormats)
+        if (n == name) return f;
+    return std::nullopt;
+}
+
+namespace {
+
 Error invalid(const std::string& what) {
     return makeError(ErrorCode::InvalidArgument, "raw frame: " + what);
 }
@@ -94,10 +110,7 @@ Status writeRaw(const std::string& path, const RawFrame& frame) {
     if (Status ok = validateRawFrame(frame); !ok)
         return makeError(ok.error().code, path + ": " + ok.error().message);
     std::string header(kMagic);
-    std::string_view format_name;
-    for (const auto& [format, name] : kFormats)
-        if (format == frame.format) format_name = name;
-    header += "# format " + std::string(format_name) + "\n";
+    header += "# format " + std::string(rawFormatName(frame.format)) + "\n";
     header += "# exposure_s " + shortest(frame.exposure_s) + "\n";
     header += "# gain " + shortest(frame.gain) + "\n";
     header += "# bit_depth " + std::to_string(frame.bit_depth) + "\n";
@@ -213,13 +226,9 @@ Result<RawFrame> readRawFromMemory(std::span<const uint8_t> bytes,
         return Ok{};
     };
     const std::string& format_name = values.find("format")->second;
-    bool format_known = false;
-    for (const auto& [format, fname] : kFormats)
-        if (fname == format_name) {
-            f.format = format;
-            format_known = true;
-        }
-    if (!format_known) return parse_error("format \"" + format_name + "\" is unknown");
+    const std::optional<RawFormat> known = parseRawFormat(format_name);
+    if (!known) return parse_error("format \"" + format_name + "\" is unknown");
+    f.format = *known;
     int64_t bit_depth = 0;
     for (Status s :
          {number("exposure_s", f.exposure_s), number("gain", f.gain),

@@ -257,6 +257,9 @@ Status checkHeader(const SweepHeader& h, const Checker& check) {
     if (camera.bit_depth && (*camera.bit_depth < 1 || *camera.bit_depth > kMaxBitDepth))
         return check.fail("camera.bit_depth", std::to_string(*camera.bit_depth) +
                                                   " is outside 1.." + std::to_string(kMaxBitDepth));
+    if (camera.raw_format && h.format_version < 4)
+        return check.fail("camera.raw_format", "is a field of format version 4, not of version " +
+                                                   std::to_string(h.format_version));
     const SweepCapture& capture = h.capture;
     if (auto ok = check.finite("capture.from_deg", capture.from_deg); !ok) return ok;
     if (auto ok = check.finite("capture.to_deg", capture.to_deg); !ok) return ok;
@@ -422,6 +425,14 @@ Result<Sweep> fromProto(const flarelab::v1::SweepManifest& m, const Checker& che
                                                       std::to_string(kMaxBitDepth));
         h.camera.bit_depth = static_cast<int>(depth);
     }
+    if (m.camera().has_raw_format()) {
+        const std::optional<RawFormat> format = parseRawFormat(m.camera().raw_format());
+        if (!format)
+            return check.fail("camera.raw_format",
+                              Checker::quoted(m.camera().raw_format()) +
+                                  " is not mono, bayer-rggb, bayer-bggr, bayer-grbg or bayer-gbrg");
+        h.camera.raw_format = *format;
+    }
     const auto& c = m.capture();
     h.capture.from_deg = c.from_deg();
     h.capture.to_deg = c.to_deg();
@@ -468,6 +479,7 @@ flarelab::v1::SweepManifest toProto(const Sweep& s) {
     camera->set_serial(h.camera.serial);
     if (h.camera.pixel_pitch_um) camera->set_pixel_pitch_um(*h.camera.pixel_pitch_um);
     if (h.camera.bit_depth) camera->set_bit_depth(static_cast<uint32_t>(*h.camera.bit_depth));
+    if (h.camera.raw_format) camera->set_raw_format(std::string(rawFormatName(*h.camera.raw_format)));
     auto* capture = m.mutable_capture();
     capture->set_from_deg(h.capture.from_deg);
     capture->set_to_deg(h.capture.to_deg);
@@ -1312,7 +1324,10 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
             return makeError(
                 ErrorCode::InvalidArgument,
                 manifest + ": " + why + "; a different capture, cannot resume this sweep");
-        const std::pair<const char*, bool> same[] = {{"camera", old.camera == header.camera},
+        // A sweep older than version 4 did not record the raw format: not compared, left absent.
+        SweepCamera camera = header.camera;
+        if (old.format_version < 4) camera.raw_format = old.camera.raw_format;
+        const std::pair<const char*, bool> same[] = {{"camera", old.camera == camera},
                                                      {"capture", old.capture == header.capture}};
         for (const auto& [part, equal] : same)
             if (!equal)
@@ -1325,7 +1340,7 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
             state->files.insert(f.exr_file);
             state->files.insert(f.raw_files.begin(), f.raw_files.end());
         }
-        // Compacted once now: an older manifest becomes version 3 before any log exists, and
+        // Compacted once now: an older manifest becomes version 4 before any log exists, and
         // a record a crash tore at the end of the log is cut off before anything follows it.
         const bool clean =
             old.format_version == kSweepFormatVersion &&

@@ -22,7 +22,9 @@
 // the log's records. Version 3, which SweepWriter writes, keeps version 2's files and adds to
 // `lens` the camera settings a simulated capture depends on (aperture blades and their rotation,
 // the stop semi-aperture used, the coating of unspecified surfaces, the sensor size) and the
-// prescription's file name and SHA-256, so that a score re-simulates exactly the capture. Every
+// prescription's file name and SHA-256, so that a score re-simulates exactly the capture.
+// Version 4, which SweepWriter writes, adds the camera's raw format (`camera.raw_format`: mono or
+// a Bayer pattern), so that a score knows whether the frames are monochrome or colour. Every
 // version is read; older sweeps are upgraded when resumed, their new fields left absent (nobody
 // recorded them for the frames already taken).
 //
@@ -38,11 +40,13 @@
 //
 // Rules of the format (every version). A manifest breaking any of them is refused with an Error
 // naming the manifest file and the field ("frames[3].angle_deg"):
-//   - format_version is 1, 2 or 3 (another version: Unsupported). Fields the reader does not know
+//   - format_version is 1 to 4 (another version: Unsupported). Fields the reader does not know
 //     are refused (ParseError), not skipped: a writer that adds a field raises the version, so a
-//     misspelt field cannot silently lose data; so are version 3's lens fields in an older
-//     manifest. Field names may be written as in the .proto ("angle_deg", as the writer does) or
-//     in lowerCamelCase ("angleDeg"), as protobuf JSON allows.
+//     misspelt field cannot silently lose data; so are version 3's lens fields and version 4's
+//     camera.raw_format in an older manifest. Field names may be written as in the .proto
+//     ("angle_deg", as the writer does) or in lowerCamelCase ("angleDeg"), as protobuf JSON
+//     allows.
+//   - camera.raw_format is one of mono, bayer-rggb, bayer-bggr, bayer-grbg, bayer-gbrg.
 //   - every number is finite; exposure times, gain, focal length, f-number, pixel pitch, stop
 //     semi-aperture and sensor width and height > 0; lens.aperture_blades 0 (a circle) or
 //     3..kSweepMaxApertureBlades; lens.prescription_sha256 empty or 64 lowercase hex digits;
@@ -86,10 +90,11 @@
 #include "common/image.h"
 #include "common/result.h"
 #include "hdr/exr.h"
+#include "hdr/raw_frame.h"
 
 namespace flarelab::hdr {
 
-inline constexpr int kSweepFormatVersion = 3;        // what SweepWriter writes
+inline constexpr int kSweepFormatVersion = 4;        // what SweepWriter writes
 inline constexpr int kSweepOldestFormatVersion = 1;  // the oldest version still read
 inline constexpr char kSweepManifestFile[] = "manifest.json";
 inline constexpr char kSweepFrameLogFile[] = "frames.log";
@@ -131,6 +136,9 @@ struct SweepCamera {
     std::string serial;
     std::optional<double> pixel_pitch_um;
     std::optional<int> bit_depth;
+    // Version 4: what the sensor delivers, one channel or a colour mosaic (then the EXR frames
+    // are demosaiced RGB); absent when not recorded.
+    std::optional<RawFormat> raw_format;
     bool operator==(const SweepCamera&) const = default;
 };
 
@@ -286,7 +294,8 @@ struct SweepWriteOptions {
     ExrWriteOptions exr;
     // Append to the sweep already in the directory, whose lens, camera and capture settings must
     // equal the new header's (its software_version and created_utc are kept). A sweep of version 1
-    // or 2 records none of version 3's lens fields: those are not compared and stay absent. Without
+    // or 2 records none of version 3's lens fields, one of version 1 to 3 no camera.raw_format:
+    // those are not compared and stay absent. Without
     // it a directory that holds a manifest or any EXR file is refused.
     bool resume = false;
     // The frame log is compacted into the manifest once it holds this many records and as many as
@@ -306,7 +315,7 @@ public:
     // Creates `directory` (and its parents, each flushed into its parent) if needed, checks
     // `header` against the rules and writes a manifest with no frames (or, with options.resume,
     // takes the lock, reads the existing sweep, checks its header and compacts it: an older sweep
-    // becomes version 3, a torn record at the end of the log is cut off). InvalidArgument naming
+    // becomes version 4, a torn record at the end of the log is cut off). InvalidArgument naming
     // the field for a bad header, a resumed sweep whose header differs (naming the first field
     // that does), when the directory already holds a sweep or EXR files (without resume), another
     // writer, or a lock file that is not a regular file; IoError when the system refuses.

@@ -80,7 +80,8 @@ TEST(Capture, RecordsTheLensSettingsThatFitCopiesAndScoreRebuilds) {
     auto sweep = hdr::readSweepManifest(dir);
     ASSERT_TRUE(sweep) << sweep.error().message;
     const hdr::SweepLens& recorded = sweep->header.lens;
-    EXPECT_EQ(sweep->header.format_version, 3);
+    EXPECT_EQ(sweep->header.format_version, hdr::kSweepFormatVersion);
+    EXPECT_EQ(sweep->header.camera.raw_format, hdr::RawFormat::Mono);
     EXPECT_EQ(recorded.aperture_blades, 6);
     EXPECT_EQ(recorded.blade_rotation_deg, 15.0);
     EXPECT_EQ(recorded.coat_unspecified_surfaces, false);
@@ -119,7 +120,7 @@ TEST(Capture, RecordsTheLensSettingsThatFitCopiesAndScoreRebuilds) {
     ASSERT_TRUE(fit::writeModel(path, model));
     auto read = fit::readModel(path);
     ASSERT_TRUE(read) << read.error().message;
-    EXPECT_EQ(read->format_version, 2);
+    EXPECT_EQ(read->format_version, fit::kModelFormatVersion);
     EXPECT_EQ(read->lens.aperture_blades, 6);
     EXPECT_EQ(read->lens.prescription_sha256, *digest);
 

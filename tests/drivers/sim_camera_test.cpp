@@ -348,6 +348,35 @@ TEST(SimCamera, BayerPixelsSeeTheirFilterColour) {
     EXPECT_EQ(f.format, hdr::RawFormat::BayerRGGB);
 }
 
+// The colour truth of a Bayer capture (sim_truth.h): at every pixel the rate its filter's
+// channel sees in the mosaic, and in green the monochrome camera's rate.
+TEST(SimCamera, TheRgbRateHoldsTheMosaicsAndTheMonoCamerasChannels) {
+    SimCameraOptions o = tiny();
+    o.fixed_angle_deg = 6.0;
+    o.format = hdr::RawFormat::BayerRGGB;
+    auto bayer = camera(o);
+    const auto mosaic = bayer->meanRate_e_s(6.0);
+    const auto rgb = bayer->meanRateRgb_e_s(6.0);
+    o.format = hdr::RawFormat::Mono;
+    const auto mono = camera(o)->meanRate_e_s(6.0);
+    ASSERT_TRUE(mosaic && rgb && mono);
+    ASSERT_EQ(rgb->width, 64);
+    ASSERT_EQ(rgb->height, 43);
+    double channel_sum[3] = {0.0, 0.0, 0.0};
+    for (int64_t y = 0; y < 43; ++y)
+        for (int64_t x = 0; x < 64; ++x) {
+            const int own = x % 2 == 0 && y % 2 == 0 ? 0 : (x % 2 == 1 && y % 2 == 1 ? 2 : 1);
+            const size_t i = static_cast<size_t>(y * 64 + x);
+            EXPECT_EQ(rgb->at(x, y)[own], (*mosaic)[i]) << x << ", " << y;
+            EXPECT_EQ(rgb->at(x, y)[1], (*mono)[i]) << x << ", " << y;
+            for (int c = 0; c < 3; ++c) channel_sum[c] += rgb->at(x, y)[c];
+        }
+    // The ghosts' colours differ (the coating's reflectance depends on the wavelength): the
+    // channels are not copies of each other.
+    EXPECT_NE(channel_sum[0], channel_sum[1]);
+    EXPECT_NE(channel_sum[2], channel_sum[1]);
+}
+
 TEST(SimCamera, RealTimeCaptureTakesTheExposure) {
     SimHeadOptions ho;
     ho.homed = true;

@@ -43,6 +43,7 @@ FlareModel sampleModel() {
     m.capture.width_px = 640;
     m.capture.height_px = 480;
     m.capture.camera = "simulated camera";
+    m.capture.raw_format = "bayer-rggb";
     m.valid_from_deg = -5.0;
     m.valid_to_deg = 5.0;
 
@@ -195,13 +196,21 @@ std::vector<BrokenCase> brokenCases() {
     const double nan = std::numeric_limits<double>::quiet_NaN();
     const double inf = std::numeric_limits<double>::infinity();
     return {
-        {"format_version", [](FlareModel& m) { m.format_version = 3; }},
+        {"format_version", [](FlareModel& m) { m.format_version = 4; }},
+        // Version 3's raw format in a version 2 model; a name that is no raw format.
+        {"capture.raw_format", [](FlareModel& m) { m.format_version = 2; }},
+        {"capture.raw_format", [](FlareModel& m) { m.capture.raw_format = "rggb"; }},
         {"format_version", [](FlareModel& m) { m.format_version = 0; }},
         // Version 2's lens fields in a version 1 model.
-        {"lens.aperture_blades", [](FlareModel& m) { m.format_version = 1; }},
+        {"lens.aperture_blades",
+         [](FlareModel& m) {
+             m.format_version = 1;
+             m.capture.raw_format.clear();
+         }},
         {"lens.coat_unspecified_surfaces",
          [](FlareModel& m) {
              m.format_version = 1;
+             m.capture.raw_format.clear();
              m.lens.aperture_blades.reset();
              m.lens.blade_rotation_deg.reset();
              m.lens.stop_semi_aperture_mm.reset();
@@ -381,10 +390,10 @@ TEST(ReadModel, RefusesTruncatedBinaryAtEveryLength) {
 TEST(ReadModel, RefusesUnknownVersion) {
     FlareModel model = sampleModel();
     const std::string bytes = modelBytes(model);
-    // Field 1 (format_version, varint) comes first: tag 0x08, value 2.
+    // Field 1 (format_version, varint) comes first: tag 0x08, value 3.
     ASSERT_GE(bytes.size(), 2u);
-    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x02", 2));
-    for (const char version : {'\x00', '\x03'}) {
+    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x03", 2));
+    for (const char version : {'\x00', '\x04'}) {
         std::string other = bytes;
         other[1] = version;
         const Result<FlareModel> read = readModelFromMemory(other, "other.flaremodel");
@@ -395,7 +404,7 @@ TEST(ReadModel, RefusesUnknownVersion) {
             << read.error().message;
     }
 
-    const Result<FlareModel> json = modelFromJson(R"({"format_version": 3, "new_field": 1})");
+    const Result<FlareModel> json = modelFromJson(R"({"format_version": 4, "new_field": 1})");
     ASSERT_FALSE(json);
     EXPECT_EQ(json.error().code, ErrorCode::Unsupported) << json.error().message;
     const Result<FlareModel> missing = modelFromJson(R"({"lens": {}})");
@@ -420,6 +429,7 @@ TEST(ReadModel, AVersion1ModelStillReads) {
     old.lens.blade_rotation_deg.reset();
     old.lens.stop_semi_aperture_mm.reset();
     old.lens.coat_unspecified_surfaces.reset();
+    old.capture.raw_format.clear();
     const std::string bytes = modelBytes(old);
     ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x01", 2));
     const Result<FlareModel> binary = readModelFromMemory(bytes, "old.flaremodel");
@@ -443,10 +453,20 @@ TEST(ReadModel, AVersion1ModelStillReads) {
         << mixed.error().message;
 }
 
-TEST(ModelFile, Version2RecordsTheCaptureSettings) {
+TEST(ModelFile, Version3RecordsTheCaptureSettingsAndTheRawFormat) {
     const Result<std::string> json = modelToJson(sampleModel());
     ASSERT_TRUE(json) << json.error().message;
-    EXPECT_TRUE(contains(*json, "\"format_version\": 2")) << *json;
+    EXPECT_TRUE(contains(*json, "\"format_version\": 3")) << *json;
+    EXPECT_TRUE(contains(*json, "\"raw_format\": \"bayer-rggb\"")) << *json;
+    // Not recorded: left out, and read back empty.
+    FlareModel unknown = sampleModel();
+    unknown.capture.raw_format.clear();
+    const Result<std::string> bare = modelToJson(unknown);
+    ASSERT_TRUE(bare) << bare.error().message;
+    EXPECT_FALSE(contains(*bare, "raw_format")) << *bare;
+    const Result<FlareModel> back = modelFromJson(*bare);
+    ASSERT_TRUE(back) << back.error().message;
+    EXPECT_EQ(*back, unknown);
     EXPECT_TRUE(contains(*json, "\"aperture_blades\": 6")) << *json;
     EXPECT_TRUE(contains(*json, "\"blade_rotation_deg\": 15")) << *json;
     EXPECT_TRUE(contains(*json, "\"stop_semi_aperture_mm\": 12.4033203125")) << *json;

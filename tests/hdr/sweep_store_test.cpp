@@ -264,7 +264,7 @@ TEST(ReadSweep, VersionOneSweepsStillReadAndAreUpgradedWhenResumed) {
     ASSERT_TRUE(resumed->addFrame(image(3), frame(3)));
     auto manifest = parseSweepManifest(readText(dir.file(kSweepManifestFile)));
     ASSERT_TRUE(manifest) << manifest.error().message;
-    EXPECT_EQ(manifest->header.format_version, 3);
+    EXPECT_EQ(manifest->header.format_version, kSweepFormatVersion);
     auto upgraded = readSweep(dir.path());
     ASSERT_TRUE(upgraded) << upgraded.error().message;
     EXPECT_EQ(upgraded->frames.size(), 4u);
@@ -285,7 +285,7 @@ SweepHeader withLensSettings(SweepHeader h, int blades = 6) {
 
 // A sweep begun by an older version (here 2, its frame log holding frames) is resumed by a writer
 // whose camera records the settings: the frames already taken were not recorded with them, so
-// they stay absent, and the sweep becomes version 3 when compacted.
+// they stay absent, and the sweep becomes version 4 when compacted.
 TEST(SweepWriter, AnOlderSweepResumesWithTheSettingsItNeverRecordedLeftAbsent) {
     TempDir dir;
     SweepHeader old_header = header();
@@ -308,23 +308,27 @@ TEST(SweepWriter, AnOlderSweepResumesWithTheSettingsItNeverRecordedLeftAbsent) {
     SweepWriteOptions resume;
     resume.resume = true;
     {
-        auto resumed = SweepWriter::create(dir.path(), withLensSettings(old_header), resume);
+        SweepHeader now = withLensSettings(old_header);
+        now.camera.raw_format = RawFormat::BayerRGGB;  // version 4's, not recorded before either
+        auto resumed = SweepWriter::create(dir.path(), now, resume);
         ASSERT_TRUE(resumed) << resumed.error().message;
-        EXPECT_EQ(resumed->sweep().header.format_version, 3);
+        EXPECT_EQ(resumed->sweep().header.format_version, kSweepFormatVersion);
         EXPECT_EQ(resumed->sweep().header.lens, old_header.lens);
+        EXPECT_FALSE(resumed->sweep().header.camera.raw_format);
         ASSERT_TRUE(resumed->addFrame(image(3), frame(3)));
         ASSERT_TRUE(resumed->finish());
     }
     auto manifest = parseSweepManifest(readText(dir.file(kSweepManifestFile)));
     ASSERT_TRUE(manifest) << manifest.error().message;
-    EXPECT_EQ(manifest->header.format_version, 3);
+    EXPECT_EQ(manifest->header.format_version, kSweepFormatVersion);
     EXPECT_EQ(manifest->header.lens, old_header.lens);
+    EXPECT_FALSE(manifest->header.camera.raw_format);
     EXPECT_FALSE(manifest->header.lens.aperture_blades);
     EXPECT_FALSE(manifest->header.lens.sensor_width_mm);
     EXPECT_EQ(manifest->header.created_utc, "2026-11-29T07:00:00Z");
     EXPECT_EQ(manifest->frames.size(), 4u);
 
-    // Now version 3, it records no settings: a writer that has some is another capture.
+    // Now version 4, it records no settings: a writer that has some is another capture.
     auto again = SweepWriter::create(dir.path(), withLensSettings(old_header), resume);
     ASSERT_FALSE(again);
     EXPECT_TRUE(contains(again.error().message, "lens.aperture_blades: absent, the new sweep's 6"))

@@ -546,7 +546,7 @@ TEST(ParseSweepManifest, AcceptsWhatFormatWrites) {
 TEST(ParseSweepManifest, AcceptsCamelCaseNamesAndQuotedIntegers) {
     const std::string json =
         replaced(replaced(validManifest(), "\"angle_deg\":0.1", "\"angleDeg\":0.1"),
-                 "\"format_version\": 3", "\"formatVersion\": \"3\"");
+                 "\"format_version\": 4", "\"formatVersion\": \"4\"");
     auto sweep = parseSweepManifest(json);
     ASSERT_TRUE(sweep) << sweep.error().message;
     EXPECT_EQ(sweep->frames[0].angle_deg, 0.1);
@@ -554,14 +554,14 @@ TEST(ParseSweepManifest, AcceptsCamelCaseNamesAndQuotedIntegers) {
 
 TEST(ParseSweepManifest, UnknownVersionIsUnsupported) {
     // A later version with a field this reader does not know: the version is what is wrong.
-    const std::string json = replaced(validManifest(), "\"format_version\": 3",
-                                      "\"format_version\": 4, \"new_field\": true");
+    const std::string json = replaced(validManifest(), "\"format_version\": 4",
+                                      "\"format_version\": 5, \"new_field\": true");
     auto sweep = parseSweepManifest(json, "m.json");
     ASSERT_FALSE(sweep);
     EXPECT_EQ(sweep.error().code, ErrorCode::Unsupported);
-    EXPECT_TRUE(contains(sweep.error().message, "m.json: format_version: 4"))
+    EXPECT_TRUE(contains(sweep.error().message, "m.json: format_version: 5"))
         << sweep.error().message;
-    auto missing = parseSweepManifest(replaced(validManifest(), "\"format_version\": 3,", ""));
+    auto missing = parseSweepManifest(replaced(validManifest(), "\"format_version\": 4,", ""));
     ASSERT_FALSE(missing);
     EXPECT_TRUE(contains(missing.error().message, "format_version: missing"));
 }
@@ -586,7 +586,7 @@ TEST(ParseSweepManifest, Version3LensSettingsRoundTrip) {
     sweep.frames[0].exr_file = "a.exr";
     auto json = formatSweepManifest(sweep);
     ASSERT_TRUE(json) << json.error().message;
-    EXPECT_TRUE(contains(*json, "\"format_version\": 3")) << *json;
+    EXPECT_TRUE(contains(*json, "\"format_version\": 4")) << *json;
     EXPECT_TRUE(contains(*json, "\"aperture_blades\": 6")) << *json;
     EXPECT_TRUE(contains(*json, "\"coat_unspecified_surfaces\": true")) << *json;
     auto read = parseSweepManifest(*json, "m.json");
@@ -612,7 +612,7 @@ TEST(ParseSweepManifest, Version3LensSettingsRoundTrip) {
 
 TEST(ParseSweepManifest, AVersion2ManifestStillReadsWithoutTheSettings) {
     const std::string v2 =
-        replaced(validManifest(), "\"format_version\": 3", "\"format_version\": 2");
+        replaced(validManifest(), "\"format_version\": 4", "\"format_version\": 2");
     auto sweep = parseSweepManifest(v2, "m.json");
     ASSERT_TRUE(sweep) << sweep.error().message;
     EXPECT_EQ(sweep->header.format_version, 2);
@@ -635,6 +635,37 @@ TEST(ParseSweepManifest, AVersion2ManifestStillReadsWithoutTheSettings) {
     EXPECT_EQ(written.error().code, ErrorCode::InvalidArgument);
     EXPECT_TRUE(contains(written.error().message, "lens.sensor_width_mm"))
         << written.error().message;
+}
+
+TEST(ParseSweepManifest, TheCamerasRawFormatRoundTripsAndIsVersion4s) {
+    Sweep sweep;
+    sweep.header = smallHeader();
+    sweep.header.camera.raw_format = RawFormat::BayerGRBG;
+    sweep.frames = {frameAt(sweep.header, 0)};
+    sweep.frames[0].exr_file = "a.exr";
+    auto json = formatSweepManifest(sweep);
+    ASSERT_TRUE(json) << json.error().message;
+    EXPECT_TRUE(contains(*json, "\"raw_format\": \"bayer-grbg\"")) << *json;
+    auto read = parseSweepManifest(*json, "m.json");
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->header.camera.raw_format, RawFormat::BayerGRBG);
+    EXPECT_EQ(read->header, sweep.header);
+    // Not recorded: absent from the text and read back absent.
+    EXPECT_FALSE(contains(validManifest(), "raw_format"));
+    EXPECT_FALSE(parseSweepManifest(validManifest())->header.camera.raw_format);
+
+    // A name that is no raw format, and the field in a version 3 manifest, are refused by name.
+    auto bad = parseSweepManifest(replaced(*json, "bayer-grbg", "bayer-rgbg"), "m.json");
+    ASSERT_FALSE(bad);
+    EXPECT_EQ(bad.error().code, ErrorCode::ParseError);
+    EXPECT_TRUE(contains(bad.error().message, "m.json: camera.raw_format: 'bayer-rgbg' is not mono, bayer-rggb"))
+        << bad.error().message;
+    auto older = parseSweepManifest(
+        replaced(*json, "\"format_version\": 4", "\"format_version\": 3"), "m.json");
+    ASSERT_FALSE(older);
+    EXPECT_TRUE(contains(older.error().message,
+                         "camera.raw_format: is a field of format version 4, not of version 3"))
+        << older.error().message;
 }
 
 TEST(ParseSweepManifest, BrokenLensSettingsAreRefusedByField) {
