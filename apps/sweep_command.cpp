@@ -63,7 +63,10 @@ Json toJson(const hdr::Sweep& s, bool checked) {
     Json camera = {{"description", h.camera.description},
                    {"serial", h.camera.serial},
                    {"pixel_pitch_um", optionalNumber(h.camera.pixel_pitch_um)},
-                   {"bit_depth", h.camera.bit_depth ? Json(*h.camera.bit_depth) : Json(nullptr)}};
+                   {"bit_depth", h.camera.bit_depth ? Json(*h.camera.bit_depth) : Json(nullptr)},
+                   {"raw_format", h.camera.raw_format
+                                      ? Json(std::string(hdr::rawFormatName(*h.camera.raw_format)))
+                                      : Json(nullptr)}};
     Json capture = {{"from_deg", h.capture.from_deg}, {"to_deg", h.capture.to_deg},
                     {"step_deg", h.capture.step_deg}, {"roll_deg", h.capture.roll_deg},
                     {"width_px", h.capture.width_px}, {"height_px", h.capture.height_px}};

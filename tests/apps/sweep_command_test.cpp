@@ -47,6 +47,7 @@ public:
         header.lens.focal_length_mm = 50.0;
         header.camera.description = "mono test camera";
         header.camera.bit_depth = 12;
+        header.camera.raw_format = hdr::RawFormat::Mono;
         header.capture.from_deg = 0.0;
         header.capture.to_deg = 1.0;
         header.capture.step_deg = 0.2;
@@ -85,7 +86,7 @@ TEST(SweepInfo, PrintsLensCameraBracketsAndFrames) {
     const CommandRun run = sweep({"info", s.path()});
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_TRUE(contains(run.out, "lens: heliar 50mm, 50 mm")) << run.out;
-    EXPECT_TRUE(contains(run.out, "camera: mono test camera, 12 bit")) << run.out;
+    EXPECT_TRUE(contains(run.out, "camera: mono test camera, 12 bit, raw format mono")) << run.out;
     EXPECT_TRUE(contains(run.out, "brackets: 2 exposures of 0.001 0.1 s, gain 1.5")) << run.out;
     EXPECT_TRUE(contains(run.out, "frames: 3, 0 to 0.4 deg")) << run.out;
     EXPECT_TRUE(contains(run.out, "8x6 pixels")) << run.out;
@@ -103,6 +104,7 @@ TEST(SweepInfo, JsonHasFramesAnglesLensCameraAndBrackets) {
     EXPECT_EQ(json["lens"]["focal_length_mm"], 50.0);
     EXPECT_TRUE(json["lens"]["f_number"].is_null());
     EXPECT_EQ(json["camera"]["bit_depth"], 12);
+    EXPECT_EQ(json["camera"]["raw_format"], "mono");
     EXPECT_EQ(json["brackets"]["exposure_times_s"], (std::vector<double>{0.001, 0.1}));
     EXPECT_EQ(json["brackets"]["gain"], 1.5);
     EXPECT_EQ(json["capture"]["width_px"], 8);
