@@ -334,8 +334,10 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
             return 1;
         }
         auto image = hdr::toImage(*merged);
-        if (!image) {
-            err << "\nflarelab: frame " << i << ": " << image.error().message << "\n";
+        auto bounds = hdr::lowerBounds(*merged);
+        if (!image || !bounds) {
+            err << "\nflarelab: frame " << i << ": "
+                << (!image ? image.error().message : bounds.error().message) << "\n";
             return 1;
         }
         // Where the head reported it stood, to a nanodegree (its arithmetic may add an ulp).
@@ -343,7 +345,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
         // The manifest lists the bracket in the order it was taken, with its raw files.
         frame.exposure_times_s = times;
         frame.merge_method = merged->method;
-        auto added = writer->addFrame(*image, frame);
+        auto added = writer->addFrame(*image, frame, {}, *bounds);
         if (!added) {
             err << "\nflarelab: frame " << i << ": " << added.error().message << "\n";
             return 1;

@@ -56,7 +56,12 @@ int run(const MergeState& s, std::ostream& out, std::ostream& err) {
     meta.extra["dark_samples"] = std::to_string(merged->dark_samples);
     hdr::ExrWriteOptions options;
     options.pixel_type = s.half ? hdr::ExrPixelType::HalfWhereFits : hdr::ExrPixelType::Float;
-    const auto written = hdr::writeExr(s.exr_path, *image, meta, options);
+    auto bounds = hdr::lowerBounds(*merged);
+    if (!bounds) {
+        err << "flarelab: " << bounds.error().message << "\n";
+        return 1;
+    }
+    const auto written = hdr::writeExr(s.exr_path, *image, meta, options, *bounds);
     if (!written) {
         err << "flarelab: " << written.error().message << "\n";
         return 1;

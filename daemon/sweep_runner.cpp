@@ -579,9 +579,11 @@ Status SweepJob::writeFrame(Captured& captured, hdr::SweepWriter& writer) {
     if (!merged) return merged.error().withContext("frame " + std::to_string(captured.index));
     auto image = hdr::toImage(*merged);
     if (!image) return image.error().withContext("frame " + std::to_string(captured.index));
+    auto bounds = hdr::lowerBounds(*merged);
+    if (!bounds) return bounds.error().withContext("frame " + std::to_string(captured.index));
     frame.merge_method = merged->method;
     frame.exr_file = hdr::sweepFrameFileName(captured.index, captured.angle_deg);
-    auto added = writer.addFrame(*image, frame);
+    auto added = writer.addFrame(*image, frame, {}, *bounds);
     if (!added) return added.error();
     if (c.previews()) {
         const fs::path previews = fs::path(dir) / hdr::kSweepPreviewsDir;

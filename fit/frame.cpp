@@ -95,6 +95,7 @@ Result<FitFrame> loadFitFrame(const hdr::Sweep& sweep,
     if (!frame)
         return makeError(frame.error().code,
                          sweep.frames[index].exr_file + ": " + frame.error().message);
+    frame->lower_bound = std::move(exr->lower_bound);  // the reader gives one per pixel or none
     return frame;
 }
 

@@ -27,6 +27,10 @@ struct FitFrame {
     double angle_deg = 0.0;  // the head angle the frame was captured at
     render::SensorToImage mapping;
     int channels = 3;  // 1 when R = G = B everywhere: fitted in channel 0 only
+    // Per pixel (row-major), the channels that are only lower bounds (hdr/merge.h lowerBounds:
+    // saturated in every bracket); empty when the frame does not say. The fit leaves such pixels
+    // out, as it does the light's disc.
+    std::vector<uint8_t> lower_bound;
 };
 
 // The sensor size of a sweep in mm: the one the manifest records (lens.sensor_width_mm and

@@ -229,22 +229,28 @@ public:
         }
         for (int c = 0; c < layout_.channels; ++c) {
             data_[c].assign(n, 0.0);
+            bound_[c].assign(n, 0);
             others_[c].assign(n, 0.0);
             scale_[c] = transform_scale[c];
         }
         const int64_t width = frame.image.width;
+        const bool has_bounds =
+            frame.lower_bound.size() == static_cast<size_t>(width * frame.image.height);
         for (int j = 0; j < ny_; ++j) {
             for (int i = 0; i < nx_; ++i) {
                 const int64_t ax = x0 + i * stride_, bx = std::min(x1, ax + stride_ - 1);
                 const int64_t ay = y0 + j * stride_, by = std::min(y1, ay + stride_ - 1);
                 bool ok = true;
                 double sum[3] = {0.0, 0.0, 0.0};
+                uint8_t bounds = 0;  // channels holding a lower bound (FitFrame::lower_bound)
                 for (int64_t y = ay; y <= by && ok; ++y)
                     for (int64_t x = ax; x <= bx; ++x) {
-                        if (detection.excluded[static_cast<size_t>(y * width + x)]) {
+                        const size_t pixel = static_cast<size_t>(y * width + x);
+                        if (detection.excluded[pixel]) {
                             ok = false;
                             break;
                         }
+                        if (has_bounds) bounds |= frame.lower_bound[pixel];
                         const float* p = frame.image.at(x, y);
                         for (int c = 0; c < layout_.channels; ++c) sum[c] += p[c];
                     }
@@ -252,8 +258,11 @@ public:
                 const double count = static_cast<double>((bx - ax + 1) * (by - ay + 1));
                 const size_t s = static_cast<size_t>(j * nx_ + i);
                 valid_[s] = 1;
-                for (int c = 0; c < layout_.channels; ++c)
+                for (int c = 0; c < layout_.channels; ++c) {
                     data_[c][s] = sum[c] / count - detection.background[c];
+                    // A mean over a lower bound is one too.
+                    bound_[c][s] = (bounds >> c) & 1u;
+                }
             }
         }
         // The other ghosts at the sample centres (only those whose range meets the crop).
@@ -361,8 +370,9 @@ public:
                     (fo.a + reach) * (1.0 + 1e-9)) {
                     for (int c = 0; c < layout_.channels; ++c) {
                         const size_t row = s * layout_.channels + c;
-                        residual_[row] = std::asinh((0.0 + others_[c][s]) / scale_[c]) -
-                                         std::asinh(data_[c][s] / scale_[c]);
+                        residual_[row] = censored(c, s,
+                                                  std::asinh((0.0 + others_[c][s]) / scale_[c]) -
+                                                      std::asinh(data_[c][s] / scale_[c]));
                         if (!jacobian) continue;
                         std::fill_n(&gradient_[row * np], np, 0.0);
                         span_[row] = {0, 0};
@@ -382,8 +392,9 @@ public:
                     for (int c = 0; c < layout_.channels; ++c) {
                         const double m = border[c].a * w.border + inner[c].a * w.inner;
                         residual_[s * layout_.channels + c] =
-                            std::asinh((m + others_[c][s]) / scale_[c]) -
-                            std::asinh(data_[c][s] / scale_[c]);
+                            censored(c, s,
+                                     std::asinh((m + others_[c][s]) / scale_[c]) -
+                                         std::asinh(data_[c][s] / scale_[c]));
                     }
                     continue;
                 }
@@ -419,9 +430,12 @@ public:
                     const Jet m = border[c] * w.border + inner[c] * w.inner;
                     const double total = m.a + others_[c][s];
                     const size_t row = s * layout_.channels + c;
-                    residual_[row] =
-                        std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]);
-                    const double dt = 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
+                    residual_[row] = censored(
+                        c, s, std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]));
+                    // Zero where the bound is met: the residual stays 0 nearby.
+                    const double dt = residual_[row] == 0.0 && bound_[c][s]
+                                          ? 0.0
+                                          : 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
                     int first = np, last = 0;
                     for (int k = 0; k < np; ++k) {
                         const double g = dt * m.v[k];
@@ -556,7 +570,13 @@ private:
     std::vector<double> qx_, qy_;  // sample centres, mm
     std::vector<double> hx_, hy_;  // half sizes of their blocks, mm
     std::vector<uint8_t> valid_;
+    double censored(int c, size_t s, double r) const {
+        return bound_[c][s] && r > 0.0 ? 0.0 : r;
+    }
     std::vector<double> data_[3], others_[3];
+    // Per channel and sample: the data is only a lower bound (clipped in every bracket), so a
+    // model at or above it is no error; below it, the usual residual.
+    std::vector<uint8_t> bound_[3];
     double scale_[3] = {1.0, 1.0, 1.0};
     std::vector<double> kernel_;
     int radius_ = 0;

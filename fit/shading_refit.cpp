@@ -91,6 +91,9 @@ struct Observation {
     std::array<double, 3> scale{};            // of the transform, per fitted channel
     std::vector<render::BlockDistance> self;  // to this ghost, per sample
     std::vector<std::array<double, 3>> data;  // frame minus background, per sample
+    // Per sample, the channels (bits 1, 2, 4) whose data is only a lower bound (FitFrame::
+    // lower_bound): a model at or above it is no error.
+    std::vector<uint8_t> bound;
     std::vector<std::pair<size_t, std::vector<render::BlockDistance>>>
         others;  // ghost index, samples
 };
@@ -384,6 +387,7 @@ public:
                     const double total = m.a + other;
                     r = std::asinh(total / scale) - std::asinh(data / scale);
                     dr = 1.0 / std::sqrt(scale * scale + total * total);
+                    if (((obs.bound[s] >> ch) & 1u) != 0 && r > 0.0) r = dr = 0.0;
                     const double s2 = r * r;
                     const double rho = c2_ * std::log1p(s2 / c2_);
                     const double rt = std::copysign(std::sqrt(rho), r);
@@ -548,6 +552,8 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
         for (const auto& a : *at) present.push_back({index_of.at(a.id), a.state});
         const auto& m = frame->mapping;
         const int64_t width = frame->image.width;
+        const bool has_bounds =
+            frame->lower_bound.size() == static_cast<size_t>(width * frame->image.height);
         for (const size_t g : ghosts) {
             const auto self = std::find_if(present.begin(), present.end(),
                                            [&](const auto& p) { return p.first == g; });
@@ -572,12 +578,15 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
                     const int64_t bx = std::min(crop.x1, ax + stride - 1);
                     bool ok = true;
                     std::array<double, 3> sum{};
+                    uint8_t bounds = 0;
                     for (int64_t y = ay; y <= by && ok; ++y)
                         for (int64_t x = ax; x <= bx; ++x) {
-                            if (detection->excluded[static_cast<size_t>(y * width + x)]) {
+                            const size_t pixel = static_cast<size_t>(y * width + x);
+                            if (detection->excluded[pixel]) {
                                 ok = false;
                                 break;
                             }
+                            if (has_bounds) bounds |= frame->lower_bound[pixel];
                             const float* p = frame->image.at(x, y);
                             for (int c = 0; c < channels; ++c) sum[static_cast<size_t>(c)] += p[c];
                         }
@@ -589,6 +598,7 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
                             sum[static_cast<size_t>(c)] / count -
                             detection->background[static_cast<size_t>(c)];
                     obs.data.push_back(data);
+                    obs.bound.push_back(bounds);
                     points.push_back(
                         {(0.5 * static_cast<double>(ax + bx + 1) - m.centre_x_px) / m.px_per_mm_x,
                          (0.5 * static_cast<double>(ay + by + 1) - m.centre_y_px) / m.px_per_mm_y});

@@ -45,6 +45,7 @@ constexpr int64_t kMaxWriteSide = int64_t{1} << 15;
 constexpr int64_t kMaxChunkBytes = int64_t{1} << 28;
 constexpr size_t kWriteBufferBytes = size_t{1} << 20;
 constexpr const char* kChannelNames[3] = {"R", "G", "B"};
+constexpr const char* kLowerBoundChannel = "flarelab.lower_bound";
 
 // ---------------------------------------------------------------------------------------------
 // Streams. OpenEXR reports stream failures by exception; these throw Iex exceptions, which the
@@ -773,6 +774,14 @@ Result<ExrImage> decode(SizedIStream& in, const std::string& name, const ExrRead
                                  name + ": channel " + sources[c] + " is subsampled");
         }
 
+        const Imf::Channel* bounds_channel = channels.findChannel(kLowerBoundChannel);
+        if (bounds_channel &&
+            ((bounds_channel->type != Imf::HALF && bounds_channel->type != Imf::FLOAT) ||
+             bounds_channel->xSampling != 1 || bounds_channel->ySampling != 1))
+            return makeError(ErrorCode::Unsupported,
+                             name + ": channel " + kLowerBoundChannel +
+                                 " is UINT or subsampled; only full half or float is read");
+
         stage = "cannot read the pixels";
         ExrImage result;
         result.meta = std::move(*meta);
@@ -786,8 +795,33 @@ Result<ExrImage> decode(SizedIStream& in, const std::string& name, const ExrRead
             frame.insert(sources[c],
                          Imf::Slice::Make(Imf::FLOAT, image.pixels.data() + c, facts->data_window,
                                           x_stride, x_stride * static_cast<size_t>(image.width)));
+        std::vector<float> bounds;
+        if (bounds_channel) {
+            bounds.assign(image.pixels.size() / 3, 0.0f);
+            frame.insert(kLowerBoundChannel,
+                         Imf::Slice::Make(Imf::FLOAT, bounds.data(), facts->data_window,
+                                          sizeof(float),
+                                          sizeof(float) * static_cast<size_t>(image.width)));
+        }
         file.setFrameBuffer(frame);
         file.readPixels(facts->data_window.min.y, facts->data_window.max.y);
+        if (bounds_channel) {
+            result.lower_bound.resize(bounds.size());
+            for (size_t i = 0; i < bounds.size(); ++i) {
+                const float v = bounds[i];
+                if (!(v >= 0.0f && v <= 7.0f && v == std::floor(v)))
+                    return makeError(
+                        ErrorCode::ParseError,
+                        name + ": " +
+                            describePixel(facts->data_window.min.x + static_cast<int64_t>(i) %
+                                                                         image.width,
+                                          facts->data_window.min.y + static_cast<int64_t>(i) /
+                                                                         image.width,
+                                          kLowerBoundChannel, v) +
+                            " is not a whole number 0 to 7");
+                result.lower_bound[i] = static_cast<uint8_t>(v);
+            }
+        }
 
         if (source_count == 1)
             for (size_t i = 0; i < image.pixels.size(); i += 3)
@@ -840,7 +874,10 @@ std::string halfMisfit(float value, double half_min_abs) {
     return out.str();
 }
 
-Status writeFile(const std::string& temporary, const ImageRGB& image, const Imf::Header& header) {
+Status writeFile(const std::string& temporary,
+                 const ImageRGB& image,
+                 std::span<const uint8_t> lower_bound,
+                 const Imf::Header& header) {
     FileDescriptor fd(
         ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | O_NOFOLLOW, 0666));
     if (!fd.valid())
@@ -865,6 +902,12 @@ Status writeFile(const std::string& temporary, const ImageRGB& image, const Imf:
                 frame.insert(kChannelNames[c],
                              Imf::Slice(half ? Imf::HALF : Imf::FLOAT, base + c * value_bytes,
                                         x_stride, x_stride * static_cast<size_t>(image.width)));
+            std::vector<Imath::half> bounds(lower_bound.begin(), lower_bound.end());
+            if (!bounds.empty())
+                frame.insert(kLowerBoundChannel,
+                             Imf::Slice(Imf::HALF, reinterpret_cast<char*>(bounds.data()),
+                                        sizeof(Imath::half),
+                                        sizeof(Imath::half) * static_cast<size_t>(image.width)));
             file.setFrameBuffer(frame);
             file.writePixels(static_cast<int>(image.height));
         }
@@ -910,7 +953,8 @@ Result<ExrStandardAttributes> exrCaptureTime(int64_t unix_time_ns) {
 Result<ExrWriteReport> writeExr(const std::string& path,
                                 const ImageRGB& image,
                                 const ExrMetadata& meta,
-                                const ExrWriteOptions& options) {
+                                const ExrWriteOptions& options,
+                                std::span<const uint8_t> lower_bound) {
     const auto invalid = [&](const std::string& what) {
         return makeError(ErrorCode::InvalidArgument, path + ": " + what);
     };
@@ -925,6 +969,16 @@ Result<ExrWriteReport> writeExr(const std::string& path,
     if (!(options.half_min_abs >= 0.0 && options.half_min_abs <= kHalfMinNormal))
         return invalid("half_min_abs must lie in [0, 2^-14]");
     if (auto ok = checkMetadata(meta, path); !ok) return ok.error();
+    if (!lower_bound.empty()) {
+        if (lower_bound.size() != static_cast<size_t>(image.width * image.height))
+            return invalid("lower_bound holds " + std::to_string(lower_bound.size()) +
+                           " values, not width * height");
+        for (size_t i = 0; i < lower_bound.size(); ++i)
+            if (lower_bound[i] > 7)
+                return invalid("lower_bound at x " + std::to_string(i % image.width) + ", y " +
+                               std::to_string(i / image.width) + " is " +
+                               std::to_string(lower_bound[i]) + " (bits 1, 2, 4 only)");
+    }
 
     // No NaN passed on, and the first value half cannot hold, if half was asked for.
     const bool want_half = options.pixel_type != ExrPixelType::Float;
@@ -955,10 +1009,11 @@ Result<ExrWriteReport> writeExr(const std::string& path,
         header.compression() = toImf(options.compression);
         for (const char* channel : kChannelNames)
             header.channels().insert(channel, Imf::Channel(report.half ? Imf::HALF : Imf::FLOAT));
+        if (!lower_bound.empty()) header.channels().insert(kLowerBoundChannel, Imf::Channel(Imf::HALF));
         addMetadata(header, meta);
 
         const std::string temporary = path + ".tmp-" + std::to_string(::getpid());
-        if (auto written = writeFile(temporary, image, header); !written) {
+        if (auto written = writeFile(temporary, image, lower_bound, header); !written) {
             ::unlink(temporary.c_str());
             return written.error().withContext(path);
         }

@@ -29,6 +29,12 @@
 //   flarelab.software_version  string  the program that wrote the file
 //   flarelab.extra.<key>       string  free attributes, ExrMetadata::extra[<key>]
 //
+// flarelab's own channel (optional; other programs show it as layer "flarelab"):
+//
+//   flarelab.lower_bound       half    per pixel, which of R, G, B are only lower bounds (bits
+//                                      1, 2, 4: hdr/merge.h, lowerBounds): a value 0 to 7. A
+//                                      file without it says nothing about clipping.
+//
 // An absent optional field, empty string or empty vector is not written. The reader refuses an
 // attribute of the wrong type, a non-finite number, a non-positive exposure time, an unknown
 // "flarelab.*" name and any version other than 1, naming the attribute.
@@ -182,6 +188,9 @@ struct ExrImage {
     // also at negative coordinates); pixel (x, y) of `image` is (origin_x + x, origin_y + y) there.
     int64_t origin_x = 0;
     int64_t origin_y = 0;
+    // Per pixel (row-major), the channel flarelab.lower_bound: bits 1, 2, 4 for R, G, B being
+    // only lower bounds. Empty when the file has no such channel.
+    std::vector<uint8_t> lower_bound;
 };
 
 // Writes `image` (at least 1x1, at most 2^15 pixels per side, every value finite) with `meta` to
@@ -193,17 +202,21 @@ struct ExrImage {
 // Errors name the path and what failed: the first non-finite pixel (x, y, channel), the first value
 // that does not fit half when Half was asked for, an invalid metadata field, or the operating
 // system's or OpenEXR's complaint.
+// `lower_bound`, when not empty (width * height values, each 0 to 7), is written as the channel
+// flarelab.lower_bound; InvalidArgument for another size or value.
 Result<ExrWriteReport> writeExr(const std::string& path,
                                 const ImageRGB& image,
                                 const ExrMetadata& meta,
-                                const ExrWriteOptions& options = {});
+                                const ExrWriteOptions& options = {},
+                                std::span<const uint8_t> lower_bound = {});
 
 // Reads a single-part scanline EXR whose channels R, G, B (A and others ignored) or Y alone are
 // half or float32. Refused, with an Error naming the file: a missing or unreadable file
 // (NotFound, IoError), anything not an EXR or truncated or corrupt (ParseError), tiled, deep or
 // multi-part files, UINT or subsampled channels, luminance-chroma files, ID manifests and data
 // windows beyond `options` (Unsupported), a missing channel, a NaN or infinite pixel (named by its
-// x, y in the file's pixel space and its channel) and invalid flarelab attributes (ParseError).
+// x, y in the file's pixel space and its channel), a flarelab.lower_bound value that is not a
+// whole number 0 to 7 and invalid flarelab attributes (ParseError).
 Result<ExrImage> readExr(const std::string& path, const ExrReadOptions& options = {});
 
 // The same reader over bytes in memory; `name` stands for the file in error messages.

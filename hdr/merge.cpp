@@ -634,4 +634,43 @@ Result<ImageRGB> toImage(const MergedFrame& frame) {
     return image;
 }
 
+Result<std::vector<uint8_t>> lowerBounds(const MergedFrame& frame) {
+    if (frame.width < 0 || frame.height < 0 ||
+        frame.radiance.size() != static_cast<size_t>(frame.width * frame.height) ||
+        frame.count.size() != frame.radiance.size())
+        return makeError(ErrorCode::InvalidArgument,
+                         "lowerBounds: radiance and count must hold width * height samples");
+    const int64_t w = frame.width, h = frame.height;
+    const auto clipped = [&](int64_t x, int64_t y) {
+        const size_t i = static_cast<size_t>(y * w + x);
+        return frame.count[i] == 0 && frame.radiance[i] > 0.0f;
+    };
+    std::vector<uint8_t> bits(static_cast<size_t>(w * h), 0);
+    if (frame.format == RawFormat::Mono) {
+        for (int64_t y = 0; y < h; ++y)
+            for (int64_t x = 0; x < w; ++x)
+                if (clipped(x, y))
+                    bits[static_cast<size_t>(y * w + x)] =
+                        kLowerBoundRed | kLowerBoundGreen | kLowerBoundBlue;
+        return bits;
+    }
+    // The samples toImage's demosaic averages into each colour of a pixel (its own sample for
+    // its own colour, the neighbours of the colour in its 3 x 3 neighbourhood for the others).
+    for (int64_t y = 0; y < h; ++y)
+        for (int64_t x = 0; x < w; ++x) {
+            const int own = bayerColour(frame.format, x, y);
+            uint8_t b = 0;
+            for (int64_t dy = -1; dy <= 1; ++dy)
+                for (int64_t dx = -1; dx <= 1; ++dx) {
+                    const int64_t xx = x + dx, yy = y + dy;
+                    if (xx < 0 || xx >= w || yy < 0 || yy >= h) continue;
+                    const int c = bayerColour(frame.format, xx, yy);
+                    if (c == own && (dx != 0 || dy != 0)) continue;
+                    if (clipped(xx, yy)) b |= static_cast<uint8_t>(1u << c);
+                }
+            bits[static_cast<size_t>(y * w + x)] = b;
+        }
+    return bits;
+}
+
 }  // namespace flarelab::hdr

@@ -146,4 +146,12 @@ Result<ExposureCounts> countExposure(const RawFrame& frame, const MergeOptions& 
 // (named by x and y).
 Result<ImageRGB> toImage(const MergedFrame& frame);
 
+// Bits of kLowerBoundRed, kLowerBoundGreen, kLowerBoundBlue: which channels of a pixel of
+// toImage's image are only lower bounds.
+inline constexpr uint8_t kLowerBoundRed = 1, kLowerBoundGreen = 2, kLowerBoundBlue = 4;
+// Per pixel of toImage's image (row-major), the channels that are lower bounds: those whose value
+// is, or averages in, a sample saturated in every bracket (count 0, radiance > 0). What a fit must
+// not take at face value; the EXR keeps it (hdr/exr.h). Errors as toImage's.
+Result<std::vector<uint8_t>> lowerBounds(const MergedFrame& frame);
+
 }  // namespace flarelab::hdr

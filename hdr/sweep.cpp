@@ -1408,7 +1408,8 @@ Status SweepWriter::compact(bool remove_log) {
 
 Result<SweepFrame> SweepWriter::addFrame(const ImageRGB& image,
                                          SweepFrame frame,
-                                         const ExrStandardAttributes& standard) {
+                                         const ExrStandardAttributes& standard,
+                                         std::span<const uint8_t> lower_bound) {
     State& st = *state_;
     const std::string& directory = sweep_.directory;
     const std::string manifest = manifestPath(directory);
@@ -1478,7 +1479,7 @@ Result<SweepFrame> SweepWriter::addFrame(const ImageRGB& image,
     if (!meta.standard.aperture && sweep_.header.lens.f_number)
         meta.standard.aperture = *sweep_.header.lens.f_number;
     if (!meta.standard.exp_time_s) meta.standard.exp_time_s = 1.0;
-    if (auto written = writeExr(path, image, meta, options_.exr); !written) {
+    if (auto written = writeExr(path, image, meta, options_.exr, lower_bound); !written) {
         // A failed flush is final; a failed write (a full disk) left nothing behind.
         if (syncFailureCount() != failed_flushes)
             return breakWith(context + ": " + written.error().message);

@@ -341,10 +341,12 @@ public:
     // The EXR carries OpenEXR's standard attributes `standard` (hdr/exr.h: capDate and utcOffset
     // where the caller knows when the bracket was taken, exrCaptureTime), and where it leaves
     // them unset, aperture (lens.f_number, when known) and expTime 1 s (a merged frame holds DN
-    // per second at unity gain: what a 1 s exposure would read).
+    // per second at unity gain: what a 1 s exposure would read), and the channels that are only
+    // lower bounds (`lower_bound`, hdr/merge.h lowerBounds) when given.
     Result<SweepFrame> addFrame(const ImageRGB& image,
                                 SweepFrame frame,
-                                const ExrStandardAttributes& standard = {});
+                                const ExrStandardAttributes& standard = {},
+                                std::span<const uint8_t> lower_bound = {});
 
     // Compacts the frame log into the manifest and removes the log: the finished sweep is its
     // manifest and frames. The writer takes no frames after it. IoError when it cannot (the log

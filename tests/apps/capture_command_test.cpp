@@ -12,6 +12,7 @@
 #include "apps/fit_command.h"
 #include "fit/frame.h"
 #include "fit/sweep_fit.h"
+#include "hdr/merge.h"
 #include "hdr/sweep.h"
 #include "tests/apps/command_runner.h"
 #include "tests/test_paths.h"
@@ -64,6 +65,37 @@ TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
     run = capture(args);
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_NE(run.out.find("3 already there"), std::string::npos) << run.out;
+}
+
+// A colour capture whose one 4 s bracket clips the Heliar's blue ghosts (its coating reflects blue
+// most) but not their red and green: the sweep records the raw format, and each frame says which
+// channels of which pixels are only lower bounds, blue alone where only blue clipped; a mono
+// capture's bounds are all three channels or none.
+TEST(Capture, AColourSweepWhereOneChannelClipsSaysWhichChannel) {
+    for (const char* format : {"bayer-rggb", "mono"}) {
+        const std::string dir = freshDir(std::string("clipped-") + format);
+        const CommandRun run = capture(
+            {"--sim", "--fast", "--format", format, "--lens",
+             flarelab::testing::lensPath("heliar-tronnier.csv"), "--from", "1", "--to", "1",
+             "--step", "1", "--width", "48", "--height", "32", "--brackets", "4", "-o", dir});
+        ASSERT_EQ(run.code, 0) << run.err;
+        auto sweep = hdr::readSweep(dir);
+        ASSERT_TRUE(sweep) << sweep.error().message;
+        EXPECT_EQ(sweep->header.camera.raw_format, hdr::parseRawFormat(format));
+        auto frame = hdr::loadFrame(*sweep, 0);
+        ASSERT_TRUE(frame) << frame.error().message;
+        ASSERT_EQ(frame->lower_bound.size(), 48u * 32u);
+        std::array<int, 8> kinds{};
+        for (const uint8_t b : frame->lower_bound) ++kinds[b];
+        EXPECT_GT(kinds[0], 0) << format;  // not everything clipped
+        if (std::string(format) == "mono") {
+            EXPECT_EQ(kinds[0] + kinds[7], 48 * 32);
+            EXPECT_GT(kinds[7], 0);  // at least the light's core
+        } else {
+            EXPECT_GT(kinds[hdr::kLowerBoundBlue], 100);  // blue alone, over its ghosts
+        }
+        std::filesystem::remove_all(dir);
+    }
 }
 
 // A capture with six rotated blades records them with the stop, coating and sensor it used; the

@@ -138,6 +138,56 @@ TEST(FrameFit, RecoversAnIsolatedDiscFromItsDetection) {
     }
 }
 
+// A colour frame whose blue rim clipped in every bracket: the merge keeps those values only as
+// lower bounds (hdr/merge.h lowerBounds) and the frame says which. The fit takes them as bounds
+// (a model above one is no error) and finds the blue border from the ramp it sees (298 for 300
+// when written); taking the clipped values at face value pulls it toward the ceiling (243).
+TEST(FrameFit, ChannelsClippedInEveryBracketAreFittedAsLowerBoundsNotAsValues) {
+    GhostState t = disc(-2.0, 0.5, 4.0, 0.0, 0.0);
+    t.shading.border_rgb = {40.0, 60.0, 300.0};
+    t.shading.inner_rgb = {24.0, 36.0, 150.0};
+    t.shading.inner_falloff_mm = 2.0;
+    const std::vector<GhostState> truth = {t};
+    FitFrame clean = makeFrame(truth, 160, 107, 10.0, 1.0, 3);
+    // makeFrame draws one channel: draw the colours again with the same noise per pixel.
+    const ImageRGB colour = renderGhostStates(truth, clean.mapping, 160, 107);
+    ImageRGB image = clean.image;
+    const float ceiling = 230.0f;
+    std::vector<uint8_t> bounds(static_cast<size_t>(160 * 107), 0);
+    for (size_t i = 0; i < bounds.size(); ++i) {
+        const float noise = clean.image.pixels[3 * i] - colour.pixels[3 * i] - 10.0f;
+        for (size_t c = 0; c < 3; ++c) {
+            float v = std::max(0.0f, colour.pixels[3 * i + c] + 10.0f + noise);
+            if (v > ceiling) {
+                v = ceiling;
+                bounds[i] |= static_cast<uint8_t>(1u << c);
+            }
+            image.pixels[3 * i + c] = v;
+        }
+    }
+    int64_t clipped = 0;
+    for (const uint8_t b : bounds) clipped += b != 0;
+    ASSERT_GT(clipped, 40);  // a ring of blue rim, not the interior
+    auto made = frameFromImage(std::move(image), 0.0, kSensorW, kSensorH);
+    ASSERT_TRUE(made) << made.error().message;
+    ASSERT_EQ(made->channels, 3);
+    const auto fitBlueBorder = [&](const FitFrame& frame) {
+        auto detection = detectGhosts(frame, DetectOptions{});
+        EXPECT_TRUE(detection.has_value()) << detection.error().message;
+        if (!detection || detection->candidates.empty()) return 0.0;
+        std::vector<GhostState> ghosts = {detection->candidates[0].initial};
+        auto report = fitFrame(frame, *detection, ghosts, FrameFitOptions{});
+        EXPECT_TRUE(report.has_value()) << report.error().message;
+        return ghosts[0].shading.border_rgb[2];
+    };
+    FitFrame marked = *made;
+    marked.lower_bound = bounds;
+    const double with_bounds = fitBlueBorder(marked);
+    const double without = fitBlueBorder(*made);
+    EXPECT_NEAR(with_bounds, 300.0, 30.0);
+    EXPECT_LT(without, 270.0);  // the clipped rim taken as values
+}
+
 TEST(FrameFit, GradientDescentBaselineLowersTheSameCost) {
     const std::vector<GhostState> truth = {disc(2.0, 0.0, 4.0, 500.0, 200.0)};
     const FitFrame frame = makeFrame(truth, 120, 80, 5.0, 2.0, 2);

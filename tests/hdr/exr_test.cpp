@@ -890,6 +890,66 @@ TEST(ReadExr, LimitsAreOptions) {
         std::span(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size()), "x", options));
 }
 
+TEST(WriteExr, TheLowerBoundChannelRoundTripsAndIsCheckedOnWrite) {
+    TempDir dir;
+    ImageRGB image(5, 3);
+    for (size_t i = 0; i < image.pixels.size(); ++i) image.pixels[i] = static_cast<float>(i);
+    std::vector<uint8_t> bounds(15, 0);
+    bounds[3] = 7;
+    bounds[7] = 4;
+    bounds[14] = 1;
+    const std::string path = dir.file("bounds.exr");
+    for (const auto type : {ExrPixelType::Float, ExrPixelType::Half}) {
+        ExrWriteOptions options;
+        options.pixel_type = type;
+        ASSERT_TRUE(writeExr(path, image, {}, options, bounds));
+        const auto read = readExr(path);
+        ASSERT_TRUE(read) << read.error().message;
+        EXPECT_EQ(read->lower_bound, bounds);
+        EXPECT_EQ(read->image.pixels, image.pixels);
+    }
+    // Without it, the file has no such channel and says nothing.
+    ASSERT_TRUE(writeExr(path, image, {}));
+    const auto plain = readExr(path);
+    ASSERT_TRUE(plain) << plain.error().message;
+    EXPECT_TRUE(plain->lower_bound.empty());
+    // The writer refuses another size and bits beyond R, G, B, and leaves the file as it was.
+    bounds.pop_back();
+    auto refused = writeExr(path, image, {}, {}, bounds);
+    ASSERT_FALSE(refused);
+    EXPECT_TRUE(contains(refused.error().message, "lower_bound holds 14 values")) << refused.error().message;
+    bounds.push_back(8);
+    refused = writeExr(path, image, {}, {}, bounds);
+    ASSERT_FALSE(refused);
+    EXPECT_TRUE(contains(refused.error().message, "lower_bound at x 4, y 2 is 8"))
+        << refused.error().message;
+    EXPECT_TRUE(readExr(path)->lower_bound.empty());
+}
+
+TEST(ReadExr, ALowerBoundThatIsNotBitsOfRgbIsNamed) {
+    // Channel index 3 in name order (B, G, R, flarelab.lower_bound).
+    constexpr uint32_t kHalfHalf = 0x3800, kHalfEight = 0x4800;
+    for (const uint32_t bad : {kHalfHalf, kHalfEight, kHalfNaN}) {
+        const std::string bytes =
+            rawExr(0, 0, 2, 1, {{"R", 1}, {"G", 1}, {"B", 1}, {"flarelab.lower_bound", 1}}, {},
+                   [&](size_t c, int32_t x, int32_t y) {
+                       return c == 3 ? (x == 1 && y == 1 ? bad : kHalfOne) : kHalfTwo;
+                   });
+        const auto read = readBytesAsExr(bytes, "bounds.exr");
+        ASSERT_FALSE(read);
+        EXPECT_EQ(read.error().code, ErrorCode::ParseError);
+        EXPECT_TRUE(contains(read.error().message,
+                             "bounds.exr: pixel (1, 1) channel flarelab.lower_bound"))
+            << read.error().message;
+    }
+    const std::string uint_bounds =
+        rawExr(0, 0, 0, 0, {{"R", 1}, {"G", 1}, {"B", 1}, {"flarelab.lower_bound", 0}}, {},
+               [](size_t, int32_t, int32_t) { return 1u; });
+    const auto read = readBytesAsExr(uint_bounds);
+    ASSERT_FALSE(read);
+    EXPECT_EQ(read.error().code, ErrorCode::Unsupported);
+}
+
 TEST(ReadExr, EverySeedOfTheFuzzCorpusReads) {
     const fs::path corpus = testing::sourcePath("fuzz/corpus/exr");
     int files = 0;

@@ -495,6 +495,54 @@ TEST(ToImage, RejectsBrokenFramesNamingThePixel) {
     EXPECT_FALSE(toImage(m));
 }
 
+TEST(LowerBounds, MarkWhatASampleSaturatedInEveryBracketReaches) {
+    // Mono: the saturated sample's pixel, all three channels; a dark one (count 0, radiance 0)
+    // is a measurement of black, not a bound.
+    MergedFrame m;
+    m.width = 3;
+    m.height = 2;
+    m.radiance = {1.0f, 9e9f, 2.0f, 0.0f, 4.0f, 5.0f};
+    m.count = {3, 0, 2, 0, 1, 3};
+    auto mono = lowerBounds(m);
+    ASSERT_TRUE(mono) << mono.error().message;
+    EXPECT_EQ(*mono, (std::vector<uint8_t>{0, 7, 0, 0, 0, 0}));
+
+    // RGGB, 4 x 4, the blue sample at (1, 1) saturated: its own pixel's blue, and the blue its
+    // eight neighbours average in (toImage's 3 x 3 neighbourhood); red and green nowhere.
+    m = MergedFrame{};
+    m.width = 4;
+    m.height = 4;
+    m.format = RawFormat::BayerRGGB;
+    m.radiance.assign(16, 1.0f);
+    m.count.assign(16, 2);
+    m.count[1 * 4 + 1] = 0;
+    m.radiance[1 * 4 + 1] = 7e9f;
+    auto bayer = lowerBounds(m);
+    ASSERT_TRUE(bayer) << bayer.error().message;
+    for (int64_t y = 0; y < 4; ++y)
+        for (int64_t x = 0; x < 4; ++x) {
+            const bool near = std::abs(x - 1) <= 1 && std::abs(y - 1) <= 1;
+            EXPECT_EQ((*bayer)[static_cast<size_t>(y * 4 + x)], near ? kLowerBoundBlue : 0)
+                << x << ", " << y;
+        }
+    // A green sample at (2, 1): green is a bound at its own pixel and at its four edge
+    // neighbours, which average it in; its diagonal neighbours are green samples of their own.
+    m.count[1 * 4 + 1] = 2;
+    m.radiance[1 * 4 + 1] = 1.0f;
+    m.count[1 * 4 + 2] = 0;
+    m.radiance[1 * 4 + 2] = 7e9f;
+    bayer = lowerBounds(m);
+    ASSERT_TRUE(bayer) << bayer.error().message;
+    for (int64_t y = 0; y < 4; ++y)
+        for (int64_t x = 0; x < 4; ++x) {
+            const int64_t d = std::abs(x - 2) + std::abs(y - 1);
+            EXPECT_EQ((*bayer)[static_cast<size_t>(y * 4 + x)], d <= 1 ? kLowerBoundGreen : 0)
+                << x << ", " << y;
+        }
+    m.count.pop_back();
+    EXPECT_FALSE(lowerBounds(m));
+}
+
 TEST(MergeThenToImage, BayerBracketsMergeSamplewise) {
     // The merge keeps the mosaic: a Bayer bracket merges like a mono one, then demosaics.
     RawFrame a = frame(4, 4, 1.0), b = frame(4, 4, 0.25);
