@@ -160,6 +160,9 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
         ->capture_default_str();
     oracle->add_option("--images", oracle_options->images,
                        "write each path's image beside its fitted ghost (PNG) into this directory");
+    oracle->add_flag("--colour", oracle_options->colour,
+                     "the truth in colour (a Bayer capture's), each ghost fitted in three "
+                     "channels with one shape; default: the monochrome camera's green");
     oracle->add_option("--json", *oracle_json_path, "also write the results as JSON here");
     oracle->callback([oracle_options, oracle_json_path, &out, &err, &exit_code] {
         auto report = bench::runOracleBench(*oracle_options, err);

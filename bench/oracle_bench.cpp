@@ -1,6 +1,7 @@
 #include "bench/oracle_bench.h"
 
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <filesystem>
@@ -47,21 +48,28 @@ double squares(const ImageRGB& image) {
 }
 
 // A start for a path the detector finds nothing in: a circle over the pixels at 5 % of the
-// image's peak or more, as bright as their mean, with a pixel-wide outer falloff.
+// image's peak or more (summed over the channels), as bright as their mean in each channel, with
+// a pixel-wide outer falloff.
 fit::GhostState litStart(const ImageRGB& image, const render::SensorToImage& m) {
+    const auto total = [&](int64_t x, int64_t y) {
+        const float* p = image.at(x, y);
+        return static_cast<double>(p[0]) + p[1] + p[2];
+    };
     double peak = 0.0;
-    for (float v : image.pixels) peak = std::max(peak, static_cast<double>(v));
-    double x0 = 1e300, x1 = -1e300, y0 = 1e300, y1 = -1e300, sum = 0.0;
+    for (int64_t y = 0; y < image.height; ++y)
+        for (int64_t x = 0; x < image.width; ++x) peak = std::max(peak, total(x, y));
+    double x0 = 1e300, x1 = -1e300, y0 = 1e300, y1 = -1e300;
+    std::array<double, 3> sum{};
     int64_t count = 0;
     for (int64_t y = 0; y < image.height; ++y)
         for (int64_t x = 0; x < image.width; ++x) {
-            const double v = image.at(x, y)[1];
+            const double v = total(x, y);
             if (!(v >= 0.05 * peak) || !(v > 0.0)) continue;
             x0 = std::min(x0, static_cast<double>(x));
             x1 = std::max(x1, static_cast<double>(x + 1));
             y0 = std::min(y0, static_cast<double>(y));
             y1 = std::max(y1, static_cast<double>(y + 1));
-            sum += v;
+            for (size_t c = 0; c < 3; ++c) sum[c] += image.at(x, y)[c];
             ++count;
         }
     fit::GhostState s;
@@ -71,9 +79,8 @@ fit::GhostState litStart(const ImageRGB& image, const render::SensorToImage& m) 
     s.shape =
         render::circleGhostShape((0.5 * (x0 + x1) - m.centre_x_px) / m.px_per_mm_x,
                                  (0.5 * (y0 + y1) - m.centre_y_px) / m.px_per_mm_y, radius_mm);
-    const double level = sum / static_cast<double>(count);
-    s.shading.border_rgb = {level, level, level};
-    s.shading.inner_rgb = {level, level, level};
+    for (size_t c = 0; c < 3; ++c)
+        s.shading.border_rgb[c] = s.shading.inner_rgb[c] = sum[c] / static_cast<double>(count);
     s.shading.inner_falloff_mm = 0.25 * radius_mm;
     s.shading.outer_falloff_mm = 1.0 / m.px_per_mm_x;
     return s;
@@ -98,6 +105,7 @@ Result<OracleBenchReport> runOracleBench(const OracleBenchOptions& options, std:
     if (Status ok = fit::checkFrameFitOptions(options.frame); !ok) return ok.error();
 
     OracleBenchReport report;
+    report.colour = options.colour;
     const int64_t w = options.width, h = options.height;
     const double mask_px = 0.03 * std::hypot(static_cast<double>(w), static_cast<double>(h));
     for (const std::string& file : options.lens_files) {
@@ -108,12 +116,12 @@ Result<OracleBenchReport> runOracleBench(const OracleBenchOptions& options, std:
         const std::string name = std::filesystem::path(file).stem().string();
         auto enumeration = optics::enumerateGhosts(*lens, drivers::simRenderDefaults().ghosts);
         if (!enumeration) return enumeration.error().withContext(file);
-        auto all = drivers::simulatedGhostTruth(*lens, w, h);
+        auto all = drivers::simulatedGhostTruth(*lens, w, h, {}, options.colour);
         if (!all) return all.error().withContext(file);
         // One truth source per path, each a simulated camera drawing that path alone.
         std::vector<fit::TruthSource> alone;
         for (const optics::GhostPath& path : enumeration->ghosts) {
-            auto source = drivers::simulatedGhostTruth(*lens, w, h, {path});
+            auto source = drivers::simulatedGhostTruth(*lens, w, h, {path}, options.colour);
             if (!source) return source.error().withContext(file);
             alone.push_back(std::move(*source));
         }
@@ -314,6 +322,7 @@ void printOracleBench(const OracleBenchReport& report, std::ostream& out) {
 
 std::string oracleBenchJson(const OracleBenchReport& report) {
     nlohmann::json j;
+    j["colour"] = report.colour;
     j["lenses"] = nlohmann::json::array();
     for (const auto& l : report.lenses)
         j["lenses"].push_back({{"lens", l.lens},

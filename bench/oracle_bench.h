@@ -39,6 +39,11 @@ struct OracleBenchOptions {
     int64_t height = 427;
     double min_share = 1e-3;  // in [0, 1)
     std::string images;       // when set, truth | fitted ghost per path and angle, PNG, here
+    // The truth in colour (red, green, blue at 650, 550, 450 nm: a Bayer capture's), fitted in
+    // three channels with one shape per ghost; else the monochrome camera's green. Against the
+    // mono floor, the colour floor tells what one shape for three colours costs where
+    // dispersion separates them.
+    bool colour = false;
     fit::DetectOptions detect;
     fit::FrameFitOptions frame;
 };
@@ -76,6 +81,7 @@ struct OracleLensRow {
 };
 
 struct OracleBenchReport {
+    bool colour = false;  // OracleBenchOptions::colour
     std::vector<OracleGhostRow> ghosts;
     std::vector<OracleAngleRow> angles;
     std::vector<OracleLensRow> lenses;

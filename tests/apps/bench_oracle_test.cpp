@@ -49,6 +49,29 @@ TEST(BenchOracle, FitsEachGhostPathAloneAndReportsTheFloors) {
         shares += g["share"].get<double>();
     }
     EXPECT_NEAR(shares + angle["unfitted_share"].get<double>(), 1.0, 1e-6);
+    EXPECT_EQ(json["colour"], false);
+}
+
+// In colour each path is fitted in three channels with one shape: the Heliar's ghosts are blue
+// (its coating), and the floors stay those of a model that holds them.
+TEST(BenchOracle, FitsTheColourTruthWithOneShapePerGhost) {
+    const std::string path = (std::filesystem::temp_directory_path() /
+                              ("flarelab_oracle_colour_" + std::to_string(::getpid()) + ".json"))
+                                 .string();
+    const testing::CommandRun run = testing::runCommand(
+        addBenchCommands,
+        {"bench", "oracle", "--lens", flarelab::testing::lensPath("heliar-tronnier.csv"), "--angle",
+         "8", "--width", "160", "--height", "107", "--min-share", "0.01", "--colour", "--json",
+         path});
+    ASSERT_EQ(run.code, 0) << run.err;
+    std::ifstream file(path);
+    const auto json = nlohmann::json::parse(file);
+    std::filesystem::remove(path);
+    EXPECT_EQ(json["colour"], true);
+    const auto& lens = json["lenses"][0];
+    EXPECT_GE(lens["ghosts_fitted"].get<int>(), 4);
+    EXPECT_LT(lens["median_ghost_rel_l2"].get<double>(), 0.3);
+    EXPECT_LT(lens["median_frame_rel_l2"].get<double>(), 0.3);
 }
 
 TEST(BenchOracle, RefusesWhatItCannotMeasure) {
