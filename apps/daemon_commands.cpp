@@ -249,6 +249,7 @@ struct StartState {
     std::string request_id;
     std::string output;
     std::string camera_uri, head_uri, lens_description;
+    std::string raw_format;  // empty: the camera's
     double pixel_um = 0.0;
 };
 
@@ -324,6 +325,7 @@ int runStart(const StartState& s, std::ostream& out, std::ostream& err) {
     c.set_head(s.head_uri);
     c.set_pixel_pitch_um(s.pixel_um);
     c.set_lens_description(s.lens_description);
+    c.set_raw_format(s.raw_format);
 
     auto client = Client::connect(s.connection, err);
     if (!client) return 2;
@@ -435,6 +437,9 @@ void addSweepStartCommand(CLI::App& sweep, std::ostream& out, std::ostream& err,
                     "a real camera's pixel pitch in micrometres (to fit the sweep)");
     cmd->add_option("--lens-description", s->lens_description,
                     "the lens a real camera wears, for the sweep's description");
+    cmd->add_option("--format", s->raw_format,
+                    "the camera's raw format: mono, bayer-rggb, bayer-bggr, bayer-grbg, "
+                    "bayer-gbrg (default: the camera's)");
     cmd->add_option("--from", s->from_deg, "first angle (deg)")->capture_default_str();
     cmd->add_option("--to", s->to_deg, "last angle (deg)")->capture_default_str();
     cmd->add_option("--step", s->step_deg, "angle step (deg)")->capture_default_str();

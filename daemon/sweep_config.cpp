@@ -249,6 +249,10 @@ Result<PreparedSweep> prepareSweep(const v1::SweepConfig& given,
                        num(c.pixel_pitch_um()) + ")");
     if (c.lens_description().size() > 255 || hasControl(c.lens_description()))
         return bad("config.lens_description", "must be at most 255 printable characters");
+    if (!c.raw_format().empty() && !hdr::parseRawFormat(c.raw_format()))
+        return bad("config.raw_format",
+                   "must be empty (the camera's), mono, bayer-rggb, bayer-bggr, bayer-grbg or "
+                   "bayer-gbrg");
 
     // Angles.
     if (Status ok =

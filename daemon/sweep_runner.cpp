@@ -236,8 +236,15 @@ Status SweepJob::makeRig() {
         sim_camera_ = rig->sim_camera;
         camera_ = std::move(rig->camera);
     }
-    const drivers::CameraCapabilities caps = camera_->capabilities();
     const v1::SweepConfig& c = sweep_.config;
+    if (!c.raw_format().empty()) {
+        const std::optional<hdr::RawFormat> format = hdr::parseRawFormat(c.raw_format());
+        if (!format)  // checkSweepConfig refuses it before a job exists
+            return makeError(ErrorCode::InvalidArgument, "config.raw_format: unknown");
+        if (Status ok = camera_->setFormat(*format); !ok)
+            return makeError(ok.error().code, "config.raw_format: " + ok.error().message);
+    }
+    const drivers::CameraCapabilities caps = camera_->capabilities();
     if ((c.width_px() != 0 && c.width_px() != caps.width_px) ||
         (c.height_px() != 0 && c.height_px() != caps.height_px))
         return makeError(ErrorCode::InvalidArgument,

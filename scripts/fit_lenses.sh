@@ -10,8 +10,11 @@
 # cores with EVERY=5. BRACKETS (seconds, comma-separated) gives fixed brackets instead (the
 # tables before 2026-12-03 used 0.25,1,4, which saturate much of the frames of the double Gauss,
 # the Nikon 28-75 and, near the axis, the zooms). KEEP=DIR keeps each lens's sweep and model there.
-# PATHS=1 fits with the prescription's ghost paths as seeds (flarelab fit --paths).
-#   [EVERY=5] [BRACKETS=0.25,1,4] [PATHS=1] [KEEP=DIR] scripts/fit_lenses.sh [BUILD_DIR] [LENS.csv ...]
+# PATHS=1 fits with the prescription's ghost paths as seeds (flarelab fit --paths). FORMAT=bayer-rggb
+# captures in colour (the simulated camera's Bayer mosaic; fitted and scored in colour), FORMAT=mono
+# (the default) with the monochrome camera.
+#   [EVERY=5] [BRACKETS=0.25,1,4] [PATHS=1] [FORMAT=mono|bayer-rggb] [KEEP=DIR] \
+#       scripts/fit_lenses.sh [BUILD_DIR] [LENS.csv ...]
 set -euo pipefail
 build=$(realpath -m "${1:-build/release}")
 shift || true
@@ -23,7 +26,7 @@ lenses=("$@")
 if ((${#lenses[@]} == 0)); then lenses=(data/lenses/*.csv); fi
 table="$out/fit-lenses.md"
 {
-    echo "Fit one frame in every $every${PATHS:+, tracks seeded from the lens prescription (--paths)}; held out: the frames left out, half-way and random angles; brackets ${BRACKETS:-as capture plans them}."
+    echo "Fit one frame in every $every${PATHS:+, tracks seeded from the lens prescription (--paths)}; held out: the frames left out, half-way and random angles; brackets ${BRACKETS:-as capture plans them}; camera ${FORMAT:-mono}."
     echo
     echo "| lens | ghosts in model | fit time (s) | held-out rel L2 median | worst (angle) | held-out abs energy error median | held-out log rel L2 median | left-out rel L2 median | fitted angles median |"
     echo "|---|---|---|---|---|---|---|---|---|"
@@ -33,8 +36,9 @@ for lens in "${lenses[@]}"; do
     work=$(mktemp -d)
     brackets=()
     if [[ -n ${BRACKETS:-} ]]; then brackets=(--brackets "$BRACKETS"); fi
-    "$build/apps/flarelab" capture --sim --fast --lens "$lens" --from 0 --to 30 --step 0.2 \
-        "${brackets[@]}" --width 640 --height 427 -o "$work/sweep" >/dev/null
+    "$build/apps/flarelab" capture --sim --fast --format "${FORMAT:-mono}" --lens "$lens" \
+        --from 0 --to 30 --step 0.2 "${brackets[@]}" --width 640 --height 427 -o "$work/sweep" \
+        >/dev/null
     start=$(date +%s.%N)
     paths=()
     if [[ -n ${PATHS:-} ]]; then paths=(--paths); fi

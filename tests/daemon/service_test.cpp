@@ -62,6 +62,41 @@ TEST(Service, RunsAWholeSweepWithFitAndPreviewsAndReportsItsProducts) {
     EXPECT_EQ(result.previews_size(), 6);
 }
 
+// A job asks for the camera's Bayer mosaic: its frames are colour, the sweep says so, and a
+// format the camera does not have fails the job naming the field and the camera.
+TEST(Service, AColourSweepRecordsItsRawFormat) {
+    TempDir dir;
+    Daemon daemon(dir.path);
+    auto stub = daemon.stub();
+    v1::SweepConfig config = simConfig("colour", 0.0, 0.2, 0.2);
+    config.set_raw_format("bayer-rggb");
+    v1::Job job;
+    ASSERT_TRUE(startSweep(*stub, config, &job).ok());
+    auto events = watchToEnd(*stub, job.id());
+    ASSERT_FALSE(events.empty());
+    ASSERT_EQ(events.back().job().state(), v1::SUCCEEDED) << events.back().job().reason();
+    auto sweep = hdr::readSweep(job.output_dir(), strictRead());
+    ASSERT_TRUE(sweep) << sweep.error().message;
+    EXPECT_EQ(sweep->header.camera.raw_format, hdr::RawFormat::BayerRGGB);
+    auto frame = hdr::loadFrame(*sweep, 0);
+    ASSERT_TRUE(frame) << frame.error().message;
+    bool colour = false;
+    for (size_t i = 0; i < frame->image.pixels.size(); i += 3)
+        colour = colour || frame->image.pixels[i] != frame->image.pixels[i + 2];
+    EXPECT_TRUE(colour);
+    EXPECT_EQ(frame->lower_bound.size(), frame->image.pixels.size() / 3);
+
+    config = simConfig("other", 0.0, 0.2, 0.2);
+    config.set_raw_format("bayer-bggr");  // the simulated camera has mono and bayer-rggb
+    ASSERT_TRUE(startSweep(*stub, config, &job).ok());
+    events = watchToEnd(*stub, job.id());
+    ASSERT_FALSE(events.empty());
+    EXPECT_EQ(events.back().job().state(), v1::FAILED);
+    EXPECT_NE(events.back().job().reason().find("config.raw_format: [out-of-range] sim camera"),
+              std::string::npos)
+        << events.back().job().reason();
+}
+
 TEST(Service, ARetriedStartWithTheSameRequestIdStartsOneJob) {
     TempDir dir;
     Daemon daemon(dir.path);
@@ -112,6 +147,7 @@ TEST(Service, MalformedConfigsAreRefusedNamingTheField) {
         {"config.exposure_times_s[0]", [](auto& c) { c.set_exposure_times_s(0, INFINITY); }},
         {"config.gain", [](auto& c) { c.set_gain(100.0); }},
         {"config.width_px", [](auto& c) { c.set_width_px(40000); }},
+        {"config.raw_format", [](auto& c) { c.set_raw_format("rggb"); }},
         {"config.sim", [](auto& c) { c.clear_sim(); }},
         {"config.sim.lens.prescription_csv",
          [](auto& c) { c.mutable_sim()->mutable_lens()->clear_prescription_csv(); }},
