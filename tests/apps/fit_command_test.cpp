@@ -198,6 +198,20 @@ TEST(FitCommand, AColourCaptureIsFittedAndScoredInColour) {
     const auto json = nlohmann::json::parse(scored.out);
     for (const auto& a : json["angles"])
         EXPECT_LT(std::abs(a["energy_error"].get<double>()), 0.4) << a["angle_deg"];
+    // A model that does not record its raw format (one fitted before sweep format 4) is scored in
+    // colour by its channels, and the score says so.
+    fit::FlareModel unrecorded = *read;
+    unrecorded.capture.raw_format.clear();
+    ASSERT_TRUE(fit::writeModel(model.string(), unrecorded));
+    const CommandRun inferred = run({"score", model.string(), "--lens", lensFile(), "--json",
+                                     "--angles", "1.25", "--fitted", "1"});
+    ASSERT_EQ(inferred.code, 0) << inferred.err;
+    EXPECT_NE(inferred.err.find("its ghosts' colour channels differ, so it is scored against the "
+                                "colour (RGB) truth"),
+              std::string::npos)
+        << inferred.err;
+    EXPECT_EQ(nlohmann::json::parse(inferred.out)["heldout_rel_l2"],
+              json["heldout_rel_l2"]);
     fs::remove_all(sweep);
     fs::remove(model);
 }
