@@ -50,9 +50,8 @@ Result<TradeRow> fitAndScore(const hdr::Sweep& sweep,
     row.setting = setting;
     row.fit_s = secondsSince(start);
     row.ghosts = static_cast<int>(model->ghosts.size());
-    auto truth = drivers::simulatedGhostTruth(lens, model->capture.width_px,
-                                              model->capture.height_px, {},
-                                              fit::fittedInColour(*model));
+    auto truth = drivers::simulatedGhostTruth(
+        lens, model->capture.width_px, model->capture.height_px, {}, fit::fittedInColour(*model));
     if (!truth) return truth.error();
     auto report = fit::scoreModel(*model, *truth, score);
     if (!report) return report.error().withContext(knob + " " + setting);
@@ -94,7 +93,8 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     if (sweep->frames.empty())
         return makeError(ErrorCode::InvalidArgument, "bench fit: empty sweep");
     const double sw = lens->camera().sensor_width_mm, sh = lens->camera().sensor_height_mm;
-    const bool colour = sweep->header.camera.raw_format && hdr::isBayer(*sweep->header.camera.raw_format);
+    const bool colour =
+        sweep->header.camera.raw_format && hdr::isBayer(*sweep->header.camera.raw_format);
     auto truth = drivers::simulatedGhostTruth(*lens, sweep->header.capture.width_px,
                                               sweep->header.capture.height_px, {}, colour);
     if (!truth) return truth.error();

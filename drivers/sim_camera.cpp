@@ -491,8 +491,7 @@ Result<const std::vector<float>*> SimCamera::rate(double angle_deg) {
     for (const auto& [angle, plane] : cache_)
         if (angle == angle_deg) return &plane;
     const int64_t w = options_.width_px, h = options_.height_px;
-    const bool green_only =
-        format_ == hdr::RawFormat::Mono && options_.mono == MonoResponse::Green;
+    const bool green_only = format_ == hdr::RawFormat::Mono && options_.mono == MonoResponse::Green;
     const auto start = std::chrono::steady_clock::now();
     auto image = renderPower(angle_deg, green_only);
     if (!image) return image.error();

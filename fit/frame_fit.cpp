@@ -570,9 +570,7 @@ private:
     std::vector<double> qx_, qy_;  // sample centres, mm
     std::vector<double> hx_, hy_;  // half sizes of their blocks, mm
     std::vector<uint8_t> valid_;
-    double censored(int c, size_t s, double r) const {
-        return bound_[c][s] && r > 0.0 ? 0.0 : r;
-    }
+    double censored(int c, size_t s, double r) const { return bound_[c][s] && r > 0.0 ? 0.0 : r; }
     std::vector<double> data_[3], others_[3];
     // Per channel and sample: the data is only a lower bound (clipped in every bracket), so a
     // model at or above it is no error; below it, the usual residual.

@@ -1,6 +1,5 @@
 #include "fit/model_file.h"
 
-
 #include <fcntl.h>
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>

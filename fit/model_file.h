@@ -23,7 +23,8 @@
 //   - format_version is 1, 2 or 3 (another version: Unsupported). Fields the reader does not know
 //     are refused (ParseError), in binary files as in JSON: a writer that adds a field raises the
 //     version, so nothing is dropped silently; so are version 2's lens fields in a version 1
-//     model and version 3's capture.raw_format in an older one. JSON field names may be written as in the .proto or in lowerCamelCase.
+//     model and version 3's capture.raw_format in an older one. JSON field names may be written as
+//     in the .proto or in lowerCamelCase.
 //   - every number is finite; strings hold no NUL, are valid UTF-8 and at most
 //     kModelMaxStringBytes long; created is RFC 3339 or empty.
 //   - lens: f_number, focal_length_mm, stop_semi_aperture_mm (when present), sensor_width_mm,

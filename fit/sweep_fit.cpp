@@ -250,8 +250,8 @@ private:
         }
         auto frame = load_(index);
         if (!frame) return frame.error();
-        const int64_t bytes =
-            static_cast<int64_t>(frame->image.pixels.size() * sizeof(float) + frame->lower_bound.size() + sizeof(FitFrame));
+        const int64_t bytes = static_cast<int64_t>(frame->image.pixels.size() * sizeof(float) +
+                                                   frame->lower_bound.size() + sizeof(FitFrame));
         if (!makeRoom(bytes, index)) return static_cast<Entry*>(nullptr);
         Entry& entry = entries_[index];
         entry.frame = std::move(*frame);

@@ -798,10 +798,10 @@ Result<ExrImage> decode(SizedIStream& in, const std::string& name, const ExrRead
         std::vector<float> bounds;
         if (bounds_channel) {
             bounds.assign(image.pixels.size() / 3, 0.0f);
-            frame.insert(kLowerBoundChannel,
-                         Imf::Slice::Make(Imf::FLOAT, bounds.data(), facts->data_window,
-                                          sizeof(float),
-                                          sizeof(float) * static_cast<size_t>(image.width)));
+            frame.insert(
+                kLowerBoundChannel,
+                Imf::Slice::Make(Imf::FLOAT, bounds.data(), facts->data_window, sizeof(float),
+                                 sizeof(float) * static_cast<size_t>(image.width)));
         }
         file.setFrameBuffer(frame);
         file.readPixels(facts->data_window.min.y, facts->data_window.max.y);
@@ -813,11 +813,10 @@ Result<ExrImage> decode(SizedIStream& in, const std::string& name, const ExrRead
                     return makeError(
                         ErrorCode::ParseError,
                         name + ": " +
-                            describePixel(facts->data_window.min.x + static_cast<int64_t>(i) %
-                                                                         image.width,
-                                          facts->data_window.min.y + static_cast<int64_t>(i) /
-                                                                         image.width,
-                                          kLowerBoundChannel, v) +
+                            describePixel(
+                                facts->data_window.min.x + static_cast<int64_t>(i) % image.width,
+                                facts->data_window.min.y + static_cast<int64_t>(i) / image.width,
+                                kLowerBoundChannel, v) +
                             " is not a whole number 0 to 7");
                 result.lower_bound[i] = static_cast<uint8_t>(v);
             }
@@ -1009,7 +1008,8 @@ Result<ExrWriteReport> writeExr(const std::string& path,
         header.compression() = toImf(options.compression);
         for (const char* channel : kChannelNames)
             header.channels().insert(channel, Imf::Channel(report.half ? Imf::HALF : Imf::FLOAT));
-        if (!lower_bound.empty()) header.channels().insert(kLowerBoundChannel, Imf::Channel(Imf::HALF));
+        if (!lower_bound.empty())
+            header.channels().insert(kLowerBoundChannel, Imf::Channel(Imf::HALF));
         addMetadata(header, meta);
 
         const std::string temporary = path + ".tmp-" + std::to_string(::getpid());

@@ -479,7 +479,8 @@ flarelab::v1::SweepManifest toProto(const Sweep& s) {
     camera->set_serial(h.camera.serial);
     if (h.camera.pixel_pitch_um) camera->set_pixel_pitch_um(*h.camera.pixel_pitch_um);
     if (h.camera.bit_depth) camera->set_bit_depth(static_cast<uint32_t>(*h.camera.bit_depth));
-    if (h.camera.raw_format) camera->set_raw_format(std::string(rawFormatName(*h.camera.raw_format)));
+    if (h.camera.raw_format)
+        camera->set_raw_format(std::string(rawFormatName(*h.camera.raw_format)));
     auto* capture = m.mutable_capture();
     capture->set_from_deg(h.capture.from_deg);
     capture->set_to_deg(h.capture.to_deg);

@@ -58,11 +58,11 @@ TEST(BenchOracle, FitsTheColourTruthWithOneShapePerGhost) {
     const std::string path = (std::filesystem::temp_directory_path() /
                               ("flarelab_oracle_colour_" + std::to_string(::getpid()) + ".json"))
                                  .string();
-    const testing::CommandRun run = testing::runCommand(
-        addBenchCommands,
-        {"bench", "oracle", "--lens", flarelab::testing::lensPath("heliar-tronnier.csv"), "--angle",
-         "8", "--width", "160", "--height", "107", "--min-share", "0.01", "--colour", "--json",
-         path});
+    const testing::CommandRun run =
+        testing::runCommand(addBenchCommands, {"bench", "oracle", "--lens",
+                                               flarelab::testing::lensPath("heliar-tronnier.csv"),
+                                               "--angle", "8", "--width", "160", "--height", "107",
+                                               "--min-share", "0.01", "--colour", "--json", path});
     ASSERT_EQ(run.code, 0) << run.err;
     std::ifstream file(path);
     const auto json = nlohmann::json::parse(file);

@@ -74,10 +74,14 @@ TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
 TEST(Capture, AColourSweepWhereOneChannelClipsSaysWhichChannel) {
     for (const char* format : {"bayer-rggb", "mono"}) {
         const std::string dir = freshDir(std::string("clipped-") + format);
-        const CommandRun run = capture(
-            {"--sim", "--fast", "--format", format, "--lens",
-             flarelab::testing::lensPath("heliar-tronnier.csv"), "--from", "1", "--to", "1",
-             "--step", "1", "--width", "48", "--height", "32", "--brackets", "4", "-o", dir});
+        const CommandRun run =
+            capture({"--sim",   "--fast",     "--format",
+                     format,    "--lens",     flarelab::testing::lensPath("heliar-tronnier.csv"),
+                     "--from",  "1",          "--to",
+                     "1",       "--step",     "1",
+                     "--width", "48",         "--height",
+                     "32",      "--brackets", "4",
+                     "-o",      dir});
         ASSERT_EQ(run.code, 0) << run.err;
         auto sweep = hdr::readSweep(dir);
         ASSERT_TRUE(sweep) << sweep.error().message;

@@ -210,8 +210,7 @@ TEST(FitCommand, AColourCaptureIsFittedAndScoredInColour) {
                                 "colour (RGB) truth"),
               std::string::npos)
         << inferred.err;
-    EXPECT_EQ(nlohmann::json::parse(inferred.out)["heldout_rel_l2"],
-              json["heldout_rel_l2"]);
+    EXPECT_EQ(nlohmann::json::parse(inferred.out)["heldout_rel_l2"], json["heldout_rel_l2"]);
     fs::remove_all(sweep);
     fs::remove(model);
 }

@@ -96,8 +96,9 @@ TEST(ModelShow, PrintsLensCaptureRangeAndGhosts) {
     for (const char* part :
          {"format 3", "written by flarelab test", "created 2026-11-29T07:04:02Z",
           "lens: heliar 50mm, 50 mm, f/4.5, sensor 36 x 24 mm", "prescription: heliar-50.csv",
-          "capture: -4 to 4 deg in steps of 0.5 deg", "64x48 pixels", "camera mono test camera, raw format mono",
-          "2 exposures of 0.001 0.1 s", "valid range: -4 to 4 deg", "ghosts: 1",
+          "capture: -4 to 4 deg in steps of 0.5 deg", "64x48 pixels",
+          "camera mono test camera, raw format mono", "2 exposures of 0.001 0.1 s",
+          "valid range: -4 to 4 deg", "ghosts: 1",
           "ghost 3 (surfaces 2-5): -3 to 3 deg, 13 frames fitted", "2 parameters",
           "segment[0].p0.x_mm [mm], bounds -18..18: 2 pieces, degrees 2 1, residual rms <= 0.03, "
           "max 0.05",

@@ -917,7 +917,8 @@ TEST(WriteExr, TheLowerBoundChannelRoundTripsAndIsCheckedOnWrite) {
     bounds.pop_back();
     auto refused = writeExr(path, image, {}, {}, bounds);
     ASSERT_FALSE(refused);
-    EXPECT_TRUE(contains(refused.error().message, "lower_bound holds 14 values")) << refused.error().message;
+    EXPECT_TRUE(contains(refused.error().message, "lower_bound holds 14 values"))
+        << refused.error().message;
     bounds.push_back(8);
     refused = writeExr(path, image, {}, {}, bounds);
     ASSERT_FALSE(refused);
@@ -938,8 +939,8 @@ TEST(ReadExr, ALowerBoundThatIsNotBitsOfRgbIsNamed) {
         const auto read = readBytesAsExr(bytes, "bounds.exr");
         ASSERT_FALSE(read);
         EXPECT_EQ(read.error().code, ErrorCode::ParseError);
-        EXPECT_TRUE(contains(read.error().message,
-                             "bounds.exr: pixel (1, 1) channel flarelab.lower_bound"))
+        EXPECT_TRUE(
+            contains(read.error().message, "bounds.exr: pixel (1, 1) channel flarelab.lower_bound"))
             << read.error().message;
     }
     const std::string uint_bounds =

@@ -658,7 +658,8 @@ TEST(ParseSweepManifest, TheCamerasRawFormatRoundTripsAndIsVersion4s) {
     auto bad = parseSweepManifest(replaced(*json, "bayer-grbg", "bayer-rgbg"), "m.json");
     ASSERT_FALSE(bad);
     EXPECT_EQ(bad.error().code, ErrorCode::ParseError);
-    EXPECT_TRUE(contains(bad.error().message, "m.json: camera.raw_format: 'bayer-rgbg' is not mono, bayer-rggb"))
+    EXPECT_TRUE(contains(bad.error().message,
+                         "m.json: camera.raw_format: 'bayer-rgbg' is not mono, bayer-rggb"))
         << bad.error().message;
     auto older = parseSweepManifest(
         replaced(*json, "\"format_version\": 4", "\"format_version\": 3"), "m.json");
