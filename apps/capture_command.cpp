@@ -366,6 +366,12 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
             progress(err, terminal, i + 1, frames, elapsed());
     }
     if (terminal) err << "\n";
+    // The frame log compacted into the manifest and removed: the finished sweep is its manifest
+    // and frames (hdr/sweep.h). When that fails the log still lists every frame.
+    if (Status ok = writer->finish(); !ok) {
+        err << "flarelab: " << ok.error().message << "\n";
+        return 1;
+    }
     const hdr::ClippedFrames clipped = hdr::clippedFrames(writer->sweep());
     if (const std::string w = hdr::clippingWarning(clipped, writer->sweep().frames.size());
         !w.empty())
