@@ -458,6 +458,24 @@ int bayerColour(RawFormat format, int64_t x, int64_t y) {
     return 1;
 }
 
+// The samples the bilinear demosaic averages into pixel (x, y) of a w x h mosaic: its own sample
+// for its own colour, and for each other colour the samples of that colour in its 3 x 3
+// neighbourhood (cut off at the border, never mirrored). Calls visit(xx, yy, colour) for each, in
+// row-major order.
+template <typename Visit>
+void forDemosaicSamples(
+    RawFormat format, int64_t w, int64_t h, int64_t x, int64_t y, Visit&& visit) {
+    const int own = bayerColour(format, x, y);
+    for (int64_t dy = -1; dy <= 1; ++dy)
+        for (int64_t dx = -1; dx <= 1; ++dx) {
+            const int64_t xx = x + dx, yy = y + dy;
+            if (xx < 0 || xx >= w || yy < 0 || yy >= h) continue;
+            const int c = bayerColour(format, xx, yy);
+            if (c == own && (dx != 0 || dy != 0)) continue;
+            visit(xx, yy, c);
+        }
+}
+
 }  // namespace
 
 Result<MergedFrame> mergeBrackets(std::span<const RawFrame> brackets, const MergeOptions& options) {
@@ -616,16 +634,11 @@ Result<ImageRGB> toImage(const MergedFrame& frame) {
                               for (int64_t x = 0; x < w; ++x) {
                                   float sum[3] = {0.0f, 0.0f, 0.0f};
                                   int n[3] = {0, 0, 0};
-                                  const int own = bayerColour(frame.format, x, y);
-                                  for (int64_t dy = -1; dy <= 1; ++dy)
-                                      for (int64_t dx = -1; dx <= 1; ++dx) {
-                                          const int64_t xx = x + dx, yy = y + dy;
-                                          if (xx < 0 || xx >= w || yy < 0 || yy >= h) continue;
-                                          const int c = bayerColour(frame.format, xx, yy);
-                                          if (c == own && (dx != 0 || dy != 0)) continue;
-                                          sum[c] += src[yy * w + xx];
-                                          ++n[c];
-                                      }
+                                  forDemosaicSamples(frame.format, w, h, x, y,
+                                                     [&](int64_t xx, int64_t yy, int c) {
+                                                         sum[c] += src[yy * w + xx];
+                                                         ++n[c];
+                                                     });
                                   float* out = image.at(x, y);
                                   for (int c = 0; c < 3; ++c)
                                       out[c] = n[c] > 0 ? sum[c] / static_cast<float>(n[c]) : 0.0f;
@@ -654,20 +667,13 @@ Result<std::vector<uint8_t>> lowerBounds(const MergedFrame& frame) {
                         kLowerBoundRed | kLowerBoundGreen | kLowerBoundBlue;
         return bits;
     }
-    // The samples toImage's demosaic averages into each colour of a pixel (its own sample for
-    // its own colour, the neighbours of the colour in its 3 x 3 neighbourhood for the others).
+    // A colour is a bound where any sample toImage's demosaic averages into it is one.
     for (int64_t y = 0; y < h; ++y)
         for (int64_t x = 0; x < w; ++x) {
-            const int own = bayerColour(frame.format, x, y);
             uint8_t b = 0;
-            for (int64_t dy = -1; dy <= 1; ++dy)
-                for (int64_t dx = -1; dx <= 1; ++dx) {
-                    const int64_t xx = x + dx, yy = y + dy;
-                    if (xx < 0 || xx >= w || yy < 0 || yy >= h) continue;
-                    const int c = bayerColour(frame.format, xx, yy);
-                    if (c == own && (dx != 0 || dy != 0)) continue;
-                    if (clipped(xx, yy)) b |= static_cast<uint8_t>(1u << c);
-                }
+            forDemosaicSamples(frame.format, w, h, x, y, [&](int64_t xx, int64_t yy, int c) {
+                if (clipped(xx, yy)) b |= static_cast<uint8_t>(1u << c);
+            });
             bits[static_cast<size_t>(y * w + x)] = b;
         }
     return bits;
