@@ -635,6 +635,43 @@ TEST(SweepFit, GhostsFadeOutOverOneStepBeyondTheirRange) {
                 0.05 * trueState(kTwoGhosts[1], 2.0).shading.border_rgb[0]);
 }
 
+// One frame whose fit went astray (a thin rim thousands of times brighter than the ghost, as
+// a frame fit once returned at 0 deg on the Canon 200) bends neither the series nor the floor
+// under the track's intensities: the model draws the other frames' ghost as they were fitted.
+// When the floor was a thousandth of the track's brightest frame, that one frame floored every
+// other intensity of its track at 5 times its value.
+TEST(SweepFit, OneFrameFittedFarTooBrightDoesNotFloorTheTracksIntensities) {
+    SweepFitResult result = exactTracks([](double) { return false; });
+    ASSERT_FALSE(result.tracks.empty());
+    ASSERT_GE(result.tracks[0].samples.size(), 13u);
+    GhostState& astray = result.tracks[0].samples.front().state;
+    for (int c = 0; c < 3; ++c) {
+        astray.shading.border_rgb[c] *= 5000.0;
+        astray.shading.inner_rgb[c] = 0.0;
+    }
+    astray.shading.inner_falloff_mm = 0.01;
+    astray.shading.outer_falloff_mm = 0.01;
+    auto model = buildModel(result, modelShell(0.0, 6.0), quickOptions());
+    ASSERT_TRUE(model) << model.error().message;
+    for (const double angle : {1.0, 2.5, 4.0, 5.5}) {
+        auto at = modelGhostsAt(*model, angle, 0.0);
+        ASSERT_TRUE(at);
+        ASSERT_EQ(at->size(), 1u) << angle;
+        for (const auto& g : *at) {
+            if (g.id != 0) continue;
+            const GhostState truth = trueState(kTwoGhosts[0], angle);
+            for (int c = 0; c < 3; ++c) {
+                EXPECT_NEAR(g.state.shading.inner_rgb[c], truth.shading.inner_rgb[c],
+                            0.05 * truth.shading.inner_rgb[c] + 1e-9)
+                    << angle << " channel " << c;
+                EXPECT_NEAR(g.state.shading.border_rgb[c], truth.shading.border_rgb[c],
+                            0.05 * truth.shading.border_rgb[c] + 1e-9)
+                    << angle << " channel " << c;
+            }
+        }
+    }
+}
+
 // Between two captured angles a ghost's light is held to what it has at them, 1.25 times at most:
 // a border series that bulges between frames (each parameter has its own series) is scaled down
 // there, and nothing changes at the captured angles or where the light stays within the bound.
