@@ -1,5 +1,7 @@
 #include "drivers/path_seeds.h"
 
+#include <tbb/parallel_for.h>
+
 #include <cmath>
 #include <memory>
 #include <string>
@@ -40,12 +42,13 @@ Result<fit::PathSeeder> pathSeeder(const optics::Lens& lens, double min_share) {
             Eigen::Vector4d box{1e300, 1e300, -1e300, -1e300};
             int rays = 0;
         };
+        // Paths are traced on every core (a zoom has some 200; one grid is a few ms), each into
+        // its own footprint, and summed in path order: the seeds do not depend on the threads.
         std::vector<Footprint> feet(paths->size());
-        double total = 0.0;
-        for (size_t k = 0; k < paths->size(); ++k) {
+        tbb::parallel_for(size_t{0}, paths->size(), [&](size_t k) {
             auto grid = optics::traceRayGrid(*shared, (*paths)[k], theta, phi, kSeedWavelength_nm,
                                              kSeedGrid);
-            if (!grid) continue;  // a path no ray gets through carries nothing
+            if (!grid) return;  // a path no ray gets through carries nothing
             Footprint& f = feet[k];
             for (const optics::GridSample& g : grid->samples) {
                 if (!g.valid || !shared->aperture().contains(g.stop_u, g.stop_v)) continue;
@@ -56,8 +59,9 @@ Result<fit::PathSeeder> pathSeeder(const optics::Lens& lens, double min_share) {
                 f.box[3] = std::max(f.box[3], double{g.sensor_y_mm});
                 ++f.rays;
             }
-            total += f.power;
-        }
+        });
+        double total = 0.0;
+        for (const Footprint& f : feet) total += f.power;
         std::vector<fit::PathSeed> seeds;
         for (size_t k = 0; k < paths->size(); ++k) {
             const Footprint& f = feet[k];

@@ -1,6 +1,7 @@
 #include "drivers/path_seeds.h"
 
 #include <gtest/gtest.h>
+#include <tbb/task_arena.h>
 
 #include <algorithm>
 #include <cmath>
@@ -121,6 +122,26 @@ TEST(PathSeeds, RefusesWhatItCannotSeed) {
     auto few = pathSeeder(heliar(), 0.2);
     ASSERT_TRUE(all && few);
     EXPECT_GT((*all)(10.0)->size(), (*few)(10.0)->size());
+}
+
+// The paths are traced on every core; the seeds are the same on one thread, bit for bit.
+TEST(PathSeeds, TheSeedsDoNotDependOnTheThreads) {
+    auto seeder = pathSeeder(heliar(), 0.0);
+    ASSERT_TRUE(seeder);
+    for (const double angle : {0.0, 7.3, -15.0}) {
+        auto many = (*seeder)(angle);
+        ASSERT_TRUE(many) << many.error().message;
+        tbb::task_arena one(1);
+        Result<std::vector<fit::PathSeed>> single = std::vector<fit::PathSeed>{};
+        one.execute([&] { single = (*seeder)(angle); });
+        ASSERT_TRUE(single) << single.error().message;
+        ASSERT_EQ(many->size(), single->size()) << angle;
+        EXPECT_FALSE(many->empty()) << angle;
+        for (size_t k = 0; k < many->size(); ++k) {
+            EXPECT_EQ((*many)[k].path, (*single)[k].path) << angle;
+            EXPECT_EQ((*many)[k].shape, (*single)[k].shape) << angle << " path " << (*many)[k].path;
+        }
+    }
 }
 
 }  // namespace
