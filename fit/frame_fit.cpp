@@ -203,6 +203,7 @@ public:
                int64_t y1,
                std::span<const GhostState> others,
                const std::array<double, 3>& transform_scale) {
+        closest_shape_valid_ = false;  // new samples: no closest point is known
         const int64_t w = x1 - x0 + 1, h = y1 - y0 + 1;
         const int64_t side = std::max(w, h);
         stride_ = std::max<int64_t>(1, (side + options_.max_samples - 1) / options_.max_samples);
@@ -360,6 +361,18 @@ public:
             box_lo = box_lo.cwiseMin(p);
             box_hi = box_hi.cwiseMax(p);
         }
+        // The closest points depend on the nine shape values only. Ceres evaluates a step's
+        // residuals, and on accepting it the Jacobian at the same values; the points of the
+        // last shape are kept per sample and reused when the shape is the same bit for bit.
+        bool same_shape = closest_shape_valid_;
+        for (int i = 0; i < 9 && same_shape; ++i)
+            same_shape = closest_shape_[static_cast<size_t>(i)] == params[i];
+        if (!same_shape) {
+            closest_.resize(n);
+            closest_known_.assign(n, 0);
+            for (int i = 0; i < 9; ++i) closest_shape_[static_cast<size_t>(i)] = params[i];
+            closest_shape_valid_ = true;
+        }
         tbb::parallel_for(0, ny_, [&](int j) {
             for (int i = 0; i < nx_; ++i) {
                 const size_t s = static_cast<size_t>(j * nx_ + i);
@@ -379,9 +392,13 @@ public:
                     }
                     continue;
                 }
-                const render::ClosestPoint cp =
-                    render::closestPointFast(loop, q, options_.distance);
-                const double sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
+                if (!closest_known_[s]) {
+                    closest_[s].point = render::closestPointFast(loop, q, options_.distance);
+                    closest_[s].sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
+                    closest_known_[s] = 1;
+                }
+                const render::ClosestPoint& cp = closest_[s].point;
+                const double sign = closest_[s].sign;
                 const double d = sign * cp.distance_mm;
                 const Eigen::Vector2d half(hx_[static_cast<size_t>(i)],
                                            hy_[static_cast<size_t>(j)]);
@@ -583,6 +600,15 @@ private:
     mutable std::vector<double> residual_, gradient_, edge_, edge_gradient_;
     mutable std::vector<std::array<uint8_t, 2>> span_;
     mutable int64_t evaluations_ = 0;
+    // Per sample: the closest point and inside sign of the loop of closest_shape_ (evaluate).
+    struct SampleClosest {
+        render::ClosestPoint point;
+        double sign = 1.0;
+    };
+    mutable std::vector<SampleClosest> closest_;
+    mutable std::vector<uint8_t> closest_known_;
+    mutable std::array<double, 9> closest_shape_{};
+    mutable bool closest_shape_valid_ = false;
 };
 
 class GhostCostFunction final : public ceres::CostFunction {
