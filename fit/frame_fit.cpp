@@ -296,6 +296,33 @@ public:
         for (uint8_t v : valid_) samples_ += v;
         kernel_ = options_.edge_weight > 0.0 ? logKernel(options_.edge_sigma, radius_)
                                              : std::vector<double>{};
+        // Each valid sample's valid neighbours under the kernel and their weights, in the
+        // kernel's order (every edge output is summed in that order), found once per crop.
+        tap_begin_.assign(static_cast<size_t>(nx_) * static_cast<size_t>(ny_) + 1, 0);
+        tap_from_.clear();
+        tap_weight_.clear();
+        const int kn = 2 * radius_ + 1;
+        for (int j = 0; j < ny_; ++j)
+            for (int i = 0; i < nx_; ++i) {
+                const size_t s = static_cast<size_t>(j * nx_ + i);
+                if (!kernel_.empty() && valid_[s]) {
+                    for (int dy = -radius_; dy <= radius_; ++dy) {
+                        const int y = j + dy;
+                        if (y < 0 || y >= ny_) continue;
+                        for (int dx = -radius_; dx <= radius_; ++dx) {
+                            const int x = i + dx;
+                            if (x < 0 || x >= nx_) continue;
+                            const size_t t = static_cast<size_t>(y * nx_ + x);
+                            if (!valid_[t]) continue;
+                            tap_from_.push_back(t);
+                            tap_weight_.push_back(
+                                options_.edge_weight *
+                                kernel_[static_cast<size_t>((dy + radius_) * kn + dx + radius_)]);
+                        }
+                    }
+                }
+                tap_begin_[s + 1] = tap_from_.size();
+            }
     }
 
     int64_t samples() const { return samples_; }
@@ -493,35 +520,17 @@ public:
             }
         }
         if (!kernel_.empty()) {
-            const int kn = 2 * radius_ + 1;
             edge_.assign(residual_.size(), 0.0);
             if (jacobian) edge_gradient_.resize(gradient_.size());  // valid rows all written
             const int channels = layout_.channels;
             tbb::parallel_for(0, ny_, [&](int j) {
-                // The valid neighbours of a sample and their weights, in the kernel's order
-                // (every output is summed in that order).
-                std::vector<size_t> from_sample(static_cast<size_t>(kn * kn));
-                std::vector<double> weight(static_cast<size_t>(kn * kn));
                 std::array<double, kMaxParams> acc;
                 for (int i = 0; i < nx_; ++i) {
                     const size_t s = static_cast<size_t>(j * nx_ + i);
                     if (!valid_[s]) continue;
-                    int taps = 0;
-                    for (int dy = -radius_; dy <= radius_; ++dy) {
-                        const int y = j + dy;
-                        if (y < 0 || y >= ny_) continue;
-                        for (int dx = -radius_; dx <= radius_; ++dx) {
-                            const int x = i + dx;
-                            if (x < 0 || x >= nx_) continue;
-                            const size_t t = static_cast<size_t>(y * nx_ + x);
-                            if (!valid_[t]) continue;
-                            from_sample[static_cast<size_t>(taps)] = t;
-                            weight[static_cast<size_t>(taps)] =
-                                options_.edge_weight *
-                                kernel_[static_cast<size_t>((dy + radius_) * kn + dx + radius_)];
-                            ++taps;
-                        }
-                    }
+                    const size_t* from_sample = &tap_from_[tap_begin_[s]];
+                    const double* weight = &tap_weight_[tap_begin_[s]];
+                    const int taps = static_cast<int>(tap_begin_[s + 1] - tap_begin_[s]);
                     for (int c = 0; c < channels; ++c) {
                         const size_t row = s * channels + c;
                         double e = 0.0;
@@ -594,6 +603,9 @@ private:
     std::vector<uint8_t> bound_[3];
     double scale_[3] = {1.0, 1.0, 1.0};
     std::vector<double> kernel_;
+    // The edge term's taps per sample: tap_from_ and tap_weight_ [tap_begin_[s], tap_begin_[s+1]).
+    std::vector<size_t> tap_begin_, tap_from_;
+    std::vector<double> tap_weight_;
     int radius_ = 0;
     bool prior_ = false;
     std::vector<double> prior_values_, prior_tolerance_;
