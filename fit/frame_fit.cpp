@@ -395,8 +395,7 @@ public:
         for (int i = 0; i < 9 && same_shape; ++i)
             same_shape = closest_shape_[static_cast<size_t>(i)] == params[i];
         if (!same_shape) {
-            closest_.resize(n);
-            closest_known_.assign(n, 0);
+            closest_.assign(n, SampleClosest{});
             for (int i = 0; i < 9; ++i) closest_shape_[static_cast<size_t>(i)] = params[i];
             closest_shape_valid_ = true;
         }
@@ -419,10 +418,10 @@ public:
                     }
                     continue;
                 }
-                if (!closest_known_[s]) {
+                if (!closest_[s].known) {
                     closest_[s].point = render::closestPointFast(loop, q, options_.distance);
                     closest_[s].sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
-                    closest_known_[s] = 1;
+                    closest_[s].known = true;
                 }
                 const render::ClosestPoint& cp = closest_[s].point;
                 const double sign = closest_[s].sign;
@@ -616,9 +615,9 @@ private:
     struct SampleClosest {
         render::ClosestPoint point;
         double sign = 1.0;
+        bool known = false;  // sought for closest_shape_
     };
     mutable std::vector<SampleClosest> closest_;
-    mutable std::vector<uint8_t> closest_known_;
     mutable std::array<double, 9> closest_shape_{};
     mutable bool closest_shape_valid_ = false;
 };

@@ -6,8 +6,6 @@
 #include <array>
 #include <cmath>
 #include <filesystem>
-#include <fstream>
-#include <iterator>
 #include <sstream>
 
 #include "apps/camera_flags.h"
@@ -57,12 +55,7 @@ TEST(Capture, WritesASweepThatReadsBackWithRawBracketsAndResumes) {
     EXPECT_EQ(sweep->header.capture.exposure_times_s, (std::vector<double>{0.25, 1.0, 4.0}));
     // Finished: the frame log compacted into the manifest and gone.
     EXPECT_FALSE(std::filesystem::exists(std::filesystem::path(dir) / hdr::kSweepFrameLogFile));
-    auto listed = hdr::parseSweepManifest(
-        [&] {
-            std::ifstream in(std::filesystem::path(dir) / hdr::kSweepManifestFile);
-            return std::string(std::istreambuf_iterator<char>(in), {});
-        }(),
-        "manifest.json");
+    auto listed = hdr::readSweepManifest(dir);  // with the log gone, the manifest alone
     ASSERT_TRUE(listed) << listed.error().message;
     EXPECT_EQ(listed->frames.size(), 3u);
     // Asked again for a longer range with --resume, only the new frames are taken.
