@@ -134,11 +134,12 @@ namespace {
 // See modelGhostsAt.
 constexpr double kBetweenFramesSlack = 1.25;
 
-// A ghost's light, roughly, summed over the channels: its inside at the inner intensity, plus
-// eq. 6.4's border profile integrated across the edge (inside over the inner falloff, at most the
-// ghost's smaller half size; outside over the outer one) times the perimeter, the shape taken
-// as the ellipse through its extents. Used only as a ratio between angles of one ghost.
-double roughEnergy(const GhostState& g) {
+}  // namespace
+
+// The inside at the inner intensity, plus eq. 6.4's border profile integrated across the edge
+// (inside over the inner falloff, at most the ghost's smaller half size; outside over the outer
+// one) times the perimeter, the shape taken as the ellipse through its extents.
+double roughGhostEnergy(const GhostState& g) {
     const double w = 0.5 * (g.shape.left_mm + g.shape.right_mm);
     const double h = g.shape.half_height_mm;
     const double area = std::numbers::pi * w * h;
@@ -155,8 +156,6 @@ double roughEnergy(const GhostState& g) {
                   s.border_rgb[c] * perimeter * outer_band;
     return std::max(energy, 0.0);
 }
-
-}  // namespace
 
 Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
                                                 double angle_deg,
@@ -225,9 +224,10 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
             const double a1 = std::min(hi, model.capture.from_deg + (k + 1.0) * step);
             if (angle_deg - a0 > 1e-9 * step && a1 - angle_deg > 1e-9 * step) {
                 const auto s0 = stateAt(a0), s1 = stateAt(a1);
-                const double e = roughEnergy(*state);
-                const double bound = kBetweenFramesSlack * std::max(s0 ? roughEnergy(*s0) : 0.0,
-                                                                    s1 ? roughEnergy(*s1) : 0.0);
+                const double e = roughGhostEnergy(*state);
+                const double bound =
+                    kBetweenFramesSlack *
+                    std::max(s0 ? roughGhostEnergy(*s0) : 0.0, s1 ? roughGhostEnergy(*s1) : 0.0);
                 if (e > bound && e > 0.0) weight *= bound / e;
             }
         }

@@ -88,6 +88,11 @@ Result<std::vector<ModelGhostAt>> modelGhostsAt(const FlareModel& model,
 // the same series in R, G and B). `recorded` (when not null) says which.
 bool fittedInColour(const FlareModel& model, bool* recorded = nullptr);
 
+// A ghost's light in the frame, roughly, summed over the channels (>= 0): its inner intensity over
+// the area of the ellipse through its extents, and eq. 6.4's border profile across the edge along
+// that ellipse's perimeter. Cheap; for comparing a ghost with itself at neighbouring angles.
+double roughGhostEnergy(const GhostState& ghost);
+
 struct ModelRenderOptions {
     render::FastDistanceOptions distance{4, 4};  // the exact evaluation's
     // Fast: flattened loop, blocks skipped, filled or interpolated, per pixel only at the edges;
