@@ -38,6 +38,9 @@ struct FitState {
     int degree = -1;
     int every = 1;
     bool paths = false;
+    bool link = false;
+    int link_max_gap = fit::TrackLinkOptions{}.max_gap_frames;
+    double link_gate = fit::TrackLinkOptions{}.gate;
     bool quiet = false;
 };
 
@@ -160,6 +163,9 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.frame.cost.distance.iterations = s.distance_iterations;
     options.poly.fixed_degree = s.degree;
     options.frame_stride = s.every;
+    options.link.enabled = s.link;
+    options.link.max_gap_frames = s.link_max_gap;
+    options.link.gate = s.link_gate;
     if (s.paths) {
         if (!lens) {
             err << "flarelab: fit: --paths needs --lens (the prescription whose ghost paths seed "
@@ -205,14 +211,16 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         << (sweep->frames.size() + static_cast<size_t>(s.every) - 1) / static_cast<size_t>(s.every)
         << " frames" << (s.every > 1 ? " (one in every " + std::to_string(s.every) + ")" : "")
         << " (" << result.frames_fitted << " frame fits, " << result.evaluations
-        << " cost evaluations) in " << std::fixed << std::setprecision(1) << result.time_ms / 1000.0
-        << " s -> " << s.output << "\n";
+        << " cost evaluations, " << result.fragments_linked << " track fragments linked) in "
+        << std::fixed << std::setprecision(1) << result.time_ms / 1000.0 << " s -> " << s.output
+        << "\n";
     const fit::SweepFitStages& st = result.stages;
     const std::pair<const char*, double> stages[] = {
-        {"load frames", st.load_ms},  {"detect", st.detect_ms},
-        {"fit frames", st.fit_ms},    {"follow new tracks back", st.extend_ms},
-        {"ghost paths", st.seed_ms},  {"track", st.track_ms},
-        {"compress", st.compress_ms}, {"refit shading", st.shading_ms}};
+        {"load frames", st.load_ms},     {"detect", st.detect_ms},
+        {"fit frames", st.fit_ms},       {"follow new tracks back", st.extend_ms},
+        {"ghost paths", st.seed_ms},     {"link fragments", st.link_ms},
+        {"track", st.track_ms},          {"compress", st.compress_ms},
+        {"refit shading", st.shading_ms}};
     // The two passes run side by side: their stages are summed over both.
     out << "  stage                    time_s   share\n";
     for (const auto& [name, ms] : stages)
@@ -532,6 +540,17 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_flag("--paths", fs->paths,
                   "start tracks from the ghost paths of the --lens prescription (one track per "
                   "path) instead of from detections");
+    fit->add_flag("--link", fs->link,
+                  "link the fragments of one ghost's track over the whole sweep (fewer tracks; "
+                  "not more accurate on the lenses measured, docs/track-linking.md)");
+    fit->add_option("--link-max-gap", fs->link_max_gap,
+                    "with --link: fitted frames a ghost may be missing between two fragments")
+        ->capture_default_str()
+        ->check(CLI::NonNegativeNumber);
+    fit->add_option("--link-gate", fs->link_gate,
+                    "with --link: largest cost of a link (1: every feature at its tolerance)")
+        ->capture_default_str()
+        ->check(CLI::PositiveNumber);
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 

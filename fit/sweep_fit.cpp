@@ -971,11 +971,20 @@ Result<SweepFitResult> SweepFitter::run() {
             [](const TrackSample& a, const TrackSample& b) { return a.angle_deg < b.angle_deg; });
         result_.tracks.push_back({track.id, track.path, std::move(track.samples)});
     }
+    // Fragments of one ghost (a track that ended and a new one that started a few frames later)
+    // linked over the whole sweep at once (track_link.h); tracks from the lens's paths keep
+    // theirs.
+    const auto link_start = Clock::now();
+    TrackLinkStats linked;
+    result_.tracks =
+        linkTracks(std::move(result_.tracks), frames_.angles_deg, options_.link, &linked);
+    result_.fragments_linked = linked.links;
+    result_.stages.link_ms = msSince(link_start);
     result_.sky = sky_;
     result_.time_ms = msSince(t0);
     SweepFitStages& st = result_.stages;
-    st.track_ms = std::max(
-        0.0, result_.time_ms - st.load_ms - st.detect_ms - st.fit_ms - st.extend_ms - st.seed_ms);
+    st.track_ms = std::max(0.0, result_.time_ms - st.load_ms - st.detect_ms - st.fit_ms -
+                                    st.extend_ms - st.seed_ms - st.link_ms);
     st.total_ms = result_.time_ms;
     return std::move(result_);
 }
@@ -998,6 +1007,7 @@ Status checkSweepFitOptions(const SweepFitOptions& options) {
     if (!(options.min_energy_fraction >= 0.0) || options.min_energy_fraction >= 1.0)
         return invalid("min_energy_fraction must lie in [0, 1)");
     if (options.detect_every < 1) return invalid("detect_every must be >= 1");
+    if (auto link = checkTrackLinkOptions(options.link); !link) return link.error();
     if (options.max_extension_frames < 0) return invalid("max_extension_frames must be >= 0");
     if (options.frame_stride < 1) return invalid("frame_stride must be >= 1");
     if (options.frame_cache_bytes < 0) return invalid("frame_cache_bytes must be >= 0");

@@ -21,7 +21,11 @@
 //      outline is its shape's prior.
 //   3. Tracks born after the start are also followed back from where they were born, at most
 //      max_extension_frames (a ghost that separates from another was there before it was
-//      detected); the other ghosts stored there are held fixed.
+//      detected); the other ghosts stored there are held fixed. Optionally (SweepFitOptions::
+//      link) the fragments of one ghost (a track that ended and another that started a few
+//      frames later, where the ghost faded, hid or went undetected) are then linked over the
+//      whole sweep at once, as the minimum-cost assignment of fragments' ends to starts
+//      (fit/track_link.h).
 //   4. Compression (buildModel): each parameter of each track as a Chebyshev series of the angle
 //      (polyfit.h), its degree chosen by cross-validation unless fixed (a fixed degree above a
 //      track's frames less one is capped there), frames more than four
@@ -49,6 +53,7 @@
 #include "fit/model_file.h"
 #include "fit/polyfit.h"
 #include "fit/shading_refit.h"
+#include "fit/track_link.h"
 #include "hdr/sweep.h"
 
 namespace flarelab::fit {
@@ -86,6 +91,9 @@ struct SweepFitOptions {
     int detect_every = 5;
     // A track born away from the start is followed back at most this many frames, >= 0.
     int max_extension_frames = 3;
+    // Step 3b, when enabled (off by default): fragments of one ghost linked over the whole
+    // sweep (track_link.h); not the tracks of path seeds, which keep their path's identity.
+    TrackLinkOptions link;
     // Step 5 (fitSweep): the compressed shading series refitted to the frames.
     ShadingRefitOptions shading;
     // fitSweep fits every this many frames of the sweep (the first, then every k-th), >= 1: a
@@ -134,6 +142,7 @@ struct SweepFitStages {
     double fit_ms = 0.0;       // fitFrame in the forward and backward passes
     double extend_ms = 0.0;    // fitFrame following tracks born away from the start back
     double seed_ms = 0.0;      // SweepFitOptions::path_seeds and reading the seeds off the frames
+    double link_ms = 0.0;      // linking the tracks' fragments (track_link.h)
     double track_ms = 0.0;     // the rest of the passes: prediction, matching, track ends
     double compress_ms = 0.0;  // buildModel: the Chebyshev series (fitSweep only)
     double shading_ms = 0.0;   // refitShading, its frame loads included (fitSweep only)
@@ -145,8 +154,9 @@ struct SweepFitResult {
     int start_frame = 0;
     // The sky every ghost sits on, per channel (the lowest background of the probed frames).
     std::array<double, 3> sky{};
-    int64_t frame_count = 0;    // frames in the sweep (caps min_track_frames in buildModel)
-    int64_t frames_fitted = 0;  // fitFrame calls
+    int64_t frame_count = 0;       // frames in the sweep (caps min_track_frames in buildModel)
+    int64_t frames_fitted = 0;     // fitFrame calls
+    int64_t fragments_linked = 0;  // links made between track fragments (track_link.h)
     int64_t evaluations = 0;
     double time_ms = 0.0;  // steps 1 to 3
     SweepFitStages stages;

@@ -462,6 +462,53 @@ TEST(SweepFit, AGapOfMissingFramesIsBridged) {
         EXPECT_LT(modelError(*model, kTwoGhosts, a), 0.1) << "in the gap at " << a << " deg";
 }
 
+TEST(SweepFit, AGhostHiddenForSomeFramesIsOneTrackOnEitherSide) {
+    // Two ghosts over 0 .. 9 deg at 0.5 deg; the second is not in frames 3.0 .. 4.0 (three
+    // frames, TrackLinkOptions' largest gap: faded out, as a ghost does behind a brighter one). The
+    // tracker ends its track and starts another when it comes back; linking over the sweep
+    // (track_link.h) joins the two, and without it they stay two.
+    const auto angles = angleRange(0.0, 0.5, 19);
+    FrameSource source = syntheticSource(kTwoGhosts, angles);
+    const std::vector<TrueGhost> first_only = {kTwoGhosts[0]};
+    const auto hidden = [](double a) { return a > 2.75 && a < 4.25; };
+    source.load = [angles, first_only, hidden](size_t i) -> Result<FitFrame> {
+        const auto& truth = hidden(angles[i]) ? first_only : kTwoGhosts;
+        return frameFromImage(drawFrame(truth, angles[i], 1000 + i), angles[i], kSensorW, kSensorH);
+    };
+    const auto tracksOf = [&](const SweepFitResult& r, int ghost) {
+        int n = 0;
+        for (const auto& t : r.tracks)
+            if (t.samples.size() >= 3 && nearestTruth(kTwoGhosts, t.samples.front().state,
+                                                      t.samples.front().angle_deg) == ghost)
+                ++n;
+        return n;
+    };
+    SweepFitOptions options = quickOptions();
+    options.link.enabled = false;
+    auto apart = fitSweepFrames(source, options);
+    ASSERT_TRUE(apart) << apart.error().message;
+    ASSERT_EQ(tracksOf(*apart, 1), 2) << describe(*apart);
+    EXPECT_EQ(apart->fragments_linked, 0);
+    options.link.enabled = true;
+    auto linked = fitSweepFrames(source, options);
+    ASSERT_TRUE(linked) << linked.error().message;
+    EXPECT_GE(linked->fragments_linked, 1);
+    ASSERT_EQ(tracksOf(*linked, 1), 1) << describe(*linked);
+    ASSERT_EQ(tracksOf(*linked, 0), 1) << describe(*linked);
+    for (const auto& t : linked->tracks) {
+        if (t.samples.size() < 3) continue;
+        const int g =
+            nearestTruth(kTwoGhosts, t.samples.front().state, t.samples.front().angle_deg);
+        if (g != 1) continue;
+        EXPECT_LT(t.samples.front().angle_deg, 2.75);
+        EXPECT_GT(t.samples.back().angle_deg, 4.25);
+        for (const auto& sample : t.samples)
+            EXPECT_NEAR(boxCentreX(sample.state),
+                        trueState(kTwoGhosts[1], sample.angle_deg).shape.centre_x_mm, 0.15)
+                << sample.angle_deg;
+    }
+}
+
 TEST(SweepFit, AGhostPassingOverTheLightKeepsItsTrack) {
     // The light sits at x = -16 + 0.2 angle mm; ghost 0's centre, -17 + 0.6 angle, passes over
     // it at 2.5 deg, the light's spot inside its disc from about 0 to 5 deg. The spot's disc is
