@@ -546,11 +546,11 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_option("--link-max-gap", fs->link_max_gap,
                     "with --link: fitted frames a ghost may be missing between two fragments")
         ->capture_default_str()
-        ->check(CLI::NonNegativeNumber);
+        ->check(CLI::Range(0, 1000));
     fit->add_option("--link-gate", fs->link_gate,
                     "with --link: largest cost of a link (1: every feature at its tolerance)")
         ->capture_default_str()
-        ->check(CLI::PositiveNumber);
+        ->check(CLI::Range(1e-3, 1e3));
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 
