@@ -951,17 +951,7 @@ Result<SweepFitResult> SweepFitter::run() {
         if (tracks_[t].path < 0) continue;
         for (size_t u = t + 1; u < tracks_.size(); ++u) {
             if (tracks_[u].path != tracks_[t].path) continue;
-            auto& into = tracks_[t].samples;
-            for (TrackSample& sample : tracks_[u].samples) {
-                auto same = std::find_if(into.begin(), into.end(), [&](const TrackSample& k) {
-                    return k.angle_deg == sample.angle_deg;
-                });
-                if (same == into.end())
-                    into.push_back(std::move(sample));
-                else if (sample.cost < same->cost)
-                    *same = std::move(sample);
-            }
-            tracks_[u].samples.clear();
+            mergeTrackSamples(tracks_[t].samples, tracks_[u].samples);
         }
     }
     for (Track& track : tracks_) {

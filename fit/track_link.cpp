@@ -173,6 +173,19 @@ std::optional<double> trackLinkCost(const GhostTrack& from,
     return cost;
 }
 
+void mergeTrackSamples(std::vector<TrackSample>& into, std::vector<TrackSample>& from) {
+    for (TrackSample& sample : from) {
+        auto same = std::find_if(into.begin(), into.end(), [&](const TrackSample& k) {
+            return k.angle_deg == sample.angle_deg;
+        });
+        if (same == into.end())
+            into.push_back(std::move(sample));
+        else if (sample.cost < same->cost)
+            *same = std::move(sample);
+    }
+    from.clear();
+}
+
 std::vector<GhostTrack> linkTracks(std::vector<GhostTrack> tracks,
                                    std::span<const double> angles,
                                    const TrackLinkOptions& o,
@@ -227,15 +240,7 @@ std::vector<GhostTrack> linkTracks(std::vector<GhostTrack> tracks,
         for (int64_t k = next[i]; k >= 0; k = next[static_cast<size_t>(k)]) {
             GhostTrack& piece = tracks[part[static_cast<size_t>(k)]];
             joined[part[static_cast<size_t>(k)]] = 1;
-            for (TrackSample& sample : piece.samples) {
-                auto same = std::find_if(
-                    track.samples.begin(), track.samples.end(),
-                    [&](const TrackSample& s) { return s.angle_deg == sample.angle_deg; });
-                if (same == track.samples.end())
-                    track.samples.push_back(std::move(sample));
-                else if (sample.cost < same->cost)
-                    *same = std::move(sample);
-            }
+            mergeTrackSamples(track.samples, piece.samples);
         }
         std::sort(
             track.samples.begin(), track.samples.end(),

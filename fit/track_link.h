@@ -34,6 +34,7 @@
 namespace flarelab::fit {
 
 struct GhostTrack;  // fit/sweep_fit.h
+struct TrackSample;
 
 struct TrackLinkOptions {
     // Off by default: measured on five lenses (docs/track-linking.md), joining fragments as they
@@ -63,6 +64,11 @@ std::optional<double> trackLinkCost(const GhostTrack& from,
                                     const GhostTrack& to,
                                     std::span<const double> frame_angles_deg,
                                     const TrackLinkOptions& options);
+
+// Adds `from`'s samples to `into`; where both hold a frame (the same angle) the sample of lower
+// cost stays. `from` is left empty, `into` unsorted. How pieces of one ghost become one track,
+// here and for the pieces of one ghost path (fit/sweep_fit.cpp).
+void mergeTrackSamples(std::vector<TrackSample>& into, std::vector<TrackSample>& from);
 
 // The tracks with every chain of linked fragments joined into one (the earliest fragment's id;
 // where two fragments hold the same frame the sample of lower cost stays), by id. Tracks with a
