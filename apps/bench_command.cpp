@@ -130,7 +130,8 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     fit->add_option("--knob", fit_options->knobs,
                     "trade rows of this knob only (repeat; the baseline always runs): iterations, "
                     "'distance iterations', 'samples per side', degree, 'shading refit frames', "
-                    "'shading refit passes', 'shading refit min degree', 'angular step'");
+                    "'shading refit passes', 'shading refit min degree', 'shape refit passes', "
+                    "'angular step'");
     fit->add_option("--json", *fit_json_path, "also write the results as JSON here");
     fit->callback([fit_options, fit_json_path, &out, &err, &exit_code] {
         auto report = bench::runFitBench(*fit_options, err);

@@ -41,6 +41,8 @@ struct FitState {
     bool link = false;
     int link_max_gap = fit::TrackLinkOptions{}.max_gap_frames;
     double link_gate = fit::TrackLinkOptions{}.gate;
+    int shape_passes = fit::ShadingRefitOptions{}.shape_passes;
+    int shape_frames = fit::ShadingRefitOptions{}.shape_frames_per_ghost;
     bool quiet = false;
 };
 
@@ -166,6 +168,8 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.link.enabled = s.link;
     options.link.max_gap_frames = s.link_max_gap;
     options.link.gate = s.link_gate;
+    options.shading.shape_passes = s.shape_passes;
+    options.shading.shape_frames_per_ghost = s.shape_frames;
     if (s.paths) {
         if (!lens) {
             err << "flarelab: fit: --paths needs --lens (the prescription whose ghost paths seed "
@@ -216,11 +220,11 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         << "\n";
     const fit::SweepFitStages& st = result.stages;
     const std::pair<const char*, double> stages[] = {
-        {"load frames", st.load_ms},     {"detect", st.detect_ms},
-        {"fit frames", st.fit_ms},       {"follow new tracks back", st.extend_ms},
-        {"ghost paths", st.seed_ms},     {"link fragments", st.link_ms},
-        {"track", st.track_ms},          {"compress", st.compress_ms},
-        {"refit shading", st.shading_ms}};
+        {"load frames", st.load_ms},      {"detect", st.detect_ms},
+        {"fit frames", st.fit_ms},        {"follow new tracks back", st.extend_ms},
+        {"ghost paths", st.seed_ms},      {"link fragments", st.link_ms},
+        {"track", st.track_ms},           {"compress", st.compress_ms},
+        {"refit shading", st.shading_ms}, {"refit shapes", st.shape_ms}};
     // The two passes run side by side: their stages are summed over both.
     out << "  stage                    time_s   share\n";
     for (const auto& [name, ms] : stages)
@@ -551,6 +555,18 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                     "with --link: largest cost of a link (1: every feature at its tolerance)")
         ->capture_default_str()
         ->check(CLI::Range(1e-3, 1e3));
+    fit->add_option(
+           "--refit-shapes", fs->shape_passes,
+           "passes that refit every series of each ghost, its shape's too, to the frames' "
+           "pixels after the shading refit (0: shapes stay as compressed; lower held-out "
+           "error on every lens measured, but a veil that took a lost ghost's light grows, "
+           "docs/shape-refit.md)")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 100));
+    fit->add_option("--refit-shape-frames", fs->shape_frames,
+                    "with --refit-shapes: frames each ghost's refit sees, at most")
+        ->capture_default_str()
+        ->check(CLI::Range(2, 10000));
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 

@@ -68,9 +68,15 @@ Result<TradeRow> fitAndScore(const hdr::Sweep& sweep,
 }  // namespace
 
 const std::vector<std::string>& tradeKnobs() {
-    static const std::vector<std::string> knobs = {
-        "iterations",           "distance iterations",  "samples per side",         "degree",
-        "shading refit frames", "shading refit passes", "shading refit min degree", "angular step"};
+    static const std::vector<std::string> knobs = {"iterations",
+                                                   "distance iterations",
+                                                   "samples per side",
+                                                   "degree",
+                                                   "shading refit frames",
+                                                   "shading refit passes",
+                                                   "shading refit min degree",
+                                                   "shape refit passes",
+                                                   "angular step"};
     return knobs;
 }
 
@@ -212,7 +218,7 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     };
     // One knob at a time: each setting applied to the defaults, then fitted and scored. The
     // shading refit (fit/shading_refit.h): off, and on a fifth of its frames; its passes; its
-    // series' minimum degree.
+    // series' minimum degree; the shape refit's passes.
     struct Knob {
         std::string name;
         std::vector<int> quick, full;
@@ -252,6 +258,11 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
          {3},
          {0, 3, 5},
          [](auto& o, int v) { o.shading.min_degree = v; },
+         number},
+        {"shape refit passes",
+         {1},
+         {0, 1, 2, 4},
+         [](auto& o, int v) { o.shading.shape_passes = v; },
          number},
     };
     for (const Knob& k : knobs) {

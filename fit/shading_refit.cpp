@@ -5,6 +5,7 @@
 #include <tbb/parallel_for.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -66,15 +67,32 @@ SeriesPoint seriesPoint(const SeriesLayout& layout, double angle_deg) {
     return p;
 }
 
-// The width of shading value i's bounds (the model's own, else the parameter's), at least 1e-3;
-// 1 when either end is open. The scale of the penalty rows.
-double boundsWidth(const ModelParameter& parameter, int i) {
-    const GhostParameterInfo& info = ghostParameterInfo(kFirstShading + i);
+// The width of parameter p's bounds (the model's own, else the parameter's), at least 1e-3; 1
+// when either end is open. The scale of the penalty rows.
+double boundsWidth(const ModelParameter& parameter, int p) {
+    const GhostParameterInfo& info = ghostParameterInfo(p);
     const std::optional<double> lo =
         parameter.lower_bound ? parameter.lower_bound : info.lower_bound;
     const std::optional<double> hi =
         parameter.upper_bound ? parameter.upper_bound : info.upper_bound;
     return lo && hi ? std::max(*hi - *lo, 1e-3) : 1.0;
+}
+
+// Opens shape value p's bounds symmetrically to at least half the ghost's size (centre and
+// extents) or their whole range (handle fractions), inside the parameter's own bounds.
+void openShapeBounds(ModelParameter& parameter, int p, double size_mm) {
+    if (!parameter.lower_bound || !parameter.upper_bound) return;
+    const double width = *parameter.upper_bound - *parameter.lower_bound;
+    const double want = p < 5 ? 0.5 * size_mm : 1.0;
+    if (!(width < want)) return;
+    const double pad = 0.5 * (want - width);
+    const GhostParameterInfo& info = ghostParameterInfo(p);
+    *parameter.lower_bound -= pad;
+    *parameter.upper_bound += pad;
+    if (info.lower_bound)
+        *parameter.lower_bound = std::max(*parameter.lower_bound, *info.lower_bound);
+    if (info.upper_bound)
+        *parameter.upper_bound = std::min(*parameter.upper_bound, *info.upper_bound);
 }
 
 // T_0(x) .. T_{n-1}(x).
@@ -96,23 +114,27 @@ struct Observation {
     std::vector<uint8_t> bound;
     std::vector<std::pair<size_t, std::vector<render::BlockDistance>>>
         others;  // ghost index, samples
+    // The samples' block centres and half sizes (mm), for the shape refit's own distances.
+    std::vector<Eigen::Vector2d> points, halves;
 };
 
-// The model's ghosts with their shading series exposed as coefficient vectors.
+// The model's ghosts with the series of their parameters first..18 exposed as coefficient
+// vectors: the shading values (first = kFirstShading), or every value (first = 0).
 class SeriesModel {
 public:
-    SeriesModel(FlareModel& model, int channels) : channels_(channels) {
+    SeriesModel(FlareModel& model, int channels, int first = kFirstShading)
+        : channels_(channels), first_(first) {
         for (ModelGhost& ghost : model.ghosts) {
             Ghost g;
             g.ghost = &ghost;
             g.usable = ghost.parameters.size() == kGhostParameterCount;
             for (const auto& p : ghost.parameters) g.usable = g.usable && !p.pieces.empty();
             if (g.usable) {
-                for (int i = 0; i < kShadingCount; ++i) {
+                for (int i = first_; i < kGhostParameterCount; ++i) {
                     // One-channel frames: channels 1 and 2 follow channel 0.
                     const int source = sourceIndex(i);
                     SeriesLayout layout;
-                    layout.parameter = &ghost.parameters[static_cast<size_t>(kFirstShading + i)];
+                    layout.parameter = &ghost.parameters[static_cast<size_t>(i)];
                     if (source == i) {
                         for (const auto& piece : layout.parameter->pieces) {
                             layout.offsets.push_back(static_cast<int>(g.coefficients.size()));
@@ -122,7 +144,7 @@ public:
                     }
                     g.series[static_cast<size_t>(i)] = std::move(layout);
                 }
-                for (int i = 0; i < kShadingCount; ++i)
+                for (int i = first_; i < kGhostParameterCount; ++i)
                     if (sourceIndex(i) != i)
                         g.series[static_cast<size_t>(i)].offsets =
                             g.series[static_cast<size_t>(sourceIndex(i))].offsets;
@@ -131,13 +153,14 @@ public:
         }
     }
 
-    // The shading value i's series that value i reads (1-channel: ln intensities of channel 0).
-    int sourceIndex(int i) const {
-        if (channels_ != 1) return i;
-        if (i == 1 || i == 2) return 0;
-        if (i == 4 || i == 5) return 3;
-        return i;
+    // The parameter whose series parameter p reads (1-channel: ln intensities of channel 0).
+    int sourceIndex(int p) const {
+        if (channels_ != 1) return p;
+        if (p == 10 || p == 11) return 9;
+        if (p == 13 || p == 14) return 12;
+        return p;
     }
+    int first() const { return first_; }
 
     size_t size() const { return ghosts_.size(); }
 
@@ -150,7 +173,7 @@ public:
     std::vector<Joint> joints(size_t g) const {
         std::vector<Joint> out;
         const Ghost& ghost = ghosts_[g];
-        for (int i = 0; i < kShadingCount; ++i) {
+        for (int i = first_; i < kGhostParameterCount; ++i) {
             if (sourceIndex(i) != i) continue;
             const SeriesLayout& layout = ghost.series[static_cast<size_t>(i)];
             const auto& pieces = layout.parameter->pieces;
@@ -179,22 +202,22 @@ public:
                angle_deg <= pieces.back().angle_to_deg;
     }
 
-    // The ten shading values at an angle from coefficient vector `c` (the ghost's own when
-    // null), clamped into the parameters' bounds, with where each comes from (its series'
-    // piece and x), the value before clamping and the width of its bounds.
+    // Parameters first..18 at an angle from coefficient vector `c` (the ghost's own when null),
+    // clamped into the parameters' bounds, with where each comes from (its series' piece and x),
+    // the value before clamping and the width of its bounds; indexed by parameter.
     struct Values {
-        std::array<double, kShadingCount> value{};
-        std::array<SeriesPoint, kShadingCount> point{};
-        std::array<bool, kShadingCount> clamped{};
-        std::array<double, kShadingCount> raw{};
-        std::array<double, kShadingCount> span{};
+        std::array<double, kGhostParameterCount> value{};
+        std::array<SeriesPoint, kGhostParameterCount> point{};
+        std::array<bool, kGhostParameterCount> clamped{};
+        std::array<double, kGhostParameterCount> raw{};
+        std::array<double, kGhostParameterCount> span{};
     };
     Values values(size_t g, double angle_deg, const double* c = nullptr) const {
         const Ghost& ghost = ghosts_[g];
         if (!c) c = ghost.coefficients.data();
         Values v;
         double basis[64];
-        for (int i = 0; i < kShadingCount; ++i) {
+        for (int i = first_; i < kGhostParameterCount; ++i) {
             const SeriesLayout& layout = ghost.series[static_cast<size_t>(i)];
             const SeriesPoint p =
                 seriesPoint(ghost.series[static_cast<size_t>(sourceIndex(i))], angle_deg);
@@ -206,14 +229,20 @@ public:
             // channel 0's series but keep their own bounds, as the model stores them).
             double clamped = value;
             const ModelParameter& parameter = *layout.parameter;
-            const GhostParameterInfo& info = ghostParameterInfo(kFirstShading + i);
+            const GhostParameterInfo& info = ghostParameterInfo(i);
             if (parameter.lower_bound) clamped = std::max(clamped, *parameter.lower_bound);
             if (parameter.upper_bound) clamped = std::min(clamped, *parameter.upper_bound);
             if (info.lower_bound) clamped = std::max(clamped, *info.lower_bound);
             if (info.upper_bound) clamped = std::min(clamped, *info.upper_bound);
             v.value[static_cast<size_t>(i)] = clamped;
             v.point[static_cast<size_t>(i)] = p;
-            v.clamped[static_cast<size_t>(i)] = clamped != value;
+            // A value whose bounds (nearly) meet is held by them whatever its series does: in the
+            // shape refit no gradient either, or the solver steps along it and the step changes
+            // nothing (the shading refit keeps the gradient: see refitShading).
+            const bool pinned =
+                first_ == 0 && parameter.lower_bound && parameter.upper_bound &&
+                *parameter.upper_bound - *parameter.lower_bound <= 1e-6 * (1.0 + std::abs(clamped));
+            v.clamped[static_cast<size_t>(i)] = clamped != value || pinned;
             v.raw[static_cast<size_t>(i)] = value;
             v.span[static_cast<size_t>(i)] = boundsWidth(parameter, i);
         }
@@ -222,13 +251,15 @@ public:
 
     // The ghost's mean intensity over a sample's block in channel ch for given values.
     static double intensity(const Values& v, const render::BlockDistance& b, int ch) {
-        const double border = intensityOf(v.value[static_cast<size_t>(ch)]);
-        const double inner = intensityOf(v.value[static_cast<size_t>(3 + ch)]);
+        const double border = intensityOf(v.value[static_cast<size_t>(9 + ch)]);
+        const double inner = intensityOf(v.value[static_cast<size_t>(12 + ch)]);
         const auto w =
             render::boxTransferWeights<double>(b.distance_mm, b.spread_x_mm, b.spread_y_mm,
-                                               v.value[6], v.value[7], v.value[8], v.value[9]);
+                                               v.value[15], v.value[16], v.value[17], v.value[18]);
         return border * w.border + inner * w.inner;
     }
+    // The state of every value (first == 0 only).
+    static Result<GhostState> state(const Values& v) { return ghostStateFromParameters(v.value); }
     static double intensityOf(double ln) {
         return ln <= kMinLnIntensity ? 0.0 : std::exp(std::min(ln, 80.0));
     }
@@ -237,10 +268,10 @@ public:
     // series (one-channel frames) takes that series' pieces and keeps its own bounds.
     void store(size_t g) {
         Ghost& ghost = ghosts_[g];
-        for (int i = 0; i < kShadingCount; ++i) {
+        for (int i = first_; i < kGhostParameterCount; ++i) {
             if (sourceIndex(i) != i) continue;
             const SeriesLayout& layout = ghost.series[static_cast<size_t>(i)];
-            auto& parameter = ghost.ghost->parameters[static_cast<size_t>(kFirstShading + i)];
+            auto& parameter = ghost.ghost->parameters[static_cast<size_t>(i)];
             for (size_t k = 0; k < parameter.pieces.size(); ++k) {
                 auto& coefficients = parameter.pieces[k].coefficients;
                 for (size_t j = 0; j < coefficients.size(); ++j)
@@ -248,10 +279,10 @@ public:
                         ghost.coefficients[static_cast<size_t>(layout.offsets[k]) + j];
             }
         }
-        for (int i = 0; i < kShadingCount; ++i) {
+        for (int i = first_; i < kGhostParameterCount; ++i) {
             if (sourceIndex(i) == i) continue;
-            ghost.ghost->parameters[static_cast<size_t>(kFirstShading + i)].pieces =
-                ghost.ghost->parameters[static_cast<size_t>(kFirstShading + sourceIndex(i))].pieces;
+            ghost.ghost->parameters[static_cast<size_t>(i)].pieces =
+                ghost.ghost->parameters[static_cast<size_t>(sourceIndex(i))].pieces;
         }
     }
 
@@ -260,28 +291,36 @@ private:
         ModelGhost* ghost = nullptr;
         bool usable = false;
         std::vector<double> coefficients;
-        std::array<SeriesLayout, kShadingCount> series;
+        std::array<SeriesLayout, kGhostParameterCount> series;  // first..18 set
     };
     int channels_ = 3;
+    int first_ = kFirstShading;
     std::vector<Ghost> ghosts_;
 };
 
-// Ceres' view of one ghost: its observations' residuals as functions of its coefficients.
+// Ceres' view of one ghost: its observations' residuals as functions of its coefficients. With
+// a model of shading series (first() == kFirstShading) the samples' distances are the
+// observations' own (the shape held); with one of every series (first() == 0) they are sought
+// from the shape the coefficients give, with their gradient.
 class GhostSeriesCost final : public ceres::CostFunction {
 public:
     GhostSeriesCost(const SeriesModel& model,
                     size_t ghost,
                     const std::vector<Observation>& observations,
                     int channels,
-                    double robust_scale)
+                    double robust_scale,
+                    const render::FastDistanceOptions& distance)
         : model_(model),
           ghost_(ghost),
           observations_(observations),
           channels_(channels),
-          c2_(robust_scale * robust_scale) {
+          c2_(robust_scale * robust_scale),
+          distance_(distance),
+          shape_(model.first() == 0) {
         // The other ghosts' light at every sample, from their current series.
         others_.resize(observations.size());
         offsets_.resize(observations.size());
+        closest_.resize(observations.size());
         int rows = 0;
         for (size_t o = 0; o < observations.size(); ++o) {
             const Observation& obs = observations[o];
@@ -289,9 +328,23 @@ public:
             sum.assign(obs.self.size(), {0.0, 0.0, 0.0});
             for (const auto& [h, samples] : obs.others) {
                 const auto v = model.values(h, obs.angle_deg);
-                for (size_t s = 0; s < samples.size(); ++s)
+                if (!shape_) {
+                    for (size_t s = 0; s < samples.size(); ++s)
+                        for (int c = 0; c < channels; ++c)
+                            sum[s][static_cast<size_t>(c)] +=
+                                SeriesModel::intensity(v, samples[s], c);
+                    continue;
+                }
+                // Its shape too is a series: drawn where it is now.
+                const auto state = SeriesModel::state(v);
+                if (!state) continue;  // not finite: ghostStateFromParameters names it
+                const render::BezierLoop loop = render::toBezierLoop(state->shape);
+                tbb::parallel_for(size_t{0}, obs.points.size(), [&](size_t s) {
+                    const auto light = render::shadeGhostBlock(loop, state->shading, obs.points[s],
+                                                               obs.halves[s], distance_);
                     for (int c = 0; c < channels; ++c)
-                        sum[s][static_cast<size_t>(c)] += SeriesModel::intensity(v, samples[s], c);
+                        sum[s][static_cast<size_t>(c)] += light[static_cast<size_t>(c)];
+                });
             }
             offsets_[o] = rows;
             rows += static_cast<int>(obs.self.size()) * channels;
@@ -299,8 +352,9 @@ public:
         // Then one row per observation and value: how far the series has left its bounds. The
         // clamp gives the image rows no gradient there, so without these a series that strays
         // out of bounds at a frame could never be drawn back.
+        values_ = kGhostParameterCount - model.first();
         penalty_offset_ = rows;
-        rows += static_cast<int>(observations.size()) * kShadingCount;
+        rows += static_cast<int>(observations.size()) * values_;
         // And one per joint of adjacent pieces: the jump between them.
         joints_ = model.joints(ghost);
         joint_offset_ = rows;
@@ -315,7 +369,8 @@ public:
                   double** jacobians) const override {
         const double* c = parameters[0];
         const int np = parameter_block_sizes()[0];
-        bool finite = true;
+        double* jacobian = jacobians ? jacobians[0] : nullptr;
+        std::atomic<bool> finite{true};
         // T_k(1) = 1 and T_k(-1) = (-1)^k.
         for (size_t q = 0; q < joints_.size(); ++q) {
             const auto& j = joints_[q];
@@ -326,8 +381,8 @@ public:
                 jump -= (k % 2 == 0 ? 1.0 : -1.0) * c[j.right_offset + k];
             const int row = joint_offset_ + static_cast<int>(q);
             residuals[row] = weight * jump;
-            if (!(jacobians && jacobians[0])) continue;
-            double* out = jacobians[0] + static_cast<size_t>(row) * np;
+            if (!jacobian) continue;
+            double* out = jacobian + static_cast<size_t>(row) * np;
             std::fill(out, out + np, 0.0);
             for (int k = 0; k < j.left_count; ++k) out[j.left_offset + k] = weight;
             for (int k = 0; k < j.right_count; ++k)
@@ -336,96 +391,205 @@ public:
         tbb::parallel_for(size_t{0}, observations_.size(), [&](size_t o) {
             const Observation& obs = observations_[o];
             const auto v = model_.values(ghost_, obs.angle_deg, c);
-            // The values as Jets (ln intensities through exp), and d value / d coefficient.
-            ShadingJet value[kShadingCount];
-            for (int i = 0; i < kShadingCount; ++i)
-                value[i] = ShadingJet(v.value[static_cast<size_t>(i)], i);
-            ShadingJet border[3], inner[3];
-            for (int ch = 0; ch < 3; ++ch) {
-                border[ch] = v.value[static_cast<size_t>(ch)] <= kMinLnIntensity ? ShadingJet(0.0)
-                                                                                 : exp(value[ch]);
-                inner[ch] = v.value[static_cast<size_t>(3 + ch)] <= kMinLnIntensity
-                                ? ShadingJet(0.0)
-                                : exp(value[3 + ch]);
-            }
-            double basis[kShadingCount][64];
-            for (int i = 0; i < kShadingCount; ++i)
-                chebyshevBasis(v.point[static_cast<size_t>(i)].x,
-                               std::min(v.point[static_cast<size_t>(i)].count, 64), basis[i]);
-            for (int i = 0; i < kShadingCount; ++i) {
-                const int row = penalty_offset_ + static_cast<int>(o) * kShadingCount + i;
-                const double weight = kBoundPenalty / v.span[static_cast<size_t>(i)];
-                residuals[row] =
-                    weight * (v.raw[static_cast<size_t>(i)] - v.value[static_cast<size_t>(i)]);
-                if (!(jacobians && jacobians[0])) continue;
-                double* out = jacobians[0] + static_cast<size_t>(row) * np;
+            // d value / d coefficient: the Chebyshev basis at each value's point.
+            double basis[kGhostParameterCount][64];
+            for (int p = model_.first(); p < kGhostParameterCount; ++p)
+                chebyshevBasis(v.point[static_cast<size_t>(p)].x,
+                               std::min(v.point[static_cast<size_t>(p)].count, 64), basis[p]);
+            for (int p = model_.first(); p < kGhostParameterCount; ++p) {
+                const size_t i = static_cast<size_t>(p);
+                const int row =
+                    penalty_offset_ + static_cast<int>(o) * values_ + (p - model_.first());
+                const double weight = kBoundPenalty / v.span[i];
+                residuals[row] = weight * (v.raw[i] - v.value[i]);
+                if (!jacobian) continue;
+                double* out = jacobian + static_cast<size_t>(row) * np;
                 std::fill(out, out + np, 0.0);
-                if (!v.clamped[static_cast<size_t>(i)]) continue;
-                const SeriesPoint& p = v.point[static_cast<size_t>(i)];
-                for (int k = 0; k < std::min(p.count, 64); ++k)
-                    out[p.offset + k] += weight * basis[i][k];
+                if (!v.clamped[i]) continue;
+                for (int k = 0; k < std::min(v.point[i].count, 64); ++k)
+                    out[v.point[i].offset + k] += weight * basis[p][k];
             }
-            for (size_t s = 0; s < obs.self.size(); ++s) {
-                const render::BlockDistance& b = obs.self[s];
-                render::TransferWeights<ShadingJet> w{};
-                if (jacobians && jacobians[0])
-                    w = render::boxTransferWeights<ShadingJet>(
-                        ShadingJet(b.distance_mm), b.spread_x_mm, b.spread_y_mm, value[6], value[7],
-                        value[8], value[9]);
-                for (int ch = 0; ch < channels_; ++ch) {
-                    const int row = offsets_[o] + static_cast<int>(s) * channels_ + ch;
-                    const double scale = obs.scale[static_cast<size_t>(ch)];
-                    const double other = others_[o][s][static_cast<size_t>(ch)];
-                    const double data = obs.data[s][static_cast<size_t>(ch)];
-                    double r, dr = 0.0;
-                    ShadingJet m;
-                    if (jacobians && jacobians[0]) {
-                        m = border[ch] * w.border + inner[ch] * w.inner;
-                    } else {
-                        m = ShadingJet(SeriesModel::intensity(v, b, ch));
-                    }
-                    const double total = m.a + other;
-                    r = std::asinh(total / scale) - std::asinh(data / scale);
-                    dr = 1.0 / std::sqrt(scale * scale + total * total);
-                    if (((obs.bound[s] >> ch) & 1u) != 0 && r > 0.0) r = dr = 0.0;
-                    const double s2 = r * r;
-                    const double rho = c2_ * std::log1p(s2 / c2_);
-                    const double rt = std::copysign(std::sqrt(rho), r);
-                    if (!std::isfinite(rt)) {
-                        finite = false;
-                        return;
-                    }
-                    residuals[row] = rt;
-                    if (!(jacobians && jacobians[0])) continue;
-                    const double factor = rt != 0.0 ? (1.0 / (1.0 + s2 / c2_)) * r / rt : 1.0;
-                    double* out = jacobians[0] + static_cast<size_t>(row) * np;
-                    std::fill(out, out + np, 0.0);
-                    for (int i = 0; i < kShadingCount; ++i) {
-                        if (v.clamped[static_cast<size_t>(i)]) continue;
-                        const double g = factor * dr * m.v[i];
-                        if (g == 0.0) continue;
-                        const SeriesPoint& p = v.point[static_cast<size_t>(i)];
-                        for (int k = 0; k < std::min(p.count, 64); ++k)
-                            out[p.offset + k] += g * basis[i][k];
-                    }
+            // One sample's model m in channel ch (and d m / d value per parameter, when the
+            // Jacobian is asked): the robust residual and its row.
+            const auto emit = [&](size_t s, int ch, double m, const double* dm) {
+                const int row = offsets_[o] + static_cast<int>(s) * channels_ + ch;
+                const double scale = obs.scale[static_cast<size_t>(ch)];
+                const double total = m + others_[o][s][static_cast<size_t>(ch)];
+                double r = std::asinh(total / scale) -
+                           std::asinh(obs.data[s][static_cast<size_t>(ch)] / scale);
+                double dr = 1.0 / std::sqrt(scale * scale + total * total);
+                if (((obs.bound[s] >> ch) & 1u) != 0 && r > 0.0) r = dr = 0.0;
+                const double s2 = r * r;
+                const double rho = c2_ * std::log1p(s2 / c2_);
+                const double rt = std::copysign(std::sqrt(rho), r);
+                if (!std::isfinite(rt)) {
+                    finite = false;
+                    return;
                 }
-            }
+                residuals[row] = rt;
+                if (!jacobian) return;
+                const double factor = rt != 0.0 ? (1.0 / (1.0 + s2 / c2_)) * r / rt : 1.0;
+                double* out = jacobian + static_cast<size_t>(row) * np;
+                std::fill(out, out + np, 0.0);
+                for (int p = model_.first(); p < kGhostParameterCount; ++p) {
+                    const size_t i = static_cast<size_t>(p);
+                    if (v.clamped[i]) continue;
+                    const double g = factor * dr * dm[p];
+                    if (g == 0.0) continue;
+                    for (int k = 0; k < std::min(v.point[i].count, 64); ++k)
+                        out[v.point[i].offset + k] += g * basis[p][k];
+                }
+            };
+            if (shape_)
+                shapeSamples(o, v, jacobian != nullptr, emit);
+            else
+                shadingSamples(obs, v, jacobian != nullptr, emit);
         });
         return finite;
     }
 
 private:
+    // The shading refit's samples: distances fixed, the ten shading values as Jets (ln
+    // intensities through exp).
+    template <typename Emit>
+    void shadingSamples(const Observation& obs,
+                        const SeriesModel::Values& v,
+                        bool jacobian,
+                        const Emit& emit) const {
+        const auto at = [&](int i) { return static_cast<size_t>(kFirstShading + i); };
+        ShadingJet value[kShadingCount];
+        for (int i = 0; i < kShadingCount; ++i) value[i] = ShadingJet(v.value[at(i)], i);
+        ShadingJet border[3], inner[3];
+        for (int ch = 0; ch < 3; ++ch) {
+            border[ch] = v.value[at(ch)] <= kMinLnIntensity ? ShadingJet(0.0) : exp(value[ch]);
+            inner[ch] =
+                v.value[at(3 + ch)] <= kMinLnIntensity ? ShadingJet(0.0) : exp(value[3 + ch]);
+        }
+        double dm[kGhostParameterCount] = {};
+        for (size_t s = 0; s < obs.self.size(); ++s) {
+            const render::BlockDistance& b = obs.self[s];
+            render::TransferWeights<ShadingJet> w{};
+            if (jacobian)
+                w = render::boxTransferWeights<ShadingJet>(ShadingJet(b.distance_mm), b.spread_x_mm,
+                                                           b.spread_y_mm, value[6], value[7],
+                                                           value[8], value[9]);
+            for (int ch = 0; ch < channels_; ++ch) {
+                if (!jacobian) {
+                    emit(s, ch, SeriesModel::intensity(v, b, ch), nullptr);
+                    continue;
+                }
+                const ShadingJet m = border[ch] * w.border + inner[ch] * w.inner;
+                for (int i = 0; i < kShadingCount; ++i) dm[kFirstShading + i] = m.v[i];
+                emit(s, ch, m.a, dm);
+            }
+        }
+    }
+
+    // The shape refit's samples: each sample's distance to the loop the shape values draw, and
+    // its gradient with respect to them at the closest point (d dist / d P_k = -u B_k(t), u the
+    // unit vector from the curve to the sample), chained through the control points.
+    template <typename Emit>
+    void shapeSamples(size_t o,
+                      const SeriesModel::Values& v,
+                      bool jacobian,
+                      const Emit& emit) const {
+        const Observation& obs = observations_[o];
+        using ShapeJet = ceres::Jet<double, 9>;
+        std::array<ShapeJet, 9> shape;
+        for (int i = 0; i < 9; ++i)
+            shape[static_cast<size_t>(i)] = ShapeJet(v.value[static_cast<size_t>(i)], i);
+        std::array<ShapeJet, 9> handles_mm = shape;  // handles from their fractions
+        handles_mm[5] = shape[5] * shape[3];
+        handles_mm[6] = shape[6] * shape[2];
+        handles_mm[7] = shape[7] * shape[4];
+        handles_mm[8] = shape[8] * shape[2];
+        const auto points = render::ghostShapeControlPoints<ShapeJet>(handles_mm.data());
+        render::BezierLoop loop;
+        loop.control_points_mm.resize(points.size());
+        for (size_t k = 0; k < points.size(); ++k)
+            loop.control_points_mm[k] = {points[k].x().a, points[k].y().a};
+        // Ceres asks for the residuals of a step, then for the Jacobian at the accepted one:
+        // the closest points of the last shape are kept.
+        Closest& cache = closest_[o];
+        const std::array<double, 9> key{v.value[0], v.value[1], v.value[2], v.value[3], v.value[4],
+                                        v.value[5], v.value[6], v.value[7], v.value[8]};
+        if (!cache.valid || cache.shape != key) {
+            cache.points.resize(obs.points.size());
+            cache.sign.resize(obs.points.size());
+            tbb::parallel_for(size_t{0}, obs.points.size(), [&](size_t s) {
+                cache.points[s] = render::closestPointFast(loop, obs.points[s], distance_);
+                cache.sign[s] = render::windingNumber(loop, obs.points[s]) != 0 ? -1.0 : 1.0;
+            });
+            cache.shape = key;
+            cache.valid = true;
+        }
+        double border[3], inner[3];
+        for (int ch = 0; ch < 3; ++ch) {
+            border[ch] = SeriesModel::intensityOf(v.value[static_cast<size_t>(9 + ch)]);
+            inner[ch] = SeriesModel::intensityOf(v.value[static_cast<size_t>(12 + ch)]);
+        }
+        using Jet5 = ceres::Jet<double, 5>;  // d and the four falloff values
+        const Jet5 fi(v.value[15], 1), fo(v.value[16], 2), ei(v.value[17], 3), eo(v.value[18], 4);
+        double dm[kGhostParameterCount] = {};
+        for (size_t s = 0; s < obs.points.size(); ++s) {
+            const render::ClosestPoint& cp = cache.points[s];
+            const double sign = cache.sign[s];
+            const double d = sign * cp.distance_mm;
+            const Eigen::Vector2d spread = render::blockSpread(obs.points[s], cp, obs.halves[s]);
+            const auto w = render::boxTransferWeights<Jet5>(Jet5(d, 0), spread.x(), spread.y(), fi,
+                                                            fo, ei, eo);
+            std::array<double, 9> dd{};
+            if (jacobian && cp.distance_mm > 1e-12) {
+                const Eigen::Vector2d u = (obs.points[s] - cp.point_mm) / cp.distance_mm;
+                const double t = cp.t, mt = 1.0 - t;
+                const double bernstein[4] = {mt * mt * mt, 3.0 * mt * mt * t, 3.0 * mt * t * t,
+                                             t * t * t};
+                for (int b = 0; b < 4; ++b) {
+                    const auto& p = points[static_cast<size_t>((3 * cp.segment + b) % 12)];
+                    for (int k = 0; k < 9; ++k)
+                        dd[static_cast<size_t>(k)] -=
+                            sign * bernstein[b] * (u.x() * p.x().v[k] + u.y() * p.y().v[k]);
+                }
+            }
+            for (int ch = 0; ch < channels_; ++ch) {
+                const double m = border[ch] * w.border.a + inner[ch] * w.inner.a;
+                if (!jacobian) {
+                    emit(s, ch, m, nullptr);
+                    continue;
+                }
+                const double slope = border[ch] * w.border.v[0] + inner[ch] * w.inner.v[0];
+                for (int k = 0; k < 9; ++k) dm[k] = slope * dd[static_cast<size_t>(k)];
+                std::fill(dm + 9, dm + 15, 0.0);
+                dm[9 + ch] = border[ch] * w.border.a;  // d exp(ln b) / d ln b = b
+                dm[12 + ch] = inner[ch] * w.inner.a;
+                for (int k = 1; k < 5; ++k)
+                    dm[14 + k] = border[ch] * w.border.v[k] + inner[ch] * w.inner.v[k];
+                emit(s, ch, m, dm);
+            }
+        }
+    }
+
+    struct Closest {
+        bool valid = false;
+        std::array<double, 9> shape{};
+        std::vector<render::ClosestPoint> points;
+        std::vector<double> sign;
+    };
     const SeriesModel& model_;
     size_t ghost_;
     const std::vector<Observation>& observations_;
     int channels_;
     double c2_;
+    render::FastDistanceOptions distance_;
+    bool shape_ = false;
     std::vector<std::vector<std::array<double, 3>>> others_;
     std::vector<int> offsets_;
+    int values_ = kShadingCount;
     int penalty_offset_ = 0;
     std::vector<SeriesModel::Joint> joints_;
     int joint_offset_ = 0;
     double joint_weight_ = 0.0;
+    mutable std::vector<Closest> closest_;  // per observation (shape refit)
 };
 
 // A ghost's loop and its pixel box grown by `grow_mm`, clipped to the frame; false if empty.
@@ -462,6 +626,10 @@ Status checkShadingRefitOptions(const ShadingRefitOptions& options) {
     if (options.passes < 1 || options.passes > 100) return invalid("passes must lie in 1..100");
     if (options.min_degree < 0 || options.min_degree > 12)
         return invalid("min_degree must lie in 0..12");
+    if (options.shape_passes < 0 || options.shape_passes > 100)
+        return invalid("shape_passes must lie in 0..100");
+    if (options.shape_frames_per_ghost < 2 || options.shape_frames_per_ghost > 10000)
+        return invalid("shape_frames_per_ghost must lie in 2..10000");
     return Ok{};
 }
 
@@ -625,6 +793,8 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
                     continue;
                 obs.others.push_back({h, distances(other)});
             }
+            obs.points = std::move(points);
+            obs.halves = std::move(halves);
             observations[g].push_back(std::move(obs));
         }
     }
@@ -639,7 +809,7 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
         order.push_back(g);
         for (const Observation& obs : observations[g]) {
             const auto v = series.values(g, obs.angle_deg);
-            for (int i = 0; i < 6; ++i)
+            for (int i = 9; i < 15; ++i)
                 peak[g] =
                     std::max(peak[g], SeriesModel::intensityOf(v.value[static_cast<size_t>(i)]));
         }
@@ -647,34 +817,90 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
     std::stable_sort(order.begin(), order.end(),
                      [&](size_t a, size_t b) { return peak[a] > peak[b]; });
     report.ghosts = static_cast<int>(order.size());
+    // One ghost's series refitted to its observations; its cost before and after. A failed or
+    // worse solve leaves the coefficients as they were.
+    const auto solve = [&](SeriesModel& model, size_t g, const std::vector<Observation>& seen) {
+        std::vector<double>& c = model.coefficients(g);
+        auto* function =
+            new GhostSeriesCost(model, g, seen, channels, cost.robust_scale, cost.distance);
+        std::vector<double> start_values = c;
+        ceres::Problem problem;
+        problem.AddResidualBlock(function, nullptr, c.data());
+        ceres::Solver::Options so;
+        so.linear_solver_type = ceres::DENSE_QR;
+        so.max_num_iterations = options.max_iterations;
+        so.function_tolerance = 1e-6;
+        so.num_threads = 1;
+        so.logging_type = ceres::SILENT;
+        ceres::Solver::Summary summary;
+        ceres::Solve(so, &problem, &summary);
+        report.evaluations += summary.num_residual_evaluations;
+        const bool usable =
+            summary.IsSolutionUsable() && summary.final_cost <= summary.initial_cost &&
+            std::all_of(c.begin(), c.end(), [](double x) { return std::isfinite(x); });
+        if (!usable) c = start_values;
+        model.store(g);
+        return std::pair{summary.initial_cost, usable ? summary.final_cost : summary.initial_cost};
+    };
+    // The shading passes. Their values whose bounds meet keep a gradient (SeriesModel::values):
+    // it is wrong there, and stalls the solver where such a value pulls hardest, but on one
+    // double Gauss sweep it was what held a veil larger than the frame, which had soaked up the
+    // light of a ghost the tracker lost, from growing 13 times brighter with no other ghost near
+    // it to share that light (the fitted angle's relative L2 3.3, with the exact gradient 428).
     for (int pass = 0; pass < options.passes; ++pass) {
         double pass_final = 0.0;
         for (const size_t g : order) {
-            std::vector<double>& c = series.coefficients(g);
-            if (c.empty()) continue;
-            auto* function =
-                new GhostSeriesCost(series, g, observations[g], channels, cost.robust_scale);
-            std::vector<double> start_values = c;
-            ceres::Problem problem;
-            problem.AddResidualBlock(function, nullptr, c.data());
-            ceres::Solver::Options so;
-            so.linear_solver_type = ceres::DENSE_QR;
-            so.max_num_iterations = options.max_iterations;
-            so.function_tolerance = 1e-6;
-            so.num_threads = 1;
-            so.logging_type = ceres::SILENT;
-            ceres::Solver::Summary summary;
-            ceres::Solve(so, &problem, &summary);
-            report.evaluations += summary.num_residual_evaluations;
-            const bool usable =
-                summary.IsSolutionUsable() && summary.final_cost <= summary.initial_cost &&
-                std::all_of(c.begin(), c.end(), [](double x) { return std::isfinite(x); });
-            if (!usable) c = start_values;
-            if (pass == 0) report.initial_cost += summary.initial_cost;
-            pass_final += usable ? summary.final_cost : summary.initial_cost;
-            series.store(g);
+            if (series.coefficients(g).empty()) continue;
+            const auto [before, after] = solve(series, g, observations[g]);
+            if (pass == 0) report.initial_cost += before;
+            pass_final += after;
         }
         report.final_cost = pass_final;
+    }
+    if (options.shape_passes > 0) {
+        const auto shape_start = Clock::now();
+        // The compression bounded each shape value by the range its frames spanned (widened by
+        // a quarter), which would hold a shape that every frame put off the ghost where it was:
+        // those bounds are opened (openShapeBounds). The shading's are kept.
+        for (const size_t g : order) {
+            auto& parameters = refitted.ghosts[g].parameters;
+            double size = 0.0;
+            for (int p = 2; p <= 4; ++p)
+                if (const auto& hi = parameters[static_cast<size_t>(p)].upper_bound)
+                    size = std::max(size, *hi);
+            for (int p = 0; p < 9; ++p)
+                openShapeBounds(parameters[static_cast<size_t>(p)], p, size);
+        }
+        // Every series now, the shading as just refitted; each ghost on up to
+        // shape_frames_per_ghost of its observations, evenly spread.
+        SeriesModel full(refitted, channels, 0);
+        std::vector<std::vector<Observation>> seen(observations.size());
+        for (const size_t g : order) {
+            const auto& all = observations[g];
+            const size_t take =
+                std::min(all.size(), static_cast<size_t>(options.shape_frames_per_ghost));
+            size_t last = all.size();
+            for (size_t k = 0; k < take; ++k) {
+                const size_t index = static_cast<size_t>(
+                    std::llround(static_cast<double>(k) * static_cast<double>(all.size() - 1) /
+                                 static_cast<double>(take - 1)));
+                if (index == last) continue;
+                seen[g].push_back(all[index]);
+                last = index;
+            }
+        }
+        for (int pass = 0; pass < options.shape_passes; ++pass) {
+            double pass_final = 0.0;
+            for (const size_t g : order) {
+                const auto [before, after] = solve(full, g, seen[g]);
+                if (pass == 0) report.shape_initial_cost += before;
+                pass_final += after;
+            }
+            report.shape_final_cost = pass_final;
+        }
+        report.shape_ghosts = static_cast<int>(order.size());
+        report.shape_ms =
+            std::chrono::duration<double, std::milli>(Clock::now() - shape_start).count();
     }
     if (auto status = validateModel(refitted); !status)
         return status.error().withContext("shading refit");

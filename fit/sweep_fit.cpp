@@ -1295,7 +1295,8 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
                               options.shading);
     if (!refit) return refit.error();
     if (refit->ghosts > 0) refreshResiduals(*built, *fitted);
-    fitted->stages.shading_ms = msSince(t_stage);
+    fitted->stages.shape_ms = refit->shape_ms;
+    fitted->stages.shading_ms = msSince(t_stage) - refit->shape_ms;
     fitted->stages.total_ms = msSince(t_call);
     if (result) *result = std::move(*fitted);
     return built;

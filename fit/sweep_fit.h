@@ -35,7 +35,8 @@
 //      min_track_frames frames are noise and are not modelled.
 //   5. Shading refit (fitSweep): the compressed shading series fitted to the frames' pixels, the
 //      shapes held (fit/shading_refit.h; per-frame shading is too loosely determined to be
-//      compressed parameter by parameter).
+//      compressed parameter by parameter); then, with ShadingRefitOptions::shape_passes, every
+//      series of each ghost, its shape's too, fitted to the same pixels.
 // Only one frame is held in memory at a time, whatever the sweep's length.
 #pragma once
 
@@ -145,7 +146,8 @@ struct SweepFitStages {
     double link_ms = 0.0;      // linking the tracks' fragments (track_link.h)
     double track_ms = 0.0;     // the rest of the passes: prediction, matching, track ends
     double compress_ms = 0.0;  // buildModel: the Chebyshev series (fitSweep only)
-    double shading_ms = 0.0;   // refitShading, its frame loads included (fitSweep only)
+    double shading_ms = 0.0;   // refitShading less its shape passes, frame loads included
+    double shape_ms = 0.0;     // refitShading's shape passes (fitSweep only)
     double total_ms = 0.0;     // the whole call
 };
 

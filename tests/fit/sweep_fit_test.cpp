@@ -860,6 +860,88 @@ TEST(ShadingRefit, RepairsShadingCompressedFromWanderingFits) {
     }
 }
 
+// The shape refit (ShadingRefitOptions::shape_passes): shapes compressed from per-frame fits that
+// all sat off the ghost (a tracker's prior or a neighbour's misfit pulls every frame the same way)
+// are drawn where the frames put them once every series is refitted to the pixels; the shading
+// alone cannot move them.
+TEST(ShadingRefit, ShapeRefitMovesShapesCompressedOffTheGhostBackOntoIt) {
+    RefitCase c = scrambledCase(4);
+    for (auto& track : c.scrambled.tracks)
+        for (auto& sample : track.samples) {
+            sample.state = trueState(kTwoGhosts[static_cast<size_t>(track.id)], sample.angle_deg);
+            auto& shape = sample.state.shape;
+            shape.centre_x_mm += 0.5;
+            shape.centre_y_mm -= 0.3;
+            shape.half_height_mm *= 1.2;
+            shape.left_mm *= 0.85;
+            shape.right_mm *= 1.1;
+        }
+    const SweepFitOptions options = quickOptions();
+    auto built = buildModel(c.scrambled, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(built) << built.error().message;
+    const std::vector<double> between = {0.25, 1.75, 3.25, 4.75};
+    const auto worst = [&](const FlareModel& m) {
+        double e = 0.0;
+        for (const double a : between) e = std::max(e, modelError(m, a));
+        return e;
+    };
+    // The box's centre and half height against the truth's, worst over the angles and ghosts.
+    const auto shapeError = [&](const FlareModel& m) {
+        double e = 0.0;
+        for (const double a : between) {
+            auto at = modelGhostsAt(m, a, 0.0);
+            EXPECT_TRUE(at);
+            if (!at) return 1e9;
+            for (const auto& g : *at) {
+                const GhostState truth = trueState(kTwoGhosts[static_cast<size_t>(g.id)], a);
+                e = std::max({e, std::abs(boxCentreX(g.state) - boxCentreX(truth)),
+                              std::abs(g.state.shape.centre_y_mm - truth.shape.centre_y_mm),
+                              std::abs(g.state.shape.half_height_mm - truth.shape.half_height_mm)});
+            }
+        }
+        return e;
+    };
+    FlareModel shading_only = *built;
+    auto plain = refitShading(shading_only, c.source, c.scrambled.sky, options.detect,
+                              options.frame.cost, options.shading);
+    ASSERT_TRUE(plain) << plain.error().message;
+    EXPECT_EQ(plain->shape_ghosts, 0);
+    EXPECT_EQ(plain->shape_ms, 0.0);
+    FlareModel reshaped = *built;
+    ShadingRefitOptions shapes = options.shading;
+    shapes.shape_passes = 2;
+    auto report = refitShading(reshaped, c.source, c.scrambled.sky, options.detect,
+                               options.frame.cost, shapes);
+    ASSERT_TRUE(report) << report.error().message;
+    EXPECT_EQ(report->shape_ghosts, 2);
+    EXPECT_LT(report->shape_final_cost, report->shape_initial_cost);
+    EXPECT_GT(report->shape_ms, 0.0);
+    EXPECT_TRUE(validateModel(reshaped));
+    const double before = shapeError(shading_only), after = shapeError(reshaped);
+    EXPECT_GT(before, 0.5);  // the shading refit leaves the shapes off
+    EXPECT_LT(after, 0.1) << "before " << before;
+    EXPECT_LT(worst(reshaped), 0.5 * worst(shading_only));
+    EXPECT_LT(worst(reshaped), 0.1);
+    // One channel read: the three channels' series still agree.
+    for (const auto& ghost : reshaped.ghosts) {
+        for (int p : {10, 11}) EXPECT_EQ(ghost.parameters[p].pieces, ghost.parameters[9].pieces);
+        for (int p : {13, 14}) EXPECT_EQ(ghost.parameters[p].pieces, ghost.parameters[12].pieces);
+    }
+    // Out of range: refused by name.
+    for (const auto& [passes, frames] : {std::pair{-1, 20}, std::pair{101, 20}, std::pair{1, 1}}) {
+        ShadingRefitOptions bad = options.shading;
+        bad.shape_passes = passes;
+        bad.shape_frames_per_ghost = frames;
+        FlareModel untouched = *built;
+        auto refused = refitShading(untouched, c.source, c.scrambled.sky, options.detect,
+                                    options.frame.cost, bad);
+        ASSERT_FALSE(refused);
+        EXPECT_NE(refused.error().message.find("shape_"), std::string::npos)
+            << refused.error().message;
+        EXPECT_EQ(untouched, *built);
+    }
+}
+
 TEST(ShadingRefit, KeepsAGoodModelGood) {
     RefitCase c = scrambledCase(9);
     for (auto& track : c.scrambled.tracks)
