@@ -43,6 +43,7 @@ struct FitState {
     double link_gate = fit::TrackLinkOptions{}.gate;
     int shape_passes = fit::ShadingRefitOptions{}.shape_passes;
     int shape_frames = fit::ShadingRefitOptions{}.shape_frames_per_ghost;
+    double shape_outline = fit::ShadingRefitOptions{}.shape_min_outline_in_frame;
     bool quiet = false;
 };
 
@@ -170,6 +171,7 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.link.gate = s.link_gate;
     options.shading.shape_passes = s.shape_passes;
     options.shading.shape_frames_per_ghost = s.shape_frames;
+    options.shading.shape_min_outline_in_frame = s.shape_outline;
     if (s.paths) {
         if (!lens) {
             err << "flarelab: fit: --paths needs --lens (the prescription whose ghost paths seed "
@@ -218,6 +220,10 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         << " cost evaluations, " << result.fragments_linked << " track fragments linked) in "
         << std::fixed << std::setprecision(1) << result.time_ms / 1000.0 << " s -> " << s.output
         << "\n";
+    if (s.shape_passes > 0)
+        out << "fit: shapes refitted for " << result.shape_refitted << " ghosts; "
+            << result.shape_unobserved
+            << " kept as compressed (their outline mostly outside the frame)\n";
     const fit::SweepFitStages& st = result.stages;
     const std::pair<const char*, double> stages[] = {
         {"load frames", st.load_ms},      {"detect", st.detect_ms},
@@ -555,18 +561,21 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                     "with --link: largest cost of a link (1: every feature at its tolerance)")
         ->capture_default_str()
         ->check(CLI::Range(1e-3, 1e3));
-    fit->add_option(
-           "--refit-shapes", fs->shape_passes,
-           "passes that refit every series of each ghost, its shape's too, to the frames' "
-           "pixels after the shading refit (0: shapes stay as compressed; lower held-out "
-           "error on every lens measured, but a veil that took a lost ghost's light grows, "
-           "docs/shape-refit.md)")
+    fit->add_option("--refit-shapes", fs->shape_passes,
+                    "passes that refit every series of each ghost, its shape's too, to the frames' "
+                    "pixels after the shading refit (0: shapes stay as compressed; "
+                    "docs/shape-refit.md)")
         ->capture_default_str()
         ->check(CLI::Range(0, 100));
     fit->add_option("--refit-shape-frames", fs->shape_frames,
                     "with --refit-shapes: frames each ghost's refit sees, at most")
         ->capture_default_str()
         ->check(CLI::Range(2, 10000));
+    fit->add_option("--refit-shape-outline", fs->shape_outline,
+                    "with --refit-shapes: a ghost's shape is refitted only where at least this "
+                    "share of its outline lies in the frame (median over its frames)")
+        ->capture_default_str()
+        ->check(CLI::Range(0.0, 1.0));
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 

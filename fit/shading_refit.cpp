@@ -116,7 +116,24 @@ struct Observation {
         others;  // ghost index, samples
     // The samples' block centres and half sizes (mm), for the shape refit's own distances.
     std::vector<Eigen::Vector2d> points, halves;
+    // The share of the ghost's outline (as compressed) that lies in the frame: what the frame
+    // can say about its shape.
+    double outline_in_frame = 1.0;
 };
+
+// The share of `loop`'s outline, sampled evenly in each segment's parameter, inside the
+// rectangle [x0, x1] x [y0, y1] (mm).
+double outlineShareInside(
+    const render::BezierLoop& loop, double x0, double x1, double y0, double y1) {
+    constexpr int kPerSegment = 16;
+    int inside = 0, all = 0;
+    for (int i = 0; i < loop.segmentCount(); ++i)
+        for (int k = 0; k < kPerSegment; ++k, ++all) {
+            const Eigen::Vector2d q = loop.point(i, (static_cast<double>(k) + 0.5) / kPerSegment);
+            inside += q.x() >= x0 && q.x() <= x1 && q.y() >= y0 && q.y() <= y1 ? 1 : 0;
+        }
+    return all > 0 ? static_cast<double>(inside) / static_cast<double>(all) : 0.0;
+}
 
 // The model's ghosts with the series of their parameters first..18 exposed as coefficient
 // vectors: the shading values (first = kFirstShading), or every value (first = 0).
@@ -630,6 +647,8 @@ Status checkShadingRefitOptions(const ShadingRefitOptions& options) {
         return invalid("shape_passes must lie in 0..100");
     if (options.shape_frames_per_ghost < 2 || options.shape_frames_per_ghost > 10000)
         return invalid("shape_frames_per_ghost must lie in 2..10000");
+    if (!(options.shape_min_outline_in_frame >= 0.0 && options.shape_min_outline_in_frame <= 1.0))
+        return invalid("shape_min_outline_in_frame must lie in 0..1");
     return Ok{};
 }
 
@@ -784,6 +803,11 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
                 return d;
             };
             obs.self = distances(state);
+            obs.outline_in_frame = outlineShareInside(
+                render::toBezierLoop(state.shape), -m.centre_x_px / m.px_per_mm_x,
+                (static_cast<double>(width) - m.centre_x_px) / m.px_per_mm_x,
+                -m.centre_y_px / m.px_per_mm_y,
+                (static_cast<double>(frame->image.height) - m.centre_y_px) / m.px_per_mm_y);
             // Other ghosts whose light reaches into the crop.
             for (const auto& [h, other] : present) {
                 if (h == g) continue;
@@ -859,10 +883,24 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
     }
     if (options.shape_passes > 0) {
         const auto shape_start = Clock::now();
+        // Only ghosts whose outline the frames show: one whose outline lies mostly outside its
+        // frames (a veil larger than the frame, a ghost at the frame's edge) has a shape the
+        // pixels do not fix, and refitting it lets it spread to take whatever light the others
+        // leave (on a double Gauss sweep, a veil that took a lost ghost's light grew 13 times
+        // brighter). Such a ghost keeps its compressed shape (bounds too) and refitted shading,
+        // and is drawn as the others' context.
+        std::vector<size_t> shaped;
+        for (const size_t g : order) {
+            std::vector<double> share;
+            for (const Observation& obs : observations[g]) share.push_back(obs.outline_in_frame);
+            if (share.empty()) continue;
+            std::nth_element(share.begin(), share.begin() + share.size() / 2, share.end());
+            if (share[share.size() / 2] >= options.shape_min_outline_in_frame) shaped.push_back(g);
+        }
         // The compression bounded each shape value by the range its frames spanned (widened by
         // a quarter), which would hold a shape that every frame put off the ghost where it was:
         // those bounds are opened (openShapeBounds). The shading's are kept.
-        for (const size_t g : order) {
+        for (const size_t g : shaped) {
             auto& parameters = refitted.ghosts[g].parameters;
             double size = 0.0;
             for (int p = 2; p <= 4; ++p)
@@ -875,7 +913,7 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
         // shape_frames_per_ghost of its observations, evenly spread.
         SeriesModel full(refitted, channels, 0);
         std::vector<std::vector<Observation>> seen(observations.size());
-        for (const size_t g : order) {
+        for (const size_t g : shaped) {
             const auto& all = observations[g];
             const size_t take =
                 std::min(all.size(), static_cast<size_t>(options.shape_frames_per_ghost));
@@ -891,14 +929,15 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
         }
         for (int pass = 0; pass < options.shape_passes; ++pass) {
             double pass_final = 0.0;
-            for (const size_t g : order) {
+            for (const size_t g : shaped) {
                 const auto [before, after] = solve(full, g, seen[g]);
                 if (pass == 0) report.shape_initial_cost += before;
                 pass_final += after;
             }
             report.shape_final_cost = pass_final;
         }
-        report.shape_ghosts = static_cast<int>(order.size());
+        report.shape_ghosts = static_cast<int>(shaped.size());
+        report.shape_unobserved = static_cast<int>(order.size() - shaped.size());
         report.shape_ms =
             std::chrono::duration<double, std::milli>(Clock::now() - shape_start).count();
     }

@@ -1296,6 +1296,8 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     if (!refit) return refit.error();
     if (refit->ghosts > 0) refreshResiduals(*built, *fitted);
     fitted->stages.shape_ms = refit->shape_ms;
+    fitted->shape_refitted = refit->shape_ghosts;
+    fitted->shape_unobserved = refit->shape_unobserved;
     fitted->stages.shading_ms = msSince(t_stage) - refit->shape_ms;
     fitted->stages.total_ms = msSince(t_call);
     if (result) *result = std::move(*fitted);

@@ -162,6 +162,10 @@ struct SweepFitResult {
     int64_t evaluations = 0;
     double time_ms = 0.0;  // steps 1 to 3
     SweepFitStages stages;
+    // The shape refit (ShadingRefitOptions::shape_passes; fitSweep only): ghosts whose shapes it
+    // refitted, and those it left as compressed for an outline mostly outside their frames.
+    int shape_refitted = 0;
+    int shape_unobserved = 0;
 };
 
 // Where frames come from: their count, angles (strictly increasing) and loader.

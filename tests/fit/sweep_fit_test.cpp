@@ -834,8 +834,10 @@ TEST(ShadingRefit, RepairsShadingCompressedFromWanderingFits) {
     double before = 0.0;
     for (const double a : held_out) before = std::max(before, modelError(*model, a));
     const FlareModel compressed = *model;
+    ShadingRefitOptions shading_only = options.shading;
+    shading_only.shape_passes = 0;
     auto report = refitShading(*model, c.source, c.scrambled.sky, options.detect,
-                               options.frame.cost, options.shading);
+                               options.frame.cost, shading_only);
     ASSERT_TRUE(report) << report.error().message;
     EXPECT_EQ(report->ghosts, 2);
     EXPECT_EQ(report->frames_loaded, 13);
@@ -902,8 +904,10 @@ TEST(ShadingRefit, ShapeRefitMovesShapesCompressedOffTheGhostBackOntoIt) {
         return e;
     };
     FlareModel shading_only = *built;
+    ShadingRefitOptions no_shapes = options.shading;
+    no_shapes.shape_passes = 0;
     auto plain = refitShading(shading_only, c.source, c.scrambled.sky, options.detect,
-                              options.frame.cost, options.shading);
+                              options.frame.cost, no_shapes);
     ASSERT_TRUE(plain) << plain.error().message;
     EXPECT_EQ(plain->shape_ghosts, 0);
     EXPECT_EQ(plain->shape_ms, 0.0);
@@ -939,6 +943,75 @@ TEST(ShadingRefit, ShapeRefitMovesShapesCompressedOffTheGhostBackOntoIt) {
         EXPECT_NE(refused.error().message.find("shape_"), std::string::npos)
             << refused.error().message;
         EXPECT_EQ(untouched, *built);
+    }
+}
+
+// A ghost whose outline lies outside its frames (here a veil larger than the frame, as the
+// tracker starts where the background is above the sky) keeps its compressed shape: the frames
+// cannot say where its outline is, and a refit of it would spread it to take whatever light the
+// others leave. The ghosts whose outlines the frames show are refitted as before.
+TEST(ShadingRefit, ShapeRefitLeavesAGhostWhoseOutlineIsOutsideTheFrameAlone) {
+    RefitCase c = scrambledCase(4);
+    for (auto& track : c.scrambled.tracks)
+        for (auto& sample : track.samples) {
+            sample.state = trueState(kTwoGhosts[static_cast<size_t>(track.id)], sample.angle_deg);
+            sample.state.shape.centre_x_mm += 0.5;
+        }
+    GhostTrack veil;
+    veil.id = 2;
+    for (const double angle : c.angles) {
+        TrackSample sample;
+        sample.angle_deg = angle;
+        sample.state.shape =
+            render::circleGhostShape(0.0, 0.0, 1.5 * std::hypot(kSensorW, kSensorH));
+        sample.state.shading.border_rgb = {0.5, 0.5, 0.5};
+        sample.state.shading.inner_rgb = {0.5, 0.5, 0.5};
+        sample.state.shading.inner_falloff_mm = 4.0;
+        sample.state.shading.outer_falloff_mm = 1.0;
+        veil.samples.push_back(sample);
+    }
+    c.scrambled.tracks.push_back(veil);
+    const SweepFitOptions options = quickOptions();
+    auto built = buildModel(c.scrambled, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(built) << built.error().message;
+    ASSERT_EQ(built->ghosts.size(), 3u);
+    ShadingRefitOptions shapes = options.shading;
+    shapes.shape_passes = 2;
+    FlareModel guarded = *built;
+    auto report = refitShading(guarded, c.source, c.scrambled.sky, options.detect,
+                               options.frame.cost, shapes);
+    ASSERT_TRUE(report) << report.error().message;
+    EXPECT_EQ(report->shape_ghosts, 2);
+    EXPECT_EQ(report->shape_unobserved, 1);
+    EXPECT_TRUE(validateModel(guarded));
+    // Its shape series are the compressed ones, bounds and all, whatever the shading refit did
+    // to its shading; the two discs' shapes moved.
+    const auto shapeSeries = [](const FlareModel& m, int64_t id) {
+        std::vector<ModelParameter> out;
+        for (const auto& g : m.ghosts)
+            if (g.id == id)
+                for (int p = 0; p < 9; ++p) out.push_back(g.parameters[static_cast<size_t>(p)]);
+        return out;
+    };
+    EXPECT_EQ(shapeSeries(guarded, 2), shapeSeries(*built, 2));
+    EXPECT_NE(shapeSeries(guarded, 0), shapeSeries(*built, 0));
+    // With no share required, it is refitted like the others.
+    FlareModel unguarded = *built;
+    shapes.shape_min_outline_in_frame = 0.0;
+    auto all = refitShading(unguarded, c.source, c.scrambled.sky, options.detect,
+                            options.frame.cost, shapes);
+    ASSERT_TRUE(all) << all.error().message;
+    EXPECT_EQ(all->shape_ghosts, 3);
+    EXPECT_EQ(all->shape_unobserved, 0);
+    // Out of range: refused by name.
+    for (const double share : {-0.1, 1.5, std::nan("")}) {
+        shapes.shape_min_outline_in_frame = share;
+        FlareModel untouched = *built;
+        auto refused = refitShading(untouched, c.source, c.scrambled.sky, options.detect,
+                                    options.frame.cost, shapes);
+        ASSERT_FALSE(refused);
+        EXPECT_NE(refused.error().message.find("shape_min_outline_in_frame"), std::string::npos)
+            << refused.error().message;
     }
 }
 
