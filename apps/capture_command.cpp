@@ -18,6 +18,7 @@
 #include "drivers/calibration.h"
 #include "drivers/lens_settings.h"
 #include "drivers/rig.h"
+#include "hdr/digest.h"
 #include "hdr/merge.h"
 #include "hdr/raw_io.h"
 #include "hdr/sweep.h"
@@ -227,7 +228,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
         header.lens.sensor_height_mm.reset();
     }
     if (lens && (!sim_lens || sameLens(*sim_lens, *lens))) {
-        auto digest = sha256Hex(s.lens_file);
+        auto digest = hdr::sha256File(s.lens_file);
         if (!digest) {
             err << "flarelab: " << digest.error().message << "\n";
             return 1;

@@ -1,7 +1,5 @@
 #include "apps/fit_command.h"
 
-#include <openssl/evp.h>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -17,6 +15,7 @@
 #include "drivers/path_seeds.h"
 #include "drivers/sim_truth.h"
 #include "fit/sweep_fit.h"
+#include "hdr/digest.h"
 #include "hdr/sweep.h"
 #include "optics/prescription.h"
 #include "render/preview.h"
@@ -101,7 +100,7 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     std::optional<optics::Lens> lens;
     std::string sha;
     if (!s.lens_file.empty()) {
-        auto digest = sha256Hex(s.lens_file);
+        auto digest = hdr::sha256File(s.lens_file);
         if (!digest) {
             err << "flarelab: fit: " << digest.error().message << "\n";
             return 1;
@@ -351,7 +350,7 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
     auto lens = captureLens(s.lens_file, *model, s.model, err);
     if (!lens) return 1;
     if (!model->lens.prescription_sha256.empty()) {
-        auto digest = sha256Hex(s.lens_file);
+        auto digest = hdr::sha256File(s.lens_file);
         if (!digest) {
             err << "flarelab: score: " << digest.error().message << "\n";
             return 1;
@@ -495,30 +494,6 @@ std::optional<optics::Lens> captureLens(const std::string& lens_path,
         err << "; a capture taken otherwise is scored against another lens\n";
     }
     return std::move(rebuilt->lens);
-}
-
-Result<std::string> sha256Hex(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    if (!in) return makeError(ErrorCode::NotFound, path + ": cannot open it to hash");
-    std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> ctx(EVP_MD_CTX_new(), EVP_MD_CTX_free);
-    if (!ctx || EVP_DigestInit_ex(ctx.get(), EVP_sha256(), nullptr) != 1)
-        return makeError(ErrorCode::Internal, "sha256: OpenSSL refused to start a digest");
-    std::vector<char> buffer(1 << 16);
-    while (in) {
-        in.read(buffer.data(), static_cast<std::streamsize>(buffer.size()));
-        const std::streamsize got = in.gcount();
-        if (got > 0 && EVP_DigestUpdate(ctx.get(), buffer.data(), static_cast<size_t>(got)) != 1)
-            return makeError(ErrorCode::Internal, "sha256: OpenSSL refused the data");
-    }
-    if (in.bad()) return makeError(ErrorCode::IoError, path + ": read failed while hashing");
-    unsigned char digest[EVP_MAX_MD_SIZE];
-    unsigned int length = 0;
-    if (EVP_DigestFinal_ex(ctx.get(), digest, &length) != 1)
-        return makeError(ErrorCode::Internal, "sha256: OpenSSL refused to finish the digest");
-    std::ostringstream hex;
-    for (unsigned int i = 0; i < length; ++i)
-        hex << std::hex << std::setw(2) << std::setfill('0') << static_cast<int>(digest[i]);
-    return hex.str();
 }
 
 void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& exit_code) {

@@ -1,5 +1,5 @@
 // ============================================================================
-//  flarelab command line: addFitCommands (fit, score), captureLens, sha256Hex
+//  flarelab command line: addFitCommands (fit, score), captureLens
 // ============================================================================
 //
 //   flarelab fit SWEEP -o MODEL [--lens FILE] [--sensor-mm WxH] [tuning flags]
@@ -38,7 +38,5 @@ std::optional<optics::Lens> captureLens(const std::string& lens_path,
                                         const std::string& model_path,
                                         std::ostream& err);
 
-// SHA-256 of a file's bytes as 64 lowercase hex digits (OpenSSL).
-Result<std::string> sha256Hex(const std::string& path);
 
 }  // namespace flarelab::apps

@@ -30,6 +30,7 @@
 #include "fit/frame.h"
 #include "fit/model_file.h"
 #include "fit/sweep_fit.h"
+#include "hdr/digest.h"
 #include "hdr/merge.h"
 #include "hdr/raw_io.h"
 #include "hdr/sweep.h"
@@ -336,7 +337,13 @@ Result<hdr::SweepWriter> SweepJob::openSweep() {
         // simulates the same lens again.
         if (lens) {
             header.lens = drivers::describeLens(*lens);
-            if (sweep_.lens && c.has_sim()) header.lens.prescription_file = c.sim().lens().name();
+            if (sweep_.lens && c.has_sim()) {
+                header.lens.prescription_file = c.sim().lens().name();
+                // The client sent the file's bytes: their digest is the file's.
+                auto digest = hdr::sha256Hex(c.sim().lens().prescription_csv());
+                if (!digest) return digest.error().withContext("lens prescription");
+                header.lens.prescription_sha256 = std::move(*digest);
+            }
         } else {
             header.lens.description = c.lens_description();
         }
@@ -698,6 +705,7 @@ void SweepJob::fitModel() {
     }
     if (sweep_.lens && sweep_.config.has_sim()) {
         model->lens.prescription_file = sweep_.config.sim().lens().name();
+        model->lens.prescription_sha256 = sweep->header.lens.prescription_sha256;
         if (!model->lens.f_number && sweep_.lens->camera().f_number > 0.0)
             model->lens.f_number = sweep_.lens->camera().f_number;
     }

@@ -12,6 +12,7 @@
 #include "apps/fit_command.h"
 #include "fit/frame.h"
 #include "fit/sweep_fit.h"
+#include "hdr/digest.h"
 #include "hdr/merge.h"
 #include "hdr/sweep.h"
 #include "tests/apps/command_runner.h"
@@ -129,7 +130,7 @@ TEST(Capture, RecordsTheLensSettingsThatFitCopiesAndScoreRebuilds) {
     EXPECT_EQ(recorded.sensor_width_mm, 24.0);
     EXPECT_EQ(recorded.sensor_height_mm, 16.0);
     EXPECT_EQ(recorded.prescription_file, lens_file);
-    auto digest = sha256Hex(lens_file);
+    auto digest = hdr::sha256File(lens_file);
     ASSERT_TRUE(digest) << digest.error().message;
     EXPECT_EQ(recorded.prescription_sha256, *digest);
     CameraFlags flags;

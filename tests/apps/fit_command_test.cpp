@@ -316,18 +316,5 @@ TEST(FitCommand, TheSweepsLensSettingsReachTheModelAndContradictionsAreRefused) 
     fs::remove(model);
 }
 
-TEST(FitCommand, Sha256MatchesAKnownDigest) {
-    const fs::path file = tempPath("abc.txt");
-    {
-        std::ofstream out(file);
-        out << "abc";
-    }
-    auto digest = sha256Hex(file.string());
-    ASSERT_TRUE(digest.has_value());
-    EXPECT_EQ(*digest, "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
-    fs::remove(file);
-    EXPECT_FALSE(sha256Hex(file.string()).has_value());
-}
-
 }  // namespace
 }  // namespace flarelab::apps

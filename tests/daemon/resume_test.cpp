@@ -8,6 +8,8 @@
 
 #include "daemon/journal.h"
 #include "daemon/sweep_config.h"
+#include "fit/model_file.h"
+#include "hdr/digest.h"
 #include "hdr/sweep.h"
 #include "tests/daemon/daemon_fixture.h"
 
@@ -154,6 +156,15 @@ TEST(Resume, ADaemonStoppedDuringAFitFitsAgainAtItsNextStart) {
     auto sweep = hdr::readSweep(output, strictRead());
     ASSERT_TRUE(sweep) << sweep.error().message;
     EXPECT_EQ(sweep->frames.size(), 16u);
+    // The sweep and the model record the prescription's digest: the file's, whose text the client
+    // sent.
+    auto digest = hdr::sha256File(flarelab::testing::lensPath("heliar-tronnier.csv"));
+    ASSERT_TRUE(digest) << digest.error().message;
+    EXPECT_EQ(sweep->header.lens.prescription_sha256, *digest);
+    auto model = fit::readModel(output + "/model.flm");
+    ASSERT_TRUE(model) << model.error().message;
+    EXPECT_EQ(model->lens.prescription_file, "heliar-tronnier.csv");
+    EXPECT_EQ(model->lens.prescription_sha256, *digest);
 }
 
 TEST(Resume, WithoutResumeAnInterruptedJobWaitsForAClient) {
