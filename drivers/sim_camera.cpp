@@ -677,11 +677,12 @@ Result<SimCameraSetup> simCameraSetup(const DeviceUri& uri,
     if (auto it = uri.params.find("format"); it != uri.params.end()) {
         if (it->second == "mono")
             options.format = hdr::RawFormat::Mono;
-        else if (it->second == "rggb")
+        else if (it->second == "bayer-rggb" || it->second == "rggb")  // capture's name, short
             options.format = hdr::RawFormat::BayerRGGB;
         else
-            return makeError(ErrorCode::InvalidArgument,
-                             "device uri '" + uri.text + "': format must be mono or rggb");
+            return makeError(
+                ErrorCode::InvalidArgument,
+                "device uri '" + uri.text + "': format must be mono or bayer-rggb (or rggb)");
     }
     if (auto it = uri.params.find("response"); it != uri.params.end()) {
         if (it->second == "linear")

@@ -409,6 +409,18 @@ TEST(SimCameraBackend, OpensByUriWithALensParameter) {
     const auto frame = (*c)->capture(10.0);
     ASSERT_TRUE(frame);
     EXPECT_EQ(frame->angle_deg, 2.0);
+    // The colour camera by the name `flarelab capture --format` takes too; other mosaics are
+    // refused by name.
+    const auto named =
+        registry.open("sim:?lens=" + flarelab::testing::lensPath("heliar-tronnier.csv") +
+                      "&width=32&height=20&format=bayer-rggb");
+    ASSERT_TRUE(named) << named.error().message;
+    EXPECT_EQ((*named)->format(), hdr::RawFormat::BayerRGGB);
+    const auto bggr = registry.open(
+        "sim:?lens=" + flarelab::testing::lensPath("heliar-tronnier.csv") + "&format=bayer-bggr");
+    ASSERT_FALSE(bggr);
+    EXPECT_NE(bggr.error().message.find("format must be mono or bayer-rggb"), std::string::npos)
+        << bggr.error().message;
     const auto bad = registry.open("sim:?lens=x.csv&colour=red");
     ASSERT_FALSE(bad);
     EXPECT_NE(bad.error().message.find("colour"), std::string::npos);
