@@ -38,5 +38,4 @@ std::optional<optics::Lens> captureLens(const std::string& lens_path,
                                         const std::string& model_path,
                                         std::ostream& err);
 
-
 }  // namespace flarelab::apps

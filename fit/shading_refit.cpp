@@ -883,12 +883,13 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
     }
     if (options.shape_passes > 0) {
         const auto shape_start = Clock::now();
-        // Only ghosts whose outline the frames show: one whose outline lies mostly outside its
-        // frames (a veil larger than the frame, a ghost at the frame's edge) has a shape the
-        // pixels do not fix, and refitting it lets it spread to take whatever light the others
-        // leave (on a double Gauss sweep, a veil that took a lost ghost's light grew 13 times
-        // brighter). Such a ghost keeps its compressed shape (bounds too) and refitted shading,
-        // and is drawn as the others' context.
+        // Only ghosts whose outline the frames show: one with less than
+        // shape_min_outline_in_frame of its outline in its frames (a veil larger than the frame,
+        // a ghost all but gone past the frame's edge) has a shape the pixels do not fix, and
+        // refitting it lets it spread to take whatever light the others leave (on a double Gauss
+        // sweep, a veil that took a lost ghost's light grew 13 times brighter). Such a ghost keeps
+        // its compressed shape (bounds too) and refitted shading, and is drawn as the others'
+        // context.
         std::vector<size_t> shaped;
         for (const size_t g : order) {
             std::vector<double> share;

@@ -1195,9 +1195,9 @@ TEST(SweepFit, FitSweepOnDisk) {
     for (const SweepFitResult* r : {&result, &uncached_result}) {
         const SweepFitStages& st = r->stages;
         const double parts = st.load_ms + st.detect_ms + st.fit_ms + st.extend_ms + st.track_ms +
-                             st.compress_ms + st.shading_ms;
+                             st.compress_ms + st.shading_ms + st.shape_ms;
         for (double ms : {st.load_ms, st.detect_ms, st.fit_ms, st.extend_ms, st.track_ms,
-                          st.compress_ms, st.shading_ms})
+                          st.compress_ms, st.shading_ms, st.shape_ms})
             EXPECT_GE(ms, 0.0);
         EXPECT_GT(st.fit_ms, 0.0);
         EXPECT_LE(parts, 2.0 * st.total_ms + 0.01);  // two passes side by side at most
