@@ -812,6 +812,21 @@ RefitCase scrambledCase(uint64_t seed) {
     return c;
 }
 
+// A refit of `model` with options out of range: refused, the message naming `name`, the model
+// left as it was.
+void expectRefusedByName(const FlareModel& model,
+                         const RefitCase& c,
+                         const SweepFitOptions& options,
+                         const ShadingRefitOptions& bad,
+                         const std::string& name) {
+    FlareModel untouched = model;
+    auto refused =
+        refitShading(untouched, c.source, c.scrambled.sky, options.detect, options.frame.cost, bad);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find(name), std::string::npos) << refused.error().message;
+    EXPECT_EQ(untouched, model);
+}
+
 // Relative L2 of the model against the noiseless ghosts at `angle`.
 double modelError(const FlareModel& model, double angle) {
     auto image = renderModel(model, angle, 0.0, kWidth, kHeight);
@@ -936,13 +951,7 @@ TEST(ShadingRefit, ShapeRefitMovesShapesCompressedOffTheGhostBackOntoIt) {
         ShadingRefitOptions bad = options.shading;
         bad.shape_passes = passes;
         bad.shape_frames_per_ghost = frames;
-        FlareModel untouched = *built;
-        auto refused = refitShading(untouched, c.source, c.scrambled.sky, options.detect,
-                                    options.frame.cost, bad);
-        ASSERT_FALSE(refused);
-        EXPECT_NE(refused.error().message.find("shape_"), std::string::npos)
-            << refused.error().message;
-        EXPECT_EQ(untouched, *built);
+        expectRefusedByName(*built, c, options, bad, "shape_");
     }
 }
 
@@ -1006,12 +1015,7 @@ TEST(ShadingRefit, ShapeRefitLeavesAGhostWhoseOutlineIsOutsideTheFrameAlone) {
     // Out of range: refused by name.
     for (const double share : {-0.1, 1.5, std::nan("")}) {
         shapes.shape_min_outline_in_frame = share;
-        FlareModel untouched = *built;
-        auto refused = refitShading(untouched, c.source, c.scrambled.sky, options.detect,
-                                    options.frame.cost, shapes);
-        ASSERT_FALSE(refused);
-        EXPECT_NE(refused.error().message.find("shape_min_outline_in_frame"), std::string::npos)
-            << refused.error().message;
+        expectRefusedByName(*built, c, options, shapes, "shape_min_outline_in_frame");
     }
 }
 
