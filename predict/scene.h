@@ -29,12 +29,11 @@
 //   }],
 //   "lights": [{
 //     "name": "flood 1",
-//     "position_m": [30, 0, 25],                // or "direction": {"azimuth_deg": ..,
-//     "elevation_deg": ..} "intensity_cd": 150000,                   // exactly one of:
-//     intensity_cd (with a position),
-//                                               // illuminance_lux (at the camera), relative (to
-//                                               the
-//                                               // rig's light at the lens)
+//     "position_m": [30, 0, 25],                // or "direction": {"azimuth_deg": a,
+//                                               //                  "elevation_deg": e}
+//     "intensity_cd": 150000,                   // exactly one of: intensity_cd (with a
+//                                               // position), illuminance_lux (at the camera),
+//                                               // relative (to the rig's light at the lens)
 //     "colour": [1, 0.9, 0.8]                   // linear RGB factors >= 0; default [1, 1, 1]
 //   }],
 //   "sun": {
@@ -45,16 +44,18 @@
 //     "colour": [1, 1, 1]
 //   },
 //   "switching": {"figure": "contrast-loss", "threshold": 0.05, "min_dwell_s": 10},
-//   "frames": ["2026-06-21T20:30:00+02:00"]     // instants to draw (inside the sun's span); with
-//   no
-//                                               // sun, one frame per camera is drawn regardless
+//   "frames": ["2026-06-21T20:30:00+02:00"]     // instants to draw, inside the sun's span (only
+//                                               // with a sun; without one each camera is drawn
+//                                               // once with the fixed lights)
 // }
 //
 // Rules: every number finite; unknown fields are refused (a misspelt "exposure" must not fall back
 // to a default); at most 64 cameras, 1024 lights, 64 frames; at least one camera, and at least one
 // light or a sun; the sun's span from <= to, step_s in [0.001, 86400], at most 10 million steps;
-// switching needs a sun (a timeline) and min_dwell_s >= 0. Errors (ParseError) name the scene and
-// the field: "scene.json: cameras[1].exposure_s: must be > 0, got -1".
+// switching needs a sun (a timeline) and min_dwell_s >= 0; a light or sun given in candela or lux
+// needs rig_illuminance_lux on every camera; keys may not repeat. Errors (ParseError; Unsupported
+// for another version) name the scene and the field: "scene.json: cameras[1].exposure_s: must be
+// > 0, got -1".
 #pragma once
 
 #include <array>
