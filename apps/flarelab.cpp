@@ -12,6 +12,7 @@
 #include "apps/lens_commands.h"
 #include "apps/merge_command.h"
 #include "apps/model_command.h"
+#include "apps/predict_command.h"
 #include "apps/simulate_command.h"
 #include "apps/sun_command.h"
 #include "apps/sweep_command.h"
@@ -33,6 +34,7 @@ int main(int argc, char** argv) {
         flarelab::apps::addRigCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addJobCommands(app, std::cout, std::cerr, exit_code);
         flarelab::apps::addSunCommand(app, std::cout, std::cerr, exit_code);
+        flarelab::apps::addPredictCommand(app, std::cout, std::cerr, exit_code);
         CLI11_PARSE(app, argc, argv);
         return exit_code;
     } catch (const std::exception& e) {
