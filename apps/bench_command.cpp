@@ -9,6 +9,7 @@
 #include "bench/merge_bench.h"
 #include "bench/oracle_bench.h"
 #include "bench/playback_bench.h"
+#include "bench/predict_bench.h"
 #include "bench/render_bench.h"
 #include "bench/response_bench.h"
 
@@ -337,6 +338,47 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
         exit_code =
             writeJsonFile(*playback_json_path, bench::playbackBenchJson(*result).dump(2), err) ? 0
                                                                                                : 1;
+    });
+
+    auto predict_options = std::make_shared<bench::PredictBenchOptions>();
+    auto predict_json_path = std::make_shared<std::string>();
+    CLI::App* predict = bench->add_subcommand(
+        "predict",
+        "the planner's figure table against drawing each constellation, the prediction against "
+        "the simulator (--lens) and a broadcast's timeline and switching plan");
+    predict->add_option("MODEL", predict_options->model_path, "flare model file")->required();
+    predict->add_option("--lens", predict_options->lens_path,
+                        "the model's lens prescription: also score against the simulator");
+    predict->add_option("--constellations", predict_options->constellations,
+                        "random constellations drawn")
+        ->check(CLI::Range(1, 100000))
+        ->capture_default_str();
+    predict->add_option("--seed", predict_options->seed, "of the random constellations")
+        ->capture_default_str();
+    predict->add_option("--cameras", predict_options->cameras, "cameras of the broadcast")
+        ->check(CLI::Range(1, 64))
+        ->capture_default_str();
+    predict->add_option("--hours", predict_options->hours, "length of the broadcast")
+        ->check(CLI::Range(0.001, 48.0))
+        ->capture_default_str();
+    predict->add_option("--step-s", predict_options->step_s, "timeline step, s")
+        ->check(CLI::Range(0.001, 3600.0))
+        ->capture_default_str();
+    predict->add_option("--repeat", predict_options->repeat, "timed runs of the broadcast")
+        ->check(CLI::Range(1, 100))
+        ->capture_default_str();
+    predict->add_flag("!--no-trade", predict_options->trade, "only the default table");
+    predict->add_option("--json", *predict_json_path, "also write the results as JSON here");
+    predict->callback([predict_options, predict_json_path, &out, &err, &exit_code] {
+        auto result = bench::runPredictBench(*predict_options, err);
+        if (!result) {
+            err << "flarelab: bench predict: " << result.error().message << "\n";
+            exit_code = 1;
+            return;
+        }
+        bench::printPredictBench(*result, out);
+        exit_code =
+            writeJsonFile(*predict_json_path, bench::predictBenchJson(*result).dump(2), err) ? 0 : 1;
     });
 }
 
