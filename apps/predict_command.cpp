@@ -473,8 +473,9 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
     predict::ReportSection frames_section;
     frames_section.title = "Frames";
     frames_section.paragraphs.push_back(
-        "Each frame is the flare alone in the camera's DN (EXR beside each PNG), tone-mapped at " +
-        fmt(s.exposure_stops) + " stops.");
+        "Each frame is the flare alone in the camera's DN (EXR beside each PNG); the PNG shows the "
+        "camera's white (scene_max_dn, else the frame's peak) as white" +
+        (s.exposure_stops != 0.0 ? ", " + fmt(s.exposure_stops) + " stops brighter" : "") + ".");
     nlohmann::json frames_json = nlohmann::json::array();
     std::vector<std::optional<predict::UtcInstant>> instants;
     if (scene->frames.empty() || !scene->sun) instants.push_back(std::nullopt);
@@ -512,16 +513,26 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
                                        frame->image, meta);
                 !w)
                 return fail(w.error());
+            // As the camera would show it: its white (the scene's brightest DN, else the
+            // frame's peak) at 1, then --exposure-stops.
+            const double white = camera.scene.scene_max_dn.value_or(
+                std::max(1e-30, predict::flareFigures(frame->image).max));
             render::ToneMapOptions tone;
-            tone.exposure_stops = s.exposure_stops;
+            tone.exposure_stops = std::clamp(s.exposure_stops - std::log2(white), -64.0, 64.0);
             if (auto w = render::writePng(frame->image,
                                           (std::filesystem::path(s.out_dir) / png).string(), tone);
                 !w)
                 return fail(w.error());
             const predict::FlareFigures f = predict::flareFigures(frame->image);
+            int refused = 0;
+            for (const auto& l : frame->lights)
+                refused += l.state == predict::LightState::OutsideRange;
             frames_section.images.push_back(
                 {camera.scene.name + (when.empty() ? "" : " at " + when) + ": flare mean " +
-                     fmt(f.mean) + ", peak " + fmt(f.max),
+                     fmt(f.mean) + ", peak " + fmt(f.max) +
+                     (refused > 0 ? " (" + std::to_string(refused) +
+                                        " light(s) outside the model's range not drawn)"
+                                  : ""),
                  png});
             nlohmann::json lights = nlohmann::json::array();
             for (const auto& l : frame->lights) lights.push_back(predict::lightStateName(l.state));
@@ -595,7 +606,8 @@ void addPredictCommand(CLI::App& app, std::ostream& out, std::ostream& err, int&
     cmd->add_option("--table-width", s->table_width, "figure table's drawing width, px")
         ->check(CLI::Range(int64_t{8}, int64_t{4096}))
         ->capture_default_str();
-    cmd->add_option("--exposure-stops", s->exposure_stops, "PNG exposure of the frames, stops")
+    cmd->add_option("--exposure-stops", s->exposure_stops,
+                    "frames' PNG exposure, stops above the camera's white (scene_max_dn)")
         ->capture_default_str();
     cmd->callback([s, &out, &err, &exit_code] { exit_code = run(*s, out, err); });
 }

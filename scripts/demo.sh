@@ -72,3 +72,11 @@ for angle in 5 12.3 20; do
         -o "$out/models/heliar-$angle.exr" --png "$out/models/heliar-$angle.png" --exposure-stops -12
 done
 echo "demo: model $model (described in model.txt beside it and $out/models/heliar.txt, scored in $out/models/heliar.score.txt)"
+# A planner's question of the same model: a stadium's cameras, a floodlight and the evening sun
+# (data/scenes/stadium.json, its model path relative to it), answered with figures, the sun's
+# timeline, a switching plan and frames in a report that opens in a browser.
+mkdir -p "$out/predict"
+cp data/scenes/stadium.json "$out/predict/stadium.json"
+cp "$model" "$out/predict/heliar.flm"
+"$build/apps/flarelab" predict "$out/predict/stadium.json" -o "$out/predict/report"
+echo "demo: prediction report $out/predict/report/report.html"
