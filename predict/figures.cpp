@@ -7,6 +7,7 @@
 #include <cmath>
 #include <limits>
 #include <numbers>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -18,32 +19,38 @@ namespace {
 
 double luminance(const float* rgb) { return 0.2126 * rgb[0] + 0.7152 * rgb[1] + 0.0722 * rgb[2]; }
 
-}  // namespace
-
-FlareFigures flareFigures(const ImageRGB& image) {
+// The figures of a frame's luminances (the header's definitions); all 0 for none.
+FlareFigures figuresOf(std::span<const double> y) {
     FlareFigures f;
-    if (image.empty()) return f;
-    const int64_t n = image.width * image.height;
+    if (y.empty()) return f;
     double min = std::numeric_limits<double>::infinity(), max = 0.0, sum = 0.0;
-    for (int64_t i = 0; i < n; ++i) {
+    for (double v : y) {
         // A renderer never writes a negative value; clamp one that rounding left at -0.
-        const double y = std::max(0.0, luminance(image.pixels.data() + 3 * i));
-        min = std::min(min, y);
-        max = std::max(max, y);
-        sum += y;
+        v = std::max(0.0, v);
+        min = std::min(min, v);
+        max = std::max(max, v);
+        sum += v;
     }
+    const double n = static_cast<double>(y.size());
     f.min = min;
     f.max = max;
-    f.mean = sum / static_cast<double>(n);
+    f.mean = sum / n;
     f.total = sum;
     if (max > 0.0) {
         const double floor = kLogAverageFloor * max;
         double log_sum = 0.0;
-        for (int64_t i = 0; i < n; ++i)
-            log_sum += std::log(std::max(floor, luminance(image.pixels.data() + 3 * i)));
-        f.log_average = std::exp(log_sum / static_cast<double>(n));
+        for (double v : y) log_sum += std::log(std::max(floor, v));
+        f.log_average = std::exp(log_sum / n);
     }
     return f;
+}
+
+}  // namespace
+
+FlareFigures flareFigures(const ImageRGB& image) {
+    std::vector<double> y(static_cast<size_t>(image.width * image.height));
+    for (size_t k = 0; k < y.size(); ++k) y[k] = luminance(image.pixels.data() + 3 * k);
+    return figuresOf(y);
 }
 
 double contrastRatio(double scene_min, double scene_max, double flare) {
@@ -124,46 +131,23 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
         for (const auto& g : *ghosts) states.push_back(g.state);
         const ImageRGB canvas = fit::renderGhostStates(states, mapping, side, side);
         std::vector<double> y(static_cast<size_t>(side * side));
-        for (size_t k = 0; k < y.size(); ++k)
-            y[k] = std::max(0.0, luminance(canvas.pixels.data() + 3 * k));
+        for (size_t k = 0; k < y.size(); ++k) y[k] = luminance(canvas.pixels.data() + 3 * k);
+        std::vector<double> inside;
+        inside.reserve(y.size());
         for (int64_t j = 0; j < t.phi_count_; ++j) {
             const double phi = t.phiAt(j) * std::numbers::pi / 180.0;
             const double c = std::cos(phi), s = std::sin(phi);
-            double min = std::numeric_limits<double>::infinity(), max = 0.0, sum = 0.0;
-            int64_t count = 0;
+            inside.clear();
             for (int64_t v = 0; v < side; ++v) {
                 const double qy = static_cast<double>(v) + 0.5 - mapping.centre_y_px;
                 for (int64_t u = 0; u < side; ++u) {
                     const double qx = static_cast<double>(u) + 0.5 - mapping.centre_x_px;
                     const double px = c * qx - s * qy, py = s * qx + c * qy;
-                    if (std::abs(px) > half_w || std::abs(py) > half_h) continue;
-                    const double value = y[static_cast<size_t>(v * side + u)];
-                    min = std::min(min, value);
-                    max = std::max(max, value);
-                    sum += value;
-                    ++count;
+                    if (std::abs(px) <= half_w && std::abs(py) <= half_h)
+                        inside.push_back(y[static_cast<size_t>(v * side + u)]);
                 }
             }
-            FlareFigures f;
-            if (count > 0) {
-                f.min = min;
-                f.max = max;
-                f.mean = sum / static_cast<double>(count);
-            }
-            if (max > 0.0) {
-                double log_sum = 0.0;
-                const double floor = kLogAverageFloor * max;
-                for (int64_t v = 0; v < side; ++v) {
-                    const double qy = static_cast<double>(v) + 0.5 - mapping.centre_y_px;
-                    for (int64_t u = 0; u < side; ++u) {
-                        const double qx = static_cast<double>(u) + 0.5 - mapping.centre_x_px;
-                        const double px = c * qx - s * qy, py = s * qx + c * qy;
-                        if (std::abs(px) > half_w || std::abs(py) > half_h) continue;
-                        log_sum += std::log(std::max(floor, y[static_cast<size_t>(v * side + u)]));
-                    }
-                }
-                f.log_average = std::exp(log_sum / static_cast<double>(count));
-            }
+            FlareFigures f = figuresOf(inside);
             f.total = f.mean * t.capture_pixels_;
             t.nodes_[static_cast<size_t>(i * t.phi_count_ + j)] = f;
         }
