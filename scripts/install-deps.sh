@@ -10,6 +10,8 @@ packages=(
     clang clang-format libclang-rt-14-dev libfuzzer-14-dev valgrind
     # numerics, images, optimization
     libeigen3-dev libceres-dev libopencv-dev libopenexr-dev libfftw3-dev libtbb-dev libssl-dev
+    # glTF import of venues: cameras and KHR_lights_punctual lights (predict/gltf_import.h)
+    libtinygltf-dev
     # control API and model files
     libprotobuf-dev protobuf-compiler libgrpc++-dev protobuf-compiler-grpc
     python3 python3-grpcio python3-protobuf python3-grpc-tools
@@ -28,6 +30,9 @@ packages=(
     libcli11-dev libspdlog-dev libfmt-dev nlohmann-json3-dev
     # tests and benchmarks
     libgtest-dev libgmock-dev libbenchmark-dev gnuplot-nox
+    # the report test opens flarelab predict's report in headless Chromium
+    # (tests/predict/report_in_chromium.sh)
+    chromium
 )
 
 missing=()
