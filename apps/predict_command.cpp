@@ -155,6 +155,8 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
 
     nlohmann::json report;
     report["scene"] = s.scene_path;
+    report["notes"] = scene->notes;
+    for (const std::string& note : scene->notes) err << "flarelab: predict: note: " << note << "\n";
     report["out_of_range"] = predict::rangePolicyName(scene->out_of_range);
     report["unit"] = "DN of each camera (eq. 8.3 of the thesis)";
     predict::Report html;
@@ -246,6 +248,10 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
     report["cameras"] = cameras_json;
     summary.tables.push_back(cameras_table);
     if (!scene->lights.empty()) summary.tables.push_back(lights_table);
+    if (!scene->notes.empty()) {
+        summary.paragraphs.push_back("Notes from the glTF import:");
+        for (const std::string& note : scene->notes) summary.paragraphs.push_back(note);
+    }
     html.sections.push_back(summary);
 
     // The models: the flare of the rig's light along theta, and the ghosts' parameters.

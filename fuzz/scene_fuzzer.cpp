@@ -135,7 +135,11 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
 
     require(!scene.cameras.empty() && scene.cameras.size() <= kSceneMaxCameras);
     require(scene.lights.size() <= kSceneMaxLights);
-    require(!scene.lights.empty() || scene.sun.has_value());
+    require(!scene.lights.empty() || scene.sun.has_value() || (scene.gltf && scene.gltf->lights));
+    // A camera posed by the glTF file needs one; parseScene leaves its pose to loadScene.
+    for (const SceneCamera& camera : scene.cameras)
+        require(camera.gltf_camera.empty() || scene.gltf.has_value());
+    require(!scene.gltf || !scene.gltf->path.empty());
     std::set<std::string> camera_names;
     for (const SceneCamera& camera : scene.cameras) checkCamera(camera, camera_names);
     std::set<std::string> light_names;

@@ -17,6 +17,7 @@
 
 #include "common/file_descriptor.h"
 #include "common/utf8.h"
+#include "predict/gltf_import.h"
 
 namespace flarelab::predict {
 namespace {
@@ -549,15 +550,32 @@ const char* photometricField(const LightIntensity& intensity) {
 // ---------------------------------------------------------------------------------------------
 // The parts of a scene.
 
+// A file named by the scene (`key`): not empty, no control character, joined to `base_dir`
+// unless absolute.
+Result<std::string> readPath(const Fields& f, const char* key, const std::string& base_dir) {
+    auto text = f.string(key);
+    if (!text) return text.error();
+    if (text->empty()) return f.fail(key, "must not be empty");
+    for (size_t i = 0; i < text->size(); ++i)
+        if (controlAt(*text, i))
+            return f.fail(key, quotedText(*text) + " holds a control character");
+    const std::filesystem::path path(*text);
+    return path.is_absolute() || base_dir.empty()
+               ? *text
+               : (std::filesystem::path(base_dir) / path).string();
+}
+
+Result<SceneCamera> readExposure(const Fields& f, SceneCamera camera);
+
 Result<SceneCamera> readCamera(const json& value,
                                const std::string& scene,
                                const std::string& path,
                                const std::string& base_dir) {
     auto opened =
         Fields::open(value, scene, path,
-                     {"name", "model", "position_m", "pan_deg", "tilt_deg", "roll_deg", "look_at_m",
-                      "exposure_s", "f_number", "gain", "width_px", "height_px", "scene_min_dn",
-                      "scene_max_dn", "rig_illuminance_lux"});
+                     {"name", "model", "gltf_camera", "position_m", "pan_deg", "tilt_deg",
+                      "roll_deg", "look_at_m", "exposure_s", "f_number", "gain", "width_px",
+                      "height_px", "scene_min_dn", "scene_max_dn", "rig_illuminance_lux"});
     if (!opened) return opened.error();
     const Fields& f = *opened;
     SceneCamera camera;
@@ -566,21 +584,24 @@ Result<SceneCamera> readCamera(const json& value,
     if (!name) return name.error();
     camera.name = std::move(*name);
 
-    auto model = f.string("model");
+    auto model = readPath(f, "model", base_dir);
     if (!model) return model.error();
-    if (model->empty()) return f.fail("model", "must not be empty");
-    for (size_t i = 0; i < model->size(); ++i)
-        if (controlAt(*model, i))
-            return f.fail("model", quotedText(*model) + " holds a control character");
-    const std::filesystem::path model_path(*model);
-    camera.model_path = model_path.is_absolute() || base_dir.empty()
-                            ? *model
-                            : (std::filesystem::path(base_dir) / model_path).string();
+    camera.model_path = std::move(*model);
 
-    auto position = f.point("position_m");
-    if (!position) return position.error();
     // Aimed one way or the other, never by default: a camera that silently looks north at the
     // horizon gives a plausible but wrong prediction.
+    if (f.has("gltf_camera")) {
+        for (const char* key : {"position_m", "pan_deg", "tilt_deg", "roll_deg", "look_at_m"})
+            if (f.has(key))
+                return f.fail(key, "not with gltf_camera: the glTF file gives the camera's pose");
+        auto node = f.string("gltf_camera");
+        if (!node) return node.error();
+        if (node->empty()) return f.fail("gltf_camera", "must not be empty");
+        camera.gltf_camera = std::move(*node);
+        return readExposure(f, std::move(camera));
+    }
+    auto position = f.point("position_m");
+    if (!position) return position.error();
     if (f.has("look_at_m")) {
         for (const char* key : {"pan_deg", "tilt_deg", "roll_deg"})
             if (f.has(key))
@@ -613,7 +634,11 @@ Result<SceneCamera> readCamera(const json& value,
         camera.pose.tilt_deg = *tilt;
         camera.pose.roll_deg = roll->value_or(0.0);
     }
+    return readExposure(f, std::move(camera));
+}
 
+// The rest of a camera after its pose: exposure, size, the scene's range, the rig's light.
+Result<SceneCamera> readExposure(const Fields& f, SceneCamera camera) {
     auto exposure = f.number("exposure_s", kPositive);
     if (!exposure) return exposure.error();
     camera.exposure_s = *exposure;
@@ -838,9 +863,9 @@ Result<Scene> readScene(const json& document,
                                                      "; this reader knows version " +
                                                      std::to_string(kSceneFormatVersion));
 
-    auto opened = Fields::open(
-        document, name, "",
-        {"format", "version", "out_of_range", "cameras", "lights", "sun", "switching", "frames"});
+    auto opened = Fields::open(document, name, "",
+                               {"format", "version", "out_of_range", "gltf", "cameras", "lights",
+                                "sun", "switching", "frames"});
     if (!opened) return opened.error();
     const Fields& root = *opened;
     Scene scene;
@@ -858,6 +883,20 @@ Result<Scene> readScene(const json& document,
         }
     }
 
+    if (root.has("gltf")) {
+        auto gltf = root.object("gltf", {"file", "lights"});
+        if (!gltf) return gltf.error();
+        auto file = readPath(*gltf, "file", base_dir);
+        if (!file) return file.error();
+        bool lights = true;
+        if (const json* value = gltf->find("lights")) {
+            if (!value->is_boolean())
+                return gltf->fail("lights", "must be true or false, got " + typeOf(*value));
+            lights = value->get<bool>();
+        }
+        scene.gltf = SceneGltf{std::move(*file), lights};
+    }
+
     auto cameras = root.array("cameras", kSceneMaxCameras, true);
     if (!cameras) return cameras.error();
     if ((*cameras)->empty()) return root.fail("cameras", "is empty; a scene needs a camera");
@@ -868,6 +907,9 @@ Result<Scene> readScene(const json& document,
         if (!camera) return camera.error();
         if (Status unique = checkUnique(name, path, camera->name, camera_names); !unique)
             return unique.error();
+        if (!camera->gltf_camera.empty() && !scene.gltf)
+            return failAt(name, join(path, "gltf_camera"),
+                          "needs the scene's \"gltf\" file to take the camera from");
         scene.cameras.push_back(std::move(*camera));
     }
 
@@ -888,7 +930,7 @@ Result<Scene> readScene(const json& document,
         if (!sun) return sun.error();
         scene.sun = std::move(*sun);
     }
-    if (scene.lights.empty() && !scene.sun)
+    if (scene.lights.empty() && !scene.sun && !(scene.gltf && scene.gltf->lights))
         return root.fail("lights", "the scene has no light and no sun, so nothing can flare");
 
     // Found now rather than when the first frame is drawn: lightRatio would refuse the pair.
@@ -959,6 +1001,84 @@ Result<Scene> parseScene(std::string_view json_text,
     }
 }
 
+namespace {
+
+// The scene's glTF file read into it (loadScene's contract).
+Status applyGltf(Scene& scene, const std::string& name) {
+    const std::string& file = scene.gltf->path;
+    auto venue = importGltf(file);
+    if (!venue) return venue.error().withContext(name + ": gltf.file");
+    for (const std::string& note : venue->notes) scene.notes.push_back(file + ": " + note);
+    for (size_t i = 0; i < scene.cameras.size(); ++i) {
+        SceneCamera& camera = scene.cameras[i];
+        if (camera.gltf_camera.empty()) continue;
+        const GltfCamera* found = nullptr;
+        int matches = 0;
+        std::string known;
+        for (const GltfCamera& c : venue->cameras) {
+            known += (known.empty() ? "" : ", ") + quotedText(c.name);
+            if (c.name == camera.gltf_camera) {
+                found = &c;
+                ++matches;
+            }
+        }
+        const std::string field = join(indexed("cameras", i), "gltf_camera");
+        if (matches == 0)
+            return failAt(name, field,
+                          "no camera " + quotedText(camera.gltf_camera) + " in " + file +
+                              (known.empty() ? " (it has no camera)" : " (it has " + known + ")"));
+        if (matches > 1)
+            return failAt(name, field,
+                          std::to_string(matches) + " cameras of " + file + " are named " +
+                              quotedText(camera.gltf_camera) + "; name them apart");
+        camera.pose = found->pose;
+    }
+    if (!scene.gltf->lights) return Ok{};
+    if (scene.lights.size() + venue->lights.size() > kSceneMaxLights)
+        return failAt(name, "gltf.file",
+                      file + " has " + std::to_string(venue->lights.size()) +
+                          " lights; with the scene's that is more than " +
+                          std::to_string(kSceneMaxLights));
+    for (const GltfLight& l : venue->lights) {
+        SceneLight light;
+        light.name = l.name;
+        bool taken = true;
+        for (int n = 1; taken; ++n) {
+            taken = false;
+            for (const SceneLight& other : scene.lights) taken = taken || other.name == light.name;
+            if (taken)
+                light.name = l.name + " (glTF" + (n > 1 ? " " + std::to_string(n) : "") + ")";
+        }
+        light.colour = l.colour;
+        if (l.direction) {
+            light.direction = l.direction;
+            light.intensity.illuminance_lux = l.intensity;
+        } else {
+            light.position_m = l.position_m;
+            light.intensity.intensity_cd = l.intensity;
+        }
+        if (l.range_m)
+            scene.notes.push_back(file + ": light " + quotedText(l.name) +
+                                  ": its range is not modelled (the inverse-square law holds "
+                                  "at any distance)");
+        scene.lights.push_back(std::move(light));
+    }
+    if (!venue->lights.empty())
+        for (size_t i = 0; i < scene.cameras.size(); ++i)
+            if (!scene.cameras[i].rig_illuminance_lux)
+                return failAt(name, join(indexed("cameras", i), "rig_illuminance_lux"),
+                              "missing; the lights of " + file +
+                                  " are photometric (candela, lux), compared with the rig "
+                                  "light's illuminance at the lens");
+    if (scene.lights.empty() && !scene.sun)
+        return failAt(
+            name, "lights",
+            "the scene has no light and no sun, and " + file + " adds none, so nothing can flare");
+    return Ok{};
+}
+
+}  // namespace
+
 Result<Scene> loadScene(const std::string& path) {
     auto file = openRegularFile(path);
     if (!file) return file.error();
@@ -989,7 +1109,10 @@ Result<Scene> loadScene(const std::string& path) {
     if (done > static_cast<size_t>(file->size))
         return makeError(ErrorCode::IoError, path + ": grew while it was read");
     text.resize(done);
-    return parseScene(text, path, base_dir);
+    auto scene = parseScene(text, path, base_dir);
+    if (!scene || !scene->gltf) return scene;
+    if (Status applied = applyGltf(*scene, path); !applied) return applied.error();
+    return scene;
 }
 
 Result<double> lightRatio(const LightIntensity& intensity,

@@ -12,11 +12,13 @@
 // {
 //   "format": "flarelab-scene", "version": 1,
 //   "out_of_range": "refuse",                   // or "clamp"; default "refuse"
+//   "gltf": {"file": "venue.glb", "lights": true},  // optional: a venue from a 3D tool
 //   "cameras": [{
 //     "name": "main",                           // unique, 1..64 characters, no control characters
 //     "model": "models/heliar.flm",             // relative to the scene file's folder
 //     "position_m": [0, -40, 12],
-//     "pan_deg": 0, "tilt_deg": -10, "roll_deg": 0,   // or "look_at_m": [x, y, z] (no roll)
+//     "pan_deg": 0, "tilt_deg": -10, "roll_deg": 0,   // or "look_at_m": [x, y, z] (no roll);
+//                                               // or neither with "gltf_camera": "node name"
 //     "exposure_s": 0.01,                       // > 0
 //     "f_number": 8,                            // > 0; default: the model's capture f-number
 //     "gain": 1,                                // > 0, relative to the capture's; default 1
@@ -99,6 +101,9 @@ struct SceneLight {
 struct SceneCamera {
     std::string name;
     std::string model_path;  // resolved: the scene file's folder joined with the field's value
+    // Not empty: the camera of the scene's glTF file whose node has this name gives the pose
+    // (loadScene fills `pose` from it; parseScene leaves it at zero).
+    std::string gltf_camera;
     CameraPose pose;
     double exposure_s = 0.0;
     std::optional<double> f_number;
@@ -125,8 +130,16 @@ struct SceneSwitching {
     double min_dwell_s = 0.0;
 };
 
+// A venue from a 3D tool (predict/gltf_import.h): cameras by name, and its punctual lights.
+struct SceneGltf {
+    std::string path;    // resolved like a model's path
+    bool lights = true;  // its lights join the scene's fixed lights (candela or lux)
+};
+
 struct Scene {
     RangePolicy out_of_range = RangePolicy::Refuse;
+    std::optional<SceneGltf> gltf;
+    std::vector<std::string> notes;  // what the glTF import skipped or approximated
     std::vector<SceneCamera> cameras;
     std::vector<SceneLight> lights;
     std::optional<SceneSun> sun;
@@ -135,13 +148,17 @@ struct Scene {
 };
 
 // Parses and validates a scene. `name` stands for the text in errors; model paths are joined to
-// `base_dir` unless absolute. The models themselves are not read here.
+// `base_dir` unless absolute. The models themselves are not read here, nor the glTF file.
 Result<Scene> parseScene(std::string_view json,
                          const std::string& name,
                          const std::string& base_dir);
 
 // Reads `path` (NotFound, IoError, or ParseError beyond kSceneMaxFileBytes) and parses it with
-// the file's folder as base_dir.
+// the file's folder as base_dir; then reads the glTF file it names, if any: each camera with a
+// gltf_camera takes the pose of the one camera of that name (ParseError naming the camera when
+// there is none or more than one), and with "lights" every punctual light of the glTF is added
+// (point and spot lights in candela at their position, directional ones in lux; a name the
+// scene already has gets " (glTF)" added), which needs rig_illuminance_lux on every camera.
 Result<Scene> loadScene(const std::string& path);
 
 // Eq. 8.3's light term for one camera: the light's irradiance at the camera's lens over the rig

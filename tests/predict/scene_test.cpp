@@ -863,3 +863,119 @@ TEST(LightRatio, RefusesWhatItCannotCompare) {
 
 }  // namespace
 }  // namespace flarelab::predict
+
+namespace flarelab::predict {
+namespace {
+
+// A venue of two cameras and two lights as a 3D tool exports it (glTF: Y up, -Z north).
+const char* kVenue = R"({
+  "asset": {"version": "2.0"},
+  "scene": 0,
+  "scenes": [{"nodes": [0, 1, 2, 3]}],
+  "nodes": [
+    {"name": "Cam West", "camera": 0, "translation": [-60, 20, 0],
+     "rotation": [0, -0.7071067811865476, 0, 0.7071067811865476]},
+    {"name": "Cam Twin", "camera": 0, "translation": [10, 5, 0]},
+    {"name": "Tower", "translation": [30, 40, -10],
+     "extensions": {"KHR_lights_punctual": {"light": 0}}},
+    {"name": "lamp", "extensions": {"KHR_lights_punctual": {"light": 1}},
+     "rotation": [-0.7071067811865476, 0, 0, 0.7071067811865476]}
+  ],
+  "cameras": [{"type": "perspective", "perspective": {"yfov": 0.5, "znear": 0.1}}],
+  "extensions": {"KHR_lights_punctual": {"lights": [
+    {"type": "point", "intensity": 150000, "color": [1, 0.9, 0.8]},
+    {"type": "directional", "intensity": 20000}
+  ]}}
+})";
+
+TEST(LoadScene, TakesCamerasAndLightsFromAGltfVenue) {
+    ScratchDirectory dir;
+    ASSERT_FALSE(dir.path().empty());
+    std::ofstream(dir.path() + "/venue.gltf") << kVenue;
+    json scene = minimalScene();
+    scene["gltf"] = {{"file", "venue.gltf"}};
+    scene["cameras"][0].erase("position_m");
+    scene["cameras"][0].erase("pan_deg");
+    scene["cameras"][0].erase("tilt_deg");
+    scene["cameras"][0]["gltf_camera"] = "Cam West";
+    scene["cameras"][0]["rig_illuminance_lux"] = 1000;
+    const std::string path = dir.path() + "/scene.json";
+    std::ofstream(path) << scene.dump();
+    auto loaded = loadScene(path);
+    ASSERT_TRUE(loaded) << loaded.error().message;
+    // glTF -Z is north; the node turned -90 deg about +Y looks along glTF +X: east.
+    const CameraPose& pose = loaded->cameras[0].pose;
+    EXPECT_NEAR(pose.position_m[0], -60.0, 1e-9);
+    EXPECT_NEAR(pose.position_m[1], 0.0, 1e-9);
+    EXPECT_NEAR(pose.position_m[2], 20.0, 1e-9);
+    EXPECT_NEAR(pose.pan_deg, 90.0, 1e-9);
+    EXPECT_NEAR(pose.tilt_deg, 0.0, 1e-9);
+    // The scene's own lamp keeps its name; the glTF's "lamp" gets one of its own.
+    ASSERT_EQ(loaded->lights.size(), 3u);
+    EXPECT_EQ(loaded->lights[1].name, "Tower");
+    ASSERT_TRUE(loaded->lights[1].position_m);
+    EXPECT_NEAR((*loaded->lights[1].position_m)[1], 10.0, 1e-9);  // north = -z
+    EXPECT_EQ(loaded->lights[1].intensity.intensity_cd, 150000.0);
+    EXPECT_EQ(loaded->lights[1].colour[2], 0.8);
+    EXPECT_EQ(loaded->lights[2].name, "lamp (glTF)");
+    ASSERT_TRUE(loaded->lights[2].direction);
+    EXPECT_NEAR((*loaded->lights[2].direction)[2], 1.0, 1e-9);  // shining down: the sun overhead
+    EXPECT_EQ(loaded->lights[2].intensity.illuminance_lux, 20000.0);
+
+    // Without its lights the venue gives the pose only.
+    scene["gltf"]["lights"] = false;
+    std::ofstream(path) << scene.dump();
+    loaded = loadScene(path);
+    ASSERT_TRUE(loaded) << loaded.error().message;
+    EXPECT_EQ(loaded->lights.size(), 1u);
+}
+
+TEST(LoadScene, NamesAMissingGltfCameraAndWhatAVenueNeeds) {
+    ScratchDirectory dir;
+    ASSERT_FALSE(dir.path().empty());
+    std::ofstream(dir.path() + "/venue.gltf") << kVenue;
+    json scene = minimalScene();
+    scene["gltf"] = {{"file", "venue.gltf"}, {"lights", false}};
+    scene["cameras"][0].erase("position_m");
+    scene["cameras"][0].erase("pan_deg");
+    scene["cameras"][0].erase("tilt_deg");
+    scene["cameras"][0]["gltf_camera"] = "Cam East";
+    const std::string path = dir.path() + "/scene.json";
+    std::ofstream(path) << scene.dump();
+    auto loaded = loadScene(path);
+    ASSERT_FALSE(loaded);
+    EXPECT_NE(loaded.error().message.find("cameras[0].gltf_camera: no camera \"Cam East\""),
+              std::string::npos)
+        << loaded.error().message;
+    EXPECT_NE(loaded.error().message.find("\"Cam Twin\""), std::string::npos);
+    // Lights in candela need the rig's illuminance on every camera.
+    scene["cameras"][0]["gltf_camera"] = "Cam Twin";
+    scene["gltf"]["lights"] = true;
+    std::ofstream(path) << scene.dump();
+    loaded = loadScene(path);
+    ASSERT_FALSE(loaded);
+    EXPECT_NE(loaded.error().message.find("cameras[0].rig_illuminance_lux: missing"),
+              std::string::npos)
+        << loaded.error().message;
+    // A pose and a glTF camera together, a glTF camera without a glTF, a missing file.
+    json both = scene;
+    both["cameras"][0]["pan_deg"] = 0;
+    auto refused = parse(both);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find("cameras[0].pan_deg: not with gltf_camera"),
+              std::string::npos);
+    json alone = scene;
+    alone.erase("gltf");
+    refused = parse(alone);
+    ASSERT_FALSE(refused);
+    EXPECT_NE(refused.error().message.find("needs the scene's \"gltf\""), std::string::npos);
+    scene["gltf"]["file"] = "absent.glb";
+    std::ofstream(path) << scene.dump();
+    loaded = loadScene(path);
+    ASSERT_FALSE(loaded);
+    EXPECT_NE(loaded.error().message.find("gltf.file"), std::string::npos)
+        << loaded.error().message;
+}
+
+}  // namespace
+}  // namespace flarelab::predict
