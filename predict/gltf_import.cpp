@@ -23,10 +23,13 @@
 
 #include "common/file_descriptor.h"
 #include "common/utf8.h"
+#include "predict/detail/json_document.h"
 
 namespace flarelab::predict {
 namespace {
 
+using detail::indexed;
+using detail::number;
 using nlohmann::json;
 
 constexpr double kDegree = std::numbers::pi / 180.0;
@@ -45,21 +48,6 @@ constexpr double kUniformScaleTolerance = 1e-6;
 // ---------------------------------------------------------------------------------------------
 // Text for messages.
 
-// The shortest of 15 or 17 significant digits that reads back to `value`.
-std::string number(double value) {
-    char text[32];
-    std::snprintf(text, sizeof text, "%.15g", value);
-    if (std::strtod(text, nullptr) != value) std::snprintf(text, sizeof text, "%.17g", value);
-    return text;
-}
-
-size_t sequenceLength(unsigned char lead) {
-    if (lead >= 0xF0 && lead < 0xF8) return 4;
-    if (lead >= 0xE0) return lead < 0xF0 ? 3 : 1;
-    if (lead >= 0xC0) return 2;
-    return 1;
-}
-
 // `text` made safe for a message: control characters and bytes that are not UTF-8 escaped, cut
 // after `max_characters`, so that a hostile file cannot put a terminal sequence, a megabyte or
 // invalid UTF-8 (which a protobuf reply would refuse) into a log line.
@@ -72,7 +60,7 @@ std::string printable(std::string_view text, size_t max_characters) {
             break;
         }
         const auto c = static_cast<unsigned char>(text[i]);
-        const size_t length = sequenceLength(c);
+        const size_t length = detail::utf8SequenceLength(c);
         char escaped[16];
         if (c < 0x20 || c == 0x7F) {
             std::snprintf(escaped, sizeof escaped, "\\u%04X", c);
@@ -100,12 +88,7 @@ std::string printable(std::string_view text, size_t max_characters) {
 }
 
 std::string quotedText(std::string_view text) {
-    std::string out = "\"";
-    for (const char c : printable(text, kMaxQuotedCharacters)) {
-        if (c == '"') out += '\\';
-        out += c;
-    }
-    return out + "\"";
+    return detail::quotedText(text, kMaxQuotedCharacters);
 }
 
 // tinygltf's error text: lines joined with "; ", without a trailing newline, made printable.
@@ -123,34 +106,10 @@ std::string libraryMessage(const std::string& text) {
     return "tinygltf: " + printable(joined, kMaxLibraryMessageCharacters);
 }
 
-std::string typeOf(const json& value) {
-    switch (value.type()) {
-        case json::value_t::null:
-            return "null";
-        case json::value_t::object:
-            return "an object";
-        case json::value_t::array:
-            return "an array";
-        case json::value_t::string:
-            return "a string";
-        case json::value_t::boolean:
-            return value.get<bool>() ? "true" : "false";
-        case json::value_t::number_integer:
-        case json::value_t::number_unsigned:
-            return value.dump();
-        case json::value_t::number_float:
-            return number(value.get<double>());
-        default:
-            return "a value of no JSON type";
-    }
-}
+std::string typeOf(const json& value) { return detail::typeOf(value, true); }
 
 std::string plural(size_t count, const std::string& what) {
     return std::to_string(count) + " " + what + (count == 1 ? "" : "s");
-}
-
-std::string indexed(const std::string& path, size_t i) {
-    return path + "[" + std::to_string(i) + "]";
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -158,91 +117,6 @@ std::string indexed(const std::string& path, size_t i) {
 // wrong type ("camera": "1" becomes no camera; "light": 4294967296 becomes light 0), keeps the
 // last of two equal keys, and recurses without bound on deeply nested extras. The checks below
 // look at the document itself, so that what tinygltf then gives is what the file says.
-
-class DocumentBuilder final : public json::json_sax_t {
-public:
-    json document;
-    std::string error;  // empty while the text is well formed
-
-    bool null() override { return add(json(nullptr)); }
-    bool boolean(bool value) override { return add(json(value)); }
-    bool number_integer(number_integer_t value) override { return add(json(value)); }
-    bool number_unsigned(number_unsigned_t value) override { return add(json(value)); }
-    bool number_float(number_float_t value, const string_t&) override { return add(json(value)); }
-    bool string(string_t& value) override { return add(json(std::move(value))); }
-    bool binary(binary_t&) override {
-        error = "not valid JSON: binary data";
-        return false;
-    }
-    bool start_object(std::size_t) override { return open(json::object()); }
-    bool key(string_t& key) override {
-        // glTF 2.0, section 3.2: keys within an object are unique.
-        if (open_.back()->contains(key)) {
-            error = "the key " + quotedText(key) + " is given twice in one object";
-            return false;
-        }
-        key_ = std::move(key);
-        return true;
-    }
-    bool end_object() override {
-        open_.pop_back();
-        return true;
-    }
-    bool start_array(std::size_t) override { return open(json::array()); }
-    bool end_array() override {
-        open_.pop_back();
-        return true;
-    }
-    bool parse_error(std::size_t position,
-                     const std::string&,
-                     const nlohmann::json::exception& e) override {
-        std::string what = e.what();
-        // "[json.exception.parse_error.101] parse error at ...": the bracket names nlohmann's
-        // exception class, which means nothing to whoever exported the file.
-        if (!what.empty() && what.front() == '[') {
-            const size_t end = what.find("] ");
-            if (end != std::string::npos) what.erase(0, end + 2);
-        }
-        if (what.find("line ") == std::string::npos) what += " at byte " + std::to_string(position);
-        error = "not valid JSON: " + printable(what, kMaxLibraryMessageCharacters);
-        return false;
-    }
-
-private:
-    // Where a value goes; it stays put until its container closes (an array's elements only move
-    // when it grows, and an open container's parent does not grow).
-    json* put(json&& value) {
-        if (open_.empty()) {
-            document = std::move(value);
-            return &document;
-        }
-        json& parent = *open_.back();
-        if (parent.is_array()) {
-            auto& elements = *parent.get_ptr<json::array_t*>();
-            elements.push_back(std::move(value));
-            return &elements.back();
-        }
-        auto& members = *parent.get_ptr<json::object_t*>();
-        return &members.emplace(key_, std::move(value)).first->second;
-    }
-
-    bool add(json&& value) {
-        put(std::move(value));
-        return true;
-    }
-
-    bool open(json&& container) {
-        if (open_.size() >= static_cast<size_t>(kGltfMaxJsonDepth)) {
-            error = "nested more than " + std::to_string(kGltfMaxJsonDepth) + " levels deep";
-            return false;
-        }
-        open_.push_back(put(std::move(container)));
-        return true;
-    }
-
-    std::vector<json*> open_;
-    std::string key_;
-};
 
 // ---------------------------------------------------------------------------------------------
 // GLB (glTF 2.0, section 4.4): a 12-byte header, then chunks of an 8-byte header and data.
@@ -1206,10 +1080,13 @@ Result<GltfImport> importBytes(std::string_view bytes,
 
     Counts counts;
     {
-        DocumentBuilder builder;
+        detail::JsonDocumentBuilder builder(kGltfMaxJsonDepth);
         json::sax_parse(json_text.begin(), json_text.end(), &builder);
         if (!builder.error.empty())
-            return makeError(ErrorCode::ParseError, name + ": " + builder.error);
+            return makeError(ErrorCode::ParseError,
+                             name + ": " +
+                                 (builder.error_path.empty() ? "" : builder.error_path + ": ") +
+                                 builder.error);
         DocumentCheck check(name, binary, !base_dir.has_value(), access);
         if (auto s = check.check(builder.document); !s) return s.error();
         counts = check.counts();
@@ -1271,26 +1148,9 @@ Result<GltfImport> importGltfFromMemory(std::string_view bytes,
 
 Result<GltfImport> importGltf(const std::string& path) {
     try {
-        auto file = openRegularFile(path);
-        if (!file) return file.error();
-        if (file->size > kGltfMaxBytes)
-            return makeError(ErrorCode::ParseError, path + ": " + std::to_string(file->size) +
-                                                        " bytes, more than a glTF may hold here (" +
-                                                        std::to_string(kGltfMaxBytes) + ")");
-        // One byte more than the size: a file that grew while being read is refused.
-        std::string bytes(static_cast<size_t>(file->size) + 1, '\0');
-        size_t done = 0;
-        while (done < bytes.size()) {
-            const ssize_t got = ::read(file->fd.get(), bytes.data() + done, bytes.size() - done);
-            if (got < 0 && errno == EINTR) continue;
-            if (got < 0)
-                return makeError(ErrorCode::IoError, path + ": cannot read: " + osMessage(errno));
-            if (got == 0) break;
-            done += static_cast<size_t>(got);
-        }
-        if (done > static_cast<size_t>(file->size))
-            return makeError(ErrorCode::IoError, path + ": grew while it was read");
-        bytes.resize(done);
+        auto read = detail::readSmallFile(path, kGltfMaxBytes, "a glTF file");
+        if (!read) return read.error();
+        const std::string& bytes = *read;
         std::string base_dir = std::filesystem::path(path).parent_path().string();
         if (base_dir.empty()) base_dir = ".";
         const bool binary = bytes.size() >= 4 && std::string_view(bytes).substr(0, 4) == "glTF";

@@ -1,8 +1,5 @@
 #include "predict/scene.h"
 
-#include <unistd.h>
-
-#include <cerrno>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -15,8 +12,8 @@
 #include <nlohmann/json.hpp>
 #include <utility>
 
-#include "common/file_descriptor.h"
 #include "common/utf8.h"
+#include "predict/detail/json_document.h"
 #include "predict/gltf_import.h"
 
 namespace flarelab::predict {
@@ -37,71 +34,15 @@ constexpr double kInf = std::numeric_limits<double>::infinity();
 // ---------------------------------------------------------------------------------------------
 // Text for messages.
 
-// The shortest of 15 or 17 significant digits that reads back to `value`: "0.1", not
-// "0.10000000000000001"; "0.0009", not to_chars' "9e-04".
-std::string number(double value) {
-    char text[32];
-    std::snprintf(text, sizeof text, "%.15g", value);
-    if (std::strtod(text, nullptr) != value) std::snprintf(text, sizeof text, "%.17g", value);
-    return text;
+using detail::controlAt;
+using detail::indexed;
+using detail::number;
+
+std::string quotedText(std::string_view text) {
+    return detail::quotedText(text, kMaxNameCharacters);
 }
 
 bool isContinuationByte(unsigned char c) { return (c & 0xC0) == 0x80; }
-
-// The length of the UTF-8 sequence starting with `lead`; 1 for a byte that cannot start one.
-size_t sequenceLength(unsigned char lead) {
-    if (lead >= 0xF0 && lead < 0xF8) return 4;
-    if (lead >= 0xE0) return lead < 0xF0 ? 3 : 1;
-    if (lead >= 0xC0) return 2;
-    return 1;
-}
-
-// A C0 or C1 control character or DEL starts at text[i].
-bool controlAt(std::string_view text, size_t i) {
-    const auto c = static_cast<unsigned char>(text[i]);
-    if (c < 0x20 || c == 0x7F) return true;
-    return c == 0xC2 && i + 1 < text.size() && static_cast<unsigned char>(text[i + 1]) >= 0x80 &&
-           static_cast<unsigned char>(text[i + 1]) <= 0x9F;
-}
-
-// `text` in quotes for a message: control characters and bytes that are not UTF-8 escaped, and
-// cut after 64 characters, so a hostile file cannot put a terminal sequence or a megabyte into a
-// log line (or invalid UTF-8 into a protobuf reply).
-std::string quotedText(std::string_view text) {
-    std::string out = "\"";
-    size_t characters = 0;
-    for (size_t i = 0; i < text.size(); ++characters) {
-        if (characters == kMaxNameCharacters) {
-            out += "...";
-            break;
-        }
-        const auto c = static_cast<unsigned char>(text[i]);
-        const size_t length = sequenceLength(c);
-        char escaped[16];
-        if (controlAt(text, i)) {
-            const unsigned code = c < 0x80 ? c : static_cast<unsigned char>(text[i + 1]);
-            std::snprintf(escaped, sizeof escaped, "\\u%04X", code);
-            out += escaped;
-            i += c < 0x80 ? 1 : 2;
-        } else if (c == '"' || c == '\\') {
-            out += '\\';
-            out += static_cast<char>(c);
-            ++i;
-        } else if (c < 0x80) {
-            out += static_cast<char>(c);
-            ++i;
-        } else if (length > 1 && i + length <= text.size() && validUtf8(text.substr(i, length))) {
-            out.append(text.substr(i, length));
-            i += length;
-        } else {
-            std::snprintf(escaped, sizeof escaped, "\\x%02X", c);
-            out += escaped;
-            ++i;
-        }
-    }
-    out += '"';
-    return out;
-}
 
 size_t characterCount(std::string_view text) {
     size_t count = 0;
@@ -109,168 +50,14 @@ size_t characterCount(std::string_view text) {
     return count;
 }
 
-std::string typeOf(const json& value) {
-    switch (value.type()) {
-        case json::value_t::null:
-            return "null";
-        case json::value_t::object:
-            return "an object";
-        case json::value_t::array:
-            return "an array";
-        case json::value_t::string:
-            return "a string";
-        case json::value_t::boolean:
-            return value.get<bool>() ? "true" : "false";
-        case json::value_t::number_integer:
-        case json::value_t::number_unsigned:
-        case json::value_t::number_float:
-            return "a number";
-        default:
-            return "a value of no JSON type";
-    }
-}
+std::string typeOf(const json& value) { return detail::typeOf(value, false); }
 
 std::string join(const std::string& path, std::string_view key) {
     return path.empty() ? std::string(key) : path + "." + std::string(key);
 }
 
-std::string indexed(const std::string& path, size_t i) {
-    return path + "[" + std::to_string(i) + "]";
-}
-
 // ---------------------------------------------------------------------------------------------
-// The document.
-
-// Builds the document from nlohmann's SAX events rather than json::parse, for what json::parse
-// does not give: a key given twice is refused (json::parse keeps the last, so one of two
-// "exposure_s" would vanish silently), nesting is bounded, and bad input throws nothing: the
-// error, with its position, comes back as data.
-class DocumentBuilder final : public json::json_sax_t {
-public:
-    json document;
-    std::string error_path;  // where the error is ("" for the document or the JSON text)
-    std::string error;       // empty while the text is well formed
-
-    bool null() override { return add(json(nullptr)); }
-    bool boolean(bool value) override { return add(json(value)); }
-    bool number_integer(number_integer_t value) override { return add(json(value)); }
-    bool number_unsigned(number_unsigned_t value) override { return add(json(value)); }
-    bool number_float(number_float_t value, const string_t&) override { return add(json(value)); }
-    bool string(string_t& value) override { return add(json(std::move(value))); }
-    bool binary(binary_t&) override {
-        error = "not valid JSON: binary data";  // only the binary formats produce this
-        return false;
-    }
-    bool start_object(std::size_t) override { return open(json::object()); }
-    bool key(string_t& key) override {
-        if (open_.back().value->contains(key)) {
-            error_path = pathOf(open_.size());
-            error = "the field " + quotedText(key) + " is given twice";
-            return false;
-        }
-        key_ = std::move(key);
-        return true;
-    }
-    bool end_object() override {
-        open_.pop_back();
-        return true;
-    }
-    bool start_array(std::size_t) override { return open(json::array()); }
-    bool end_array() override {
-        open_.pop_back();
-        return true;
-    }
-    bool parse_error(std::size_t position,
-                     const std::string&,
-                     const nlohmann::json::exception& e) override {
-        std::string what = e.what();
-        // "[json.exception.parse_error.101] parse error at line 1, column 3: ...": the bracket
-        // names nlohmann's exception class, which means nothing to whoever wrote the scene.
-        if (!what.empty() && what.front() == '[') {
-            const size_t end = what.find("] ");
-            if (end != std::string::npos) what.erase(0, end + 2);
-        }
-        // The number overflow ("1e999") comes without a position.
-        if (what.find("line ") == std::string::npos) what += " at byte " + std::to_string(position);
-        // The token nlohmann quotes may hold bytes that are not UTF-8.
-        if (!validUtf8(what))
-            for (char& c : what)
-                if (static_cast<unsigned char>(c) >= 0x80) c = '?';
-        error_path.clear();
-        error = "not valid JSON: " + what;
-        return false;
-    }
-
-private:
-    // An open container and how its path goes on from its parent's: ".key" or "[index]". Each
-    // keeps its own part only, and whole paths are put together for an error: a copy of the
-    // parent's path in every container would cost time and memory quadratic in a long key.
-    struct Open {
-        json* value;
-        std::string segment;
-    };
-
-    // The part of a path that leads to the next value of the innermost open container.
-    std::string childSegment() const {
-        if (open_.empty()) return "";
-        const json& parent = *open_.back().value;
-        if (parent.is_array()) return "[" + std::to_string(parent.size()) + "]";
-        // A key shown as it is unless it is long or strange.
-        bool plain = !key_.empty() && key_.size() <= kMaxNameCharacters;
-        for (size_t i = 0; plain && i < key_.size(); ++i)
-            plain = !controlAt(key_, i) && key_[i] != '"' && key_[i] != '.' && key_[i] != '[';
-        return "." + (plain ? key_ : quotedText(key_));
-    }
-
-    // The path of the `depth` outermost open containers.
-    std::string pathOf(size_t depth) const {
-        std::string path;
-        for (size_t i = 0; i < depth; ++i) path += open_[i].segment;
-        return path.empty() || path.front() != '.' ? path : path.substr(1);
-    }
-
-    // Where the value went, which stays put until its container is closed: an array's elements
-    // only move when the array grows, and an open container's parent does not grow.
-    json* put(json&& value) {
-        if (open_.empty()) {
-            document = std::move(value);
-            return &document;
-        }
-        json& parent = *open_.back().value;
-        if (parent.is_array()) {
-            auto& elements = *parent.get_ptr<json::array_t*>();
-            elements.push_back(std::move(value));
-            return &elements.back();
-        }
-        auto& members = *parent.get_ptr<json::object_t*>();
-        return &members.emplace(key_, std::move(value)).first->second;
-    }
-
-    bool add(json&& value) {
-        put(std::move(value));
-        return true;
-    }
-
-    bool open(json&& container) {
-        if (open_.size() >= kMaxDepth) {
-            error_path = pathOf(open_.size()) + childSegment();
-            if (!error_path.empty() && error_path.front() == '.') error_path.erase(0, 1);
-            error = "nested more than " + std::to_string(kMaxDepth) +
-                    " levels deep; a scene is at most 4";
-            return false;
-        }
-        std::string segment = childSegment();
-        json* value = put(std::move(container));
-        open_.push_back(Open{value, std::move(segment)});
-        return true;
-    }
-
-    std::vector<Open> open_;
-    std::string key_;
-};
-
-// ---------------------------------------------------------------------------------------------
-// Reading values.
+// Reading values (the document is built by detail::JsonDocumentBuilder).
 
 Error failAt(const std::string& scene, const std::string& path, const std::string& what) {
     return makeError(ErrorCode::ParseError,
@@ -989,7 +776,7 @@ Result<Scene> parseScene(std::string_view json_text,
                          const std::string& name,
                          const std::string& base_dir) {
     try {
-        DocumentBuilder builder;
+        detail::JsonDocumentBuilder builder(kMaxDepth, "; a scene is at most 4");
         json::sax_parse(json_text.data(), json_text.data() + json_text.size(), &builder);
         if (!builder.error.empty()) return failAt(name, builder.error_path, builder.error);
         return readScene(builder.document, name, base_dir);
@@ -1080,36 +867,11 @@ Status applyGltf(Scene& scene, const std::string& name) {
 }  // namespace
 
 Result<Scene> loadScene(const std::string& path) {
-    auto file = openRegularFile(path);
-    if (!file) return file.error();
-    if (file->size > kSceneMaxFileBytes)
-        return makeError(ErrorCode::ParseError, path + ": " + std::to_string(file->size) +
-                                                    " bytes, more than a scene file may hold (" +
-                                                    std::to_string(kSceneMaxFileBytes) + ")");
-    std::string text;
-    std::string base_dir;
-    try {
-        // One byte more than the size: a file that grew while being read is read to the limit
-        // and refused rather than cut short.
-        text.resize(static_cast<size_t>(file->size) + 1);
-        base_dir = std::filesystem::path(path).parent_path().string();
-    } catch (const std::bad_alloc&) {
-        return makeError(ErrorCode::IoError, path + ": out of memory reading it");
-    }
+    auto text = detail::readSmallFile(path, kSceneMaxFileBytes, "a scene file");
+    if (!text) return text.error();
+    std::string base_dir = std::filesystem::path(path).parent_path().string();
     if (base_dir.empty()) base_dir = ".";
-    size_t done = 0;
-    while (done < text.size()) {
-        const ssize_t got = ::read(file->fd.get(), text.data() + done, text.size() - done);
-        if (got < 0 && errno == EINTR) continue;
-        if (got < 0)
-            return makeError(ErrorCode::IoError, path + ": cannot read: " + osMessage(errno));
-        if (got == 0) break;
-        done += static_cast<size_t>(got);
-    }
-    if (done > static_cast<size_t>(file->size))
-        return makeError(ErrorCode::IoError, path + ": grew while it was read");
-    text.resize(done);
-    auto scene = parseScene(text, path, base_dir);
+    auto scene = parseScene(*text, path, base_dir);
     if (!scene || !scene->gltf) return scene;
     if (Status applied = applyGltf(*scene, path); !applied) return applied.error();
     return scene;
