@@ -1,6 +1,7 @@
 #include "apps/predict_command.h"
 
 #include <algorithm>
+#include <cctype>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -307,11 +308,9 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
         const size_t steps = timeline->sun.positions.size();
         const double step_s = std::chrono::duration<double>(timeline->sun.step).count();
         std::string tcsv = "time_utc,sun_zenith_deg,sun_azimuth_deg";
-        for (const auto& camera : *cameras) {
-            const std::string n = csv(camera.scene.name);
-            tcsv +=
-                "," + n + " flare_mean," + n + " flare_peak," + n + " contrast_loss," + n + " sun";
-        }
+        for (const auto& camera : *cameras)
+            for (const char* column : {" flare_mean", " flare_peak", " contrast_loss", " sun"})
+                tcsv += "," + csv(camera.scene.name + column);
         tcsv += "\n";
         for (size_t i = 0; i < steps; ++i) {
             const auto& p = timeline->sun.positions[i];
@@ -498,12 +497,14 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
                 sun = predict::SunLight{predict::sunDirection(p->zenith_deg, p->azimuth_deg),
                                         scene->sun->intensity, scene->sun->colour};
         }
-        for (const auto& camera : *cameras) {
+        for (size_t c = 0; c < cameras->size(); ++c) {
+            const predict::PreparedCamera& camera = (*cameras)[c];
             start = Clock::now();
             auto frame = predict::drawCameraFrame(camera, scene->lights, sun, scene->out_of_range);
             if (!frame) return fail(frame.error());
             frames_ms += msSince(start);
-            std::string stem = fileStem(camera.scene.name);
+            // Numbered: two names may differ only in what a file name cannot hold.
+            std::string stem = std::to_string(c + 1) + "-" + fileStem(camera.scene.name);
             if (!when.empty()) {
                 std::string t = when;
                 std::replace(t.begin(), t.end(), ':', '-');
@@ -521,15 +522,14 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
                 return fail(w.error());
             // As the camera would show it: its white (the scene's brightest DN, else the
             // frame's peak) at 1, then --exposure-stops.
-            const double white = camera.scene.scene_max_dn.value_or(
-                std::max(1e-30, predict::flareFigures(frame->image).max));
+            const predict::FlareFigures f = predict::flareFigures(frame->image);
+            const double white = camera.scene.scene_max_dn.value_or(std::max(1e-30, f.max));
             render::ToneMapOptions tone;
             tone.exposure_stops = std::clamp(s.exposure_stops - std::log2(white), -64.0, 64.0);
             if (auto w = render::writePng(frame->image,
                                           (std::filesystem::path(s.out_dir) / png).string(), tone);
                 !w)
                 return fail(w.error());
-            const predict::FlareFigures f = predict::flareFigures(frame->image);
             int refused = 0;
             for (const auto& l : frame->lights)
                 refused += l.state == predict::LightState::OutsideRange;

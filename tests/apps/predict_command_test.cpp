@@ -147,7 +147,11 @@ TEST_F(PredictCommand, AStaticSceneDrawsOneFramePerCamera) {
     const CommandRun r = predict({writeScene(R"({
       "format": "flarelab-scene", "version": 1,
       "cameras": [{"name": "cam", "model": "models/disc.flm", "position_m": [0, 0, 0],
-                   "look_at_m": [0, 50, 0], "exposure_s": 1}],
+                   "look_at_m": [0, 50, 0], "exposure_s": 1},
+                  {"name": "goal/north, high", "model": "models/disc.flm",
+                   "position_m": [0, 0, 0], "look_at_m": [0, 50, 0], "exposure_s": 1},
+                  {"name": "goal_north__high", "model": "models/disc.flm",
+                   "position_m": [0, 0, 0], "look_at_m": [0, 50, 0], "exposure_s": 1}],
       "lights": [{"name": "behind", "position_m": [0, -10, 0], "relative": 1},
                  {"name": "on axis", "direction": {"azimuth_deg": 0, "elevation_deg": 0},
                   "relative": 1}]
@@ -158,7 +162,13 @@ TEST_F(PredictCommand, AStaticSceneDrawsOneFramePerCamera) {
     EXPECT_EQ(report["cameras"][0]["lights"][0]["state"], "behind-camera");
     EXPECT_EQ(report["cameras"][0]["lights"][1]["state"], "drawn");
     EXPECT_NEAR(report["cameras"][0]["lights"][1]["theta_deg"].get<double>(), 0.0, 1e-9);
-    EXPECT_EQ(report["frames"].size(), 1u);
+    // One frame per camera, each in a file of its own although two names differ only in what
+    // a file name cannot hold; a name with a comma is quoted in the CSV.
+    ASSERT_EQ(report["frames"].size(), 3u);
+    EXPECT_NE(report["frames"][1]["png"], report["frames"][2]["png"]);
+    for (const auto& frame : report["frames"])
+        EXPECT_TRUE(fs::exists(out / frame["png"].get<std::string>())) << frame["png"];
+    EXPECT_TRUE(contains(readText(out / "figures.csv"), "\"goal/north, high\",behind,"));
     EXPECT_FALSE(fs::exists(out / "timeline.csv"));
 }
 
