@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <ostream>
 #include <random>
+#include <tuple>
 
 #include "drivers/lens_settings.h"
 #include "drivers/sim_truth.h"
@@ -52,8 +53,7 @@ Result<PredictBenchResult> runPredictBench(const PredictBenchOptions& o, std::os
     PredictBenchResult r;
     r.model = o.model_path;
     r.ghosts = static_cast<int64_t>(model->ghosts.size());
-    r.valid_from_deg = std::max(0.0, model->valid_from_deg);
-    r.valid_to_deg = model->valid_to_deg;
+    std::tie(r.valid_from_deg, r.valid_to_deg) = predict::coveredTheta(*model);
     r.constellations = o.constellations;
     const int64_t width = model->capture.width_px, height = model->capture.height_px;
 

@@ -60,6 +60,13 @@ double contrastRatio(double scene_min, double scene_max, double flare) {
     return s / (s + 2.0 * flare);
 }
 
+std::pair<double, double> coveredTheta(const fit::FlareModel& model) {
+    const double lo = model.valid_from_deg, hi = model.valid_to_deg;
+    if (hi <= 0.0) return {-hi, -lo};
+    if (lo < 0.0) return {0.0, std::max(-lo, hi)};
+    return {lo, hi};
+}
+
 Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
                                                  const FigureTableOptions& options) {
     if (!(options.theta_step_deg >= 0.0 && options.theta_step_deg <= 10.0))
@@ -75,9 +82,7 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
     if (!(model.lens.sensor_width_mm > 0.0 && model.lens.sensor_height_mm > 0.0))
         return makeError(ErrorCode::InvalidArgument, "figure table: the model has no sensor size");
     // theta >= 0; a model of negative head angles covers |angle| (playback.h).
-    double from = model.valid_from_deg, to = model.valid_to_deg;
-    if (to <= 0.0) std::tie(from, to) = std::pair(-to, -from);
-    from = std::max(from, 0.0);
+    const auto [from, to] = coveredTheta(model);
     if (!(to > from))
         return makeError(ErrorCode::InvalidArgument,
                          "figure table: the model covers no range of angles at or above 0");

@@ -1,5 +1,5 @@
 // ============================================================================
-//  flarelab predict: FlareFigures, flareFigures, contrastRatio, FigureTableOptions,
+//  flarelab predict: FlareFigures, flareFigures, contrastRatio, coveredTheta, FigureTableOptions,
 //                    FlareFigureTable
 // ============================================================================
 //
@@ -17,6 +17,7 @@
 
 #include <cstdint>
 #include <optional>
+#include <utility>
 #include <vector>
 
 #include "common/image.h"
@@ -48,6 +49,11 @@ FlareFigures flareFigures(const ImageRGB& image);
 // the caller; FLARELAB_CHECK here).
 double contrastRatio(double scene_min, double scene_max, double flare);
 
+// The light angles theta (>= 0) that `model` answers for: its head angles folded onto theta (a
+// negative head angle is the light on the other side, playback.h), [from, to] with from < to
+// unless the model's range is degenerate.
+std::pair<double, double> coveredTheta(const fit::FlareModel& model);
+
 struct FigureTableOptions {
     double theta_step_deg = 0.0;  // 0: the model's capture step, at most 0.5 deg
     double phi_step_deg = 5.0;    // (0, 90], a divisor of 360 within 1e-9
@@ -71,7 +77,8 @@ public:
                                           const FigureTableOptions& options = {});
 
     // Figures per pixel at (theta, phi); `total` is per pixel of the capture's size. nullopt
-    // outside [theta_from, theta_to].
+    // outside [theta_from, theta_to]: every theta the model covers, on either side of its head
+    // angles (playback.h), so wherever placeLight draws a light the table answers.
     std::optional<FlareFigures> at(double theta_deg, double phi_deg) const;
 
     double thetaFromDeg() const { return theta_from_deg_; }

@@ -96,6 +96,22 @@ TEST(FlareFigureTable, AgreesWithDrawingEachConstellation) {
     EXPECT_FALSE(table->at(2.0, std::nan("")));
 }
 
+TEST(FlareFigureTable, CoversEveryAngleTheModelDrawsOnEitherSide) {
+    // Head angles -20..10: a light at theta 15 is the head angle -15 turned half a turn.
+    fit::FlareModel model = testing::movingDiscModel();
+    model.capture.from_deg = model.valid_from_deg = -20.0;
+    auto table = FlareFigureTable::build(model, FigureTableOptions{1.0, 30.0, 48});
+    ASSERT_TRUE(table) << table.error().message;
+    EXPECT_EQ(table->thetaFromDeg(), 0.0);
+    EXPECT_EQ(table->thetaToDeg(), 20.0);
+    EXPECT_TRUE(table->at(15.0, 0.0));
+    // At 5 deg the disc is drawn directly; the table agrees with drawing it.
+    auto image = fit::renderModel(model, 5.0, 0.0, 48, 32);
+    ASSERT_TRUE(image);
+    EXPECT_NEAR(table->at(5.0, 0.0)->mean, flareFigures(*image).mean,
+                0.03 * flareFigures(*image).mean);
+}
+
 TEST(FlareFigureTable, RefusesBadOptionsAndEmptyRanges) {
     const fit::FlareModel model = testing::movingDiscModel();
     FigureTableOptions o;
