@@ -240,6 +240,7 @@ int run(const CaptureState& s, std::ostream& out, std::ostream& err) {
     header.camera.serial = camera.identity().serial;
     header.camera.bit_depth = caps.bit_depth;
     header.camera.raw_format = camera.format();
+    header.camera.light_power_dn_s = camera.lightPowerDnPerS();
     // The sensor's geometry, so that a fit maps pixels to sensor mm: the simulated camera's own;
     // for other cameras what --pixel-um says.
     if (s.pixel_um > 0.0)

@@ -7,6 +7,7 @@
 #include <iomanip>
 #include <memory>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <vector>
 
 #include "drivers/lens_settings.h"
@@ -41,6 +42,7 @@ struct FitState {
     int shape_passes = fit::ShadingRefitOptions{}.shape_passes;
     int shape_frames = fit::ShadingRefitOptions{}.shape_frames_per_ghost;
     double shape_outline = fit::ShadingRefitOptions{}.shape_min_outline_in_frame;
+    std::optional<double> light_power_dn_s;
     bool quiet = false;
 };
 
@@ -183,6 +185,10 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         }
         options.path_seeds = std::move(*seeder);
     }
+    if (s.light_power_dn_s && !(std::isfinite(*s.light_power_dn_s) && *s.light_power_dn_s > 0.0)) {
+        err << "flarelab: fit: --light-power-dn-s must be a finite number > 0\n";
+        return 2;
+    }
     if (Status ok = fit::checkSweepFitOptions(options); !ok) {
         err << "flarelab: fit: " << ok.error().message << "\n";
         return 2;
@@ -206,6 +212,8 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
         if (!model->lens.f_number && lens->camera().f_number > 0.0)
             model->lens.f_number = lens->camera().f_number;
     }
+    // A measured power given here overrides what the sweep recorded.
+    if (s.light_power_dn_s) model->capture.light_power_dn_s = s.light_power_dn_s;
     if (Status written = fit::writeModel(s.output, *model); !written) {
         err << "flarelab: fit: " << written.error().message << "\n";
         return 1;
@@ -502,6 +510,10 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_option("--lens", fs->lens_file,
                     "the lens prescription, recorded in the model (gives the sensor size)");
     fit->add_option("--sensor-mm", fs->sensor, "sensor size WxH in mm (when nothing else says)");
+    fit->add_option("--light-power-dn-s", fs->light_power_dn_s,
+                    "the rig light's own image summed over the sensor, DN/s at the capture's gain "
+                    "(measured apart, e.g. through an ND filter): the lab figures' scale")
+        ->check(CLI::PositiveNumber);
     fit->add_option("--optimizer", fs->optimizer, "ceres or gradient-descent")
         ->capture_default_str();
     fit->add_option("--iterations", fs->iterations, "optimizer iterations per ghost and pass")

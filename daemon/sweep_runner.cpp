@@ -351,6 +351,7 @@ Result<hdr::SweepWriter> SweepJob::openSweep() {
         header.camera.serial = camera_->identity().serial;
         header.camera.bit_depth = camera_->capabilities().bit_depth;
         header.camera.raw_format = camera_->format();
+        header.camera.light_power_dn_s = camera_->lightPowerDnPerS();
         if (c.pixel_pitch_um() > 0.0)
             header.camera.pixel_pitch_um = c.pixel_pitch_um();
         else if (lens)

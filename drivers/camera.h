@@ -20,6 +20,7 @@
 
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <utility>
 #include <vector>
@@ -94,6 +95,11 @@ public:
     // What the backend chose on its own and a lab should know (an 8-bit format because the
     // camera has no deeper one, a gain unit it assumed): one sentence each; empty when nothing.
     virtual std::vector<std::string> notes() const { return {}; }
+    // The power of the rig light's own image, summed over the sensor, in DN/s at unity gain, for
+    // the sweep's record (hdr/sweep.h, camera.light_power_dn_s) and the lab figures of a model;
+    // nullopt where the camera does not know it (a real camera: the light's core saturates a
+    // bracket, so a lab measures it apart and gives it to `flarelab fit`).
+    virtual std::optional<double> lightPowerDnPerS() const { return std::nullopt; }
 };
 
 // Cameras by URI: "sim:?lens=data/lenses/heliar-tronnier.csv" (sim_camera.h),

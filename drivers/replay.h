@@ -71,6 +71,10 @@ public:
     double gain() const override { return gain_; }
     Status setFormat(hdr::RawFormat format) override;
     hdr::RawFormat format() const override { return format_; }
+    // What the replayed sweep recorded.
+    std::optional<double> lightPowerDnPerS() const override {
+        return sweep_->header.camera.light_power_dn_s;
+    }
     Result<hdr::RawFrame> capture(double timeout_s) override;
     // A replayed capture reads a recorded file and waits for nothing: an abort is seen when the
     // next capture begins.

@@ -478,6 +478,32 @@ Result<ImageRGB> SimCamera::renderPower(double angle_deg, bool green_only) {
     return std::move(*image);
 }
 
+std::optional<double> simLightPower(const optics::Lens& lens, const SimCameraOptions& options) {
+    if (!options.validate()) return std::nullopt;
+    render::Light light;
+    light.rgb = options.light_rgb;
+    const SimLightSpot spot = simLightSpot(lens, light);
+    const bool green = options.format == hdr::RawFormat::Mono && options.mono == MonoResponse::Green;
+    const double power =
+        green ? spot.power[1]
+              : 0.2126 * spot.power[0] + 0.7152 * spot.power[1] + 0.0722 * spot.power[2];
+    // A pixel holding rendered power p records quantum_scale p / (pixel area) e/s (the top of
+    // sim_camera.h); the light's image spreads its power over pixels that together hold all of it.
+    const optics::CameraDescription& sensor = lens.camera();
+    const double pixel_area_mm2 =
+        (sensor.sensor_width_mm / static_cast<double>(options.width_px)) *
+        (sensor.sensor_height_mm / static_cast<double>(options.height_px));
+    const double dn_s = power * options.quantum_scale / pixel_area_mm2 / options.electrons_per_dn;
+    if (!(dn_s > 0.0) || !std::isfinite(dn_s)) return std::nullopt;
+    return dn_s;
+}
+
+std::optional<double> SimCamera::lightPowerDnPerS() const {
+    SimCameraOptions options = options_;
+    options.format = format_;
+    return simLightPower(lens_, options);
+}
+
 double SimCamera::powerToRate() const {
     // Power per pixel to image-plane irradiance (per mm^2 of sensor), then to electrons.
     const optics::CameraDescription& sensor = lens_.camera();

@@ -155,6 +155,13 @@ struct SimCameraOptions {
 double simResponseCurve(const SimCameraOptions& options, double u);
 double simResponseInverse(const SimCameraOptions& options, double v);
 
+// The power of the light's own image on axis as a camera of `options` (its light, quantum scale,
+// electrons per DN, size and format) records it, summed over the sensor, in DN/s at unity gain:
+// the green channel for a monochrome sensor that sees green, Rec. 709 luminance otherwise (a
+// colour sensor's demosaiced frames; predict's figures take luminance). nullopt for options the
+// camera refuses or a lens that passes no light on axis.
+std::optional<double> simLightPower(const optics::Lens& lens, const SimCameraOptions& options);
+
 class SimCamera final : public Camera {
 public:
     // Bound to a simulated head: renders at its true angle (backlash, noise and lost steps show
@@ -181,6 +188,8 @@ public:
     double gain() const override { return gain_; }
     Status setFormat(hdr::RawFormat format) override;
     hdr::RawFormat format() const override { return format_; }
+    // simLightPower of this camera's lens and options (in the format it is set to).
+    std::optional<double> lightPowerDnPerS() const override;
     // A head that cannot report its angle fails the capture with the head's error as context.
     Result<hdr::RawFrame> capture(double timeout_s) override;
     // Real time: the exposure's wait ends within its 5 ms slice. Fast mode has nothing to wait

@@ -192,6 +192,14 @@ Status checkHeader(const FlareModel& m, const Checker& check) {
                               quotedText(c.raw_format) +
                                   " is not mono, bayer-rggb, bayer-bggr, bayer-grbg or bayer-gbrg");
     }
+    if (c.light_power_dn_s) {
+        if (m.format_version < 4)
+            return check.fail("capture.light_power_dn_s",
+                              "is a field of format version 4, not of version " +
+                                  std::to_string(m.format_version));
+        if (auto ok = check.positive("capture.light_power_dn_s", c.light_power_dn_s); !ok)
+            return ok;
+    }
 
     if (auto ok = check.finite("valid_range.from_deg", m.valid_from_deg); !ok) return ok;
     if (auto ok = check.finite("valid_range.to_deg", m.valid_to_deg); !ok) return ok;
@@ -366,6 +374,7 @@ FlareModel fromProto(const v1::FlareModel& m) {
     model.capture.height_px = c.height_px();
     model.capture.camera = c.camera();
     if (c.has_raw_format()) model.capture.raw_format = c.raw_format();
+    if (c.has_light_power_dn_s()) model.capture.light_power_dn_s = c.light_power_dn_s();
     model.valid_from_deg = m.valid_range().from_deg();
     model.valid_to_deg = m.valid_range().to_deg();
     model.ghosts.reserve(static_cast<size_t>(m.ghosts_size()));
@@ -427,6 +436,7 @@ v1::FlareModel toProto(const FlareModel& model) {
     c->set_height_px(static_cast<uint32_t>(model.capture.height_px));
     c->set_camera(model.capture.camera);
     if (!model.capture.raw_format.empty()) c->set_raw_format(model.capture.raw_format);
+    if (model.capture.light_power_dn_s) c->set_light_power_dn_s(*model.capture.light_power_dn_s);
     m.mutable_valid_range()->set_from_deg(model.valid_from_deg);
     m.mutable_valid_range()->set_to_deg(model.valid_to_deg);
     for (const ModelGhost& ghost : model.ghosts) {
@@ -810,6 +820,10 @@ std::string describeModel(const FlareModel& m, const std::string& path) {
         << " pixels, camera " << orNotDescribed(c.camera) << ", "
         << (c.raw_format.empty() ? std::string("raw format not recorded")
                                  : "raw format " + c.raw_format)
+        << "\n";
+    out << "light power: "
+        << (c.light_power_dn_s ? formatDouble(*c.light_power_dn_s) + " DN/s"
+                               : std::string("not measured"))
         << "\n";
     out << "brackets: ";
     if (c.exposure_times_s.empty())

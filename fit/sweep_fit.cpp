@@ -1284,6 +1284,7 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     model.capture.camera = header.camera.description;
     if (header.camera.raw_format)
         model.capture.raw_format = std::string(hdr::rawFormatName(*header.camera.raw_format));
+    model.capture.light_power_dn_s = header.camera.light_power_dn_s;
     model.valid_from_deg = first;
     model.valid_to_deg = last;
     auto t_stage = Clock::now();

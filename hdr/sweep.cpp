@@ -260,6 +260,14 @@ Status checkHeader(const SweepHeader& h, const Checker& check) {
     if (camera.raw_format && h.format_version < 4)
         return check.fail("camera.raw_format", "is a field of format version 4, not of version " +
                                                    std::to_string(h.format_version));
+    if (camera.light_power_dn_s) {
+        if (h.format_version < 5)
+            return check.fail("camera.light_power_dn_s",
+                              "is a field of format version 5, not of version " +
+                                  std::to_string(h.format_version));
+        if (auto ok = check.positive("camera.light_power_dn_s", camera.light_power_dn_s); !ok)
+            return ok;
+    }
     const SweepCapture& capture = h.capture;
     if (auto ok = check.finite("capture.from_deg", capture.from_deg); !ok) return ok;
     if (auto ok = check.finite("capture.to_deg", capture.to_deg); !ok) return ok;
@@ -433,6 +441,8 @@ Result<Sweep> fromProto(const flarelab::v1::SweepManifest& m, const Checker& che
                                   " is not mono, bayer-rggb, bayer-bggr, bayer-grbg or bayer-gbrg");
         h.camera.raw_format = *format;
     }
+    if (m.camera().has_light_power_dn_s())
+        h.camera.light_power_dn_s = m.camera().light_power_dn_s();
     const auto& c = m.capture();
     h.capture.from_deg = c.from_deg();
     h.capture.to_deg = c.to_deg();
@@ -481,6 +491,7 @@ flarelab::v1::SweepManifest toProto(const Sweep& s) {
     if (h.camera.bit_depth) camera->set_bit_depth(static_cast<uint32_t>(*h.camera.bit_depth));
     if (h.camera.raw_format)
         camera->set_raw_format(std::string(rawFormatName(*h.camera.raw_format)));
+    if (h.camera.light_power_dn_s) camera->set_light_power_dn_s(*h.camera.light_power_dn_s);
     auto* capture = m.mutable_capture();
     capture->set_from_deg(h.capture.from_deg);
     capture->set_to_deg(h.capture.to_deg);
@@ -1328,6 +1339,8 @@ Result<SweepWriter> SweepWriter::create(const std::string& directory,
         // A sweep older than version 4 did not record the raw format: not compared, left absent.
         SweepCamera camera = header.camera;
         if (old.format_version < 4) camera.raw_format = old.camera.raw_format;
+        // Nor, before version 5, the light's power.
+        if (old.format_version < 5) camera.light_power_dn_s = old.camera.light_power_dn_s;
         const std::pair<const char*, bool> same[] = {{"camera", old.camera == camera},
                                                      {"capture", old.capture == header.capture}};
         for (const auto& [part, equal] : same)

@@ -24,7 +24,9 @@
 // the stop semi-aperture used, the coating of unspecified surfaces, the sensor size) and the
 // prescription's file name and SHA-256, so that a score re-simulates exactly the capture.
 // Version 4, which SweepWriter writes, adds the camera's raw format (`camera.raw_format`: mono or
-// a Bayer pattern), so that a score knows whether the frames are monochrome or colour. Every
+// a Bayer pattern), so that a score knows whether the frames are monochrome or colour. Version 5
+// adds the power of the rig light's own image (`camera.light_power_dn_s`), which a model carries
+// on to its lab figures (predict/lab_figures.h). Every
 // version is read; older sweeps are upgraded when resumed, their new fields left absent (nobody
 // recorded them for the frames already taken).
 //
@@ -40,13 +42,14 @@
 //
 // Rules of the format (every version). A manifest breaking any of them is refused with an Error
 // naming the manifest file and the field ("frames[3].angle_deg"):
-//   - format_version is 1 to 4 (another version: Unsupported). Fields the reader does not know
+//   - format_version is 1 to 5 (another version: Unsupported). Fields the reader does not know
 //     are refused (ParseError), not skipped: a writer that adds a field raises the version, so a
 //     misspelt field cannot silently lose data; so are version 3's lens fields and version 4's
-//     camera.raw_format in an older manifest. Field names may be written as in the .proto
+//     camera.raw_format or version 5's camera.light_power_dn_s in an older manifest. Field names may be written as in the .proto
 //     ("angle_deg", as the writer does) or in lowerCamelCase ("angleDeg"), as protobuf JSON
 //     allows.
-//   - camera.raw_format is one of mono, bayer-rggb, bayer-bggr, bayer-grbg, bayer-gbrg.
+//   - camera.raw_format is one of mono, bayer-rggb, bayer-bggr, bayer-grbg, bayer-gbrg;
+//     camera.light_power_dn_s > 0.
 //   - every number is finite; exposure times, gain, focal length, f-number, pixel pitch, stop
 //     semi-aperture and sensor width and height > 0; lens.aperture_blades 0 (a circle) or
 //     3..kSweepMaxApertureBlades; lens.prescription_sha256 empty or 64 lowercase hex digits;
@@ -94,7 +97,7 @@
 
 namespace flarelab::hdr {
 
-inline constexpr int kSweepFormatVersion = 4;        // what SweepWriter writes
+inline constexpr int kSweepFormatVersion = 5;        // what SweepWriter writes
 inline constexpr int kSweepOldestFormatVersion = 1;  // the oldest version still read
 inline constexpr char kSweepManifestFile[] = "manifest.json";
 inline constexpr char kSweepFrameLogFile[] = "frames.log";
@@ -139,6 +142,9 @@ struct SweepCamera {
     // Version 4: what the sensor delivers, one channel or a colour mosaic (then the EXR frames
     // are demosaiced RGB); absent when not recorded.
     std::optional<RawFormat> raw_format;
+    // Version 5: the rig light's own image, summed over the sensor, DN/s at unity gain; absent
+    // when not known.
+    std::optional<double> light_power_dn_s;
     bool operator==(const SweepCamera&) const = default;
 };
 
@@ -294,7 +300,8 @@ struct SweepWriteOptions {
     ExrWriteOptions exr;
     // Append to the sweep already in the directory, whose lens, camera and capture settings must
     // equal the new header's (its software_version and created_utc are kept). A sweep of version 1
-    // or 2 records none of version 3's lens fields, one of version 1 to 3 no camera.raw_format:
+    // or 2 records none of version 3's lens fields, one of version 1 to 3 no camera.raw_format, one of
+    // version 1 to 4 no camera.light_power_dn_s:
     // those are not compared and stay absent. Without
     // it a directory that holds a manifest or any EXR file is refused.
     bool resume = false;

@@ -133,6 +133,9 @@ TEST(Capture, RecordsTheLensSettingsThatFitCopiesAndScoreRebuilds) {
     auto digest = hdr::sha256File(lens_file);
     ASSERT_TRUE(digest) << digest.error().message;
     EXPECT_EQ(recorded.prescription_sha256, *digest);
+    // The simulated camera knows its light's power; the fit carries it into the model.
+    ASSERT_TRUE(sweep->header.camera.light_power_dn_s);
+    EXPECT_GT(*sweep->header.camera.light_power_dn_s, 0.0);
     CameraFlags flags;
     flags.blades = 6;
     flags.blade_rotation_deg = 15.0;

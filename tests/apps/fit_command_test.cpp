@@ -16,6 +16,7 @@
 #include "drivers/sim_truth.h"
 #include "fit/model_eval.h"
 #include "fit/model_file.h"
+#include "hdr/sweep.h"
 #include "render/preview.h"
 #include "tests/apps/command_runner.h"
 #include "tests/test_paths.h"
@@ -293,6 +294,11 @@ TEST(FitCommand, TheSweepsLensSettingsReachTheModelAndContradictionsAreRefused) 
     EXPECT_EQ(read->lens.sensor_height_mm, 24.0);
     EXPECT_EQ(read->lens.prescription_file, lens);  // from the sweep, without fit --lens
     EXPECT_EQ(read->lens.prescription_sha256.size(), 64u);
+    // The light's power the simulated camera recorded, for the lab figures.
+    auto recorded = hdr::readSweepManifest(sweep.string());
+    ASSERT_TRUE(recorded) << recorded.error().message;
+    ASSERT_TRUE(recorded->header.camera.light_power_dn_s);
+    EXPECT_EQ(read->capture.light_power_dn_s, recorded->header.camera.light_power_dn_s);
 
     const CommandRun scored = run({"score", model.string(), "--lens", lens, "--halfway", "0",
                                    "--random", "0", "--fitted", "1"});
@@ -312,6 +318,17 @@ TEST(FitCommand, TheSweepsLensSettingsReachTheModelAndContradictionsAreRefused) 
     r = run({"fit", sweep.string(), "-o", model.string(), "--sensor-mm", "36x24", "--lens", lens,
              "--quiet"});
     EXPECT_EQ(r.code, 0) << r.err;
+    // A power measured apart overrides the record; one that is no power is refused.
+    r = run({"fit", sweep.string(), "-o", model.string(), "--light-power-dn-s", "1.5e9",
+             "--quiet"});
+    ASSERT_EQ(r.code, 0) << r.err;
+    EXPECT_EQ(fit::readModel(model.string())->capture.light_power_dn_s, 1.5e9);
+    for (const char* bad : {"0", "-3", "inf", "nan"}) {
+        r = run({"fit", sweep.string(), "-o", model.string(), "--light-power-dn-s", bad,
+                 "--quiet"});
+        EXPECT_NE(r.code, 0) << bad;
+        EXPECT_NE(r.err.find("light-power-dn-s"), std::string::npos) << bad << ": " << r.err;
+    }
     fs::remove_all(sweep);
     fs::remove(model);
 }

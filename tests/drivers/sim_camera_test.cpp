@@ -290,6 +290,44 @@ TEST(SimCamera, RendersAtTheTrueAngleSoBacklashShows) {
     EXPECT_EQ(c->renders(), 2);  // 4.5 deg and 5.5 deg: two different images
 }
 
+// The power the sweep records for the lab figures is what the frame holds of the light on axis:
+// the light's image holds nearly all of it (its ghosts are some thousandths), for a monochrome
+// sensor's green, a luminance one and a colour one, and it follows the light and quantum scale.
+TEST(SimCamera, TheRecordedLightPowerIsWhatTheFrameHoldsOnAxis) {
+    for (auto [format, mono] : {std::pair{hdr::RawFormat::Mono, MonoResponse::Green},
+                                std::pair{hdr::RawFormat::Mono, MonoResponse::Luminance},
+                                std::pair{hdr::RawFormat::BayerRGGB, MonoResponse::Green}}) {
+        SimCameraOptions o = tiny();
+        o.format = format;
+        o.mono = mono;
+        o.background_e_s = 0.0;
+        o.light_rgb = {0.5f, 1.0f, 2.0f};
+        auto c = camera(o);
+        double sum_e_s = 0.0;
+        if (format == hdr::RawFormat::Mono) {
+            const auto rate = c->meanRate_e_s(0.0);
+            ASSERT_TRUE(rate);
+            for (float v : *rate) sum_e_s += v;
+        } else {
+            const auto rgb = c->meanRateRgb_e_s(0.0);
+            ASSERT_TRUE(rgb);
+            for (size_t k = 0; k < rgb->pixels.size(); k += 3)
+                sum_e_s += 0.2126 * rgb->pixels[k] + 0.7152 * rgb->pixels[k + 1] +
+                           0.0722 * rgb->pixels[k + 2];
+        }
+        const auto power = c->lightPowerDnPerS();
+        ASSERT_TRUE(power);
+        EXPECT_NEAR(*power, sum_e_s / o.electrons_per_dn, 0.02 * *power);
+        // Twice the quantum scale, twice the power; a dark light has none.
+        SimCameraOptions brighter = o;
+        brighter.quantum_scale *= 2.0;
+        EXPECT_NEAR(simLightPower(heliar(), brighter).value(), 2.0 * *power, 1e-9 * *power);
+        SimCameraOptions dark = o;
+        dark.light_rgb = {0.0f, 0.0f, 0.0f};
+        EXPECT_FALSE(simLightPower(heliar(), dark));
+    }
+}
+
 TEST(SimCamera, ImagesAreFiniteAtEveryAngleAndFormat) {
     for (auto format : {hdr::RawFormat::Mono, hdr::RawFormat::BayerRGGB}) {
         SimCameraOptions o = tiny();

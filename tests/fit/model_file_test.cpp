@@ -44,6 +44,7 @@ FlareModel sampleModel() {
     m.capture.height_px = 480;
     m.capture.camera = "simulated camera";
     m.capture.raw_format = "bayer-rggb";
+    m.capture.light_power_dn_s = 2.5e6;
     m.valid_from_deg = -5.0;
     m.valid_to_deg = 5.0;
 
@@ -196,7 +197,11 @@ std::vector<BrokenCase> brokenCases() {
     const double nan = std::numeric_limits<double>::quiet_NaN();
     const double inf = std::numeric_limits<double>::infinity();
     return {
-        {"format_version", [](FlareModel& m) { m.format_version = 4; }},
+        {"format_version", [](FlareModel& m) { m.format_version = 5; }},
+        // Version 4's light power in a version 3 model; one that is not a power.
+        {"capture.light_power_dn_s", [](FlareModel& m) { m.format_version = 3; }},
+        {"capture.light_power_dn_s", [](FlareModel& m) { m.capture.light_power_dn_s = 0.0; }},
+        {"capture.light_power_dn_s", [nan](FlareModel& m) { m.capture.light_power_dn_s = nan; }},
         // Version 3's raw format in a version 2 model; a name that is no raw format.
         {"capture.raw_format", [](FlareModel& m) { m.format_version = 2; }},
         {"capture.raw_format", [](FlareModel& m) { m.capture.raw_format = "rggb"; }},
@@ -390,10 +395,10 @@ TEST(ReadModel, RefusesTruncatedBinaryAtEveryLength) {
 TEST(ReadModel, RefusesUnknownVersion) {
     FlareModel model = sampleModel();
     const std::string bytes = modelBytes(model);
-    // Field 1 (format_version, varint) comes first: tag 0x08, value 3.
+    // Field 1 (format_version, varint) comes first: tag 0x08, value 4.
     ASSERT_GE(bytes.size(), 2u);
-    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x03", 2));
-    for (const char version : {'\x00', '\x04'}) {
+    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x04", 2));
+    for (const char version : {'\x00', '\x05'}) {
         std::string other = bytes;
         other[1] = version;
         const Result<FlareModel> read = readModelFromMemory(other, "other.flaremodel");
@@ -404,7 +409,7 @@ TEST(ReadModel, RefusesUnknownVersion) {
             << read.error().message;
     }
 
-    const Result<FlareModel> json = modelFromJson(R"({"format_version": 4, "new_field": 1})");
+    const Result<FlareModel> json = modelFromJson(R"({"format_version": 5, "new_field": 1})");
     ASSERT_FALSE(json);
     EXPECT_EQ(json.error().code, ErrorCode::Unsupported) << json.error().message;
     const Result<FlareModel> missing = modelFromJson(R"({"lens": {}})");
@@ -430,6 +435,7 @@ TEST(ReadModel, AVersion1ModelStillReads) {
     old.lens.stop_semi_aperture_mm.reset();
     old.lens.coat_unspecified_surfaces.reset();
     old.capture.raw_format.clear();
+    old.capture.light_power_dn_s.reset();
     const std::string bytes = modelBytes(old);
     ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x01", 2));
     const Result<FlareModel> binary = readModelFromMemory(bytes, "old.flaremodel");
@@ -453,10 +459,19 @@ TEST(ReadModel, AVersion1ModelStillReads) {
         << mixed.error().message;
 }
 
-TEST(ModelFile, Version3RecordsTheCaptureSettingsAndTheRawFormat) {
+TEST(ModelFile, Version4RecordsTheCaptureSettingsRawFormatAndLightPower) {
     const Result<std::string> json = modelToJson(sampleModel());
     ASSERT_TRUE(json) << json.error().message;
-    EXPECT_TRUE(contains(*json, "\"format_version\": 3")) << *json;
+    EXPECT_TRUE(contains(*json, "\"format_version\": 4")) << *json;
+    EXPECT_TRUE(contains(*json, "\"light_power_dn_s\": 2500000")) << *json;
+    FlareModel unmeasured = sampleModel();
+    unmeasured.capture.light_power_dn_s.reset();
+    const Result<std::string> without = modelToJson(unmeasured);
+    ASSERT_TRUE(without) << without.error().message;
+    EXPECT_FALSE(contains(*without, "light_power")) << *without;
+    const Result<FlareModel> unmeasured_back = readModelFromMemory(modelBytes(unmeasured));
+    ASSERT_TRUE(unmeasured_back) << unmeasured_back.error().message;
+    EXPECT_EQ(*unmeasured_back, unmeasured);
     EXPECT_TRUE(contains(*json, "\"raw_format\": \"bayer-rggb\"")) << *json;
     // Not recorded: left out, and read back empty.
     FlareModel unknown = sampleModel();

@@ -546,7 +546,7 @@ TEST(ParseSweepManifest, AcceptsWhatFormatWrites) {
 TEST(ParseSweepManifest, AcceptsCamelCaseNamesAndQuotedIntegers) {
     const std::string json =
         replaced(replaced(validManifest(), "\"angle_deg\":0.1", "\"angleDeg\":0.1"),
-                 "\"format_version\": 4", "\"formatVersion\": \"4\"");
+                 "\"format_version\": 5", "\"formatVersion\": \"5\"");
     auto sweep = parseSweepManifest(json);
     ASSERT_TRUE(sweep) << sweep.error().message;
     EXPECT_EQ(sweep->frames[0].angle_deg, 0.1);
@@ -554,14 +554,14 @@ TEST(ParseSweepManifest, AcceptsCamelCaseNamesAndQuotedIntegers) {
 
 TEST(ParseSweepManifest, UnknownVersionIsUnsupported) {
     // A later version with a field this reader does not know: the version is what is wrong.
-    const std::string json = replaced(validManifest(), "\"format_version\": 4",
-                                      "\"format_version\": 5, \"new_field\": true");
+    const std::string json = replaced(validManifest(), "\"format_version\": 5",
+                                      "\"format_version\": 6, \"new_field\": true");
     auto sweep = parseSweepManifest(json, "m.json");
     ASSERT_FALSE(sweep);
     EXPECT_EQ(sweep.error().code, ErrorCode::Unsupported);
-    EXPECT_TRUE(contains(sweep.error().message, "m.json: format_version: 5"))
+    EXPECT_TRUE(contains(sweep.error().message, "m.json: format_version: 6"))
         << sweep.error().message;
-    auto missing = parseSweepManifest(replaced(validManifest(), "\"format_version\": 4,", ""));
+    auto missing = parseSweepManifest(replaced(validManifest(), "\"format_version\": 5,", ""));
     ASSERT_FALSE(missing);
     EXPECT_TRUE(contains(missing.error().message, "format_version: missing"));
 }
@@ -586,7 +586,7 @@ TEST(ParseSweepManifest, Version3LensSettingsRoundTrip) {
     sweep.frames[0].exr_file = "a.exr";
     auto json = formatSweepManifest(sweep);
     ASSERT_TRUE(json) << json.error().message;
-    EXPECT_TRUE(contains(*json, "\"format_version\": 4")) << *json;
+    EXPECT_TRUE(contains(*json, "\"format_version\": 5")) << *json;
     EXPECT_TRUE(contains(*json, "\"aperture_blades\": 6")) << *json;
     EXPECT_TRUE(contains(*json, "\"coat_unspecified_surfaces\": true")) << *json;
     auto read = parseSweepManifest(*json, "m.json");
@@ -612,7 +612,7 @@ TEST(ParseSweepManifest, Version3LensSettingsRoundTrip) {
 
 TEST(ParseSweepManifest, AVersion2ManifestStillReadsWithoutTheSettings) {
     const std::string v2 =
-        replaced(validManifest(), "\"format_version\": 4", "\"format_version\": 2");
+        replaced(validManifest(), "\"format_version\": 5", "\"format_version\": 2");
     auto sweep = parseSweepManifest(v2, "m.json");
     ASSERT_TRUE(sweep) << sweep.error().message;
     EXPECT_EQ(sweep->header.format_version, 2);
@@ -662,10 +662,42 @@ TEST(ParseSweepManifest, TheCamerasRawFormatRoundTripsAndIsVersion4s) {
                          "m.json: camera.raw_format: 'bayer-rgbg' is not mono, bayer-rggb"))
         << bad.error().message;
     auto older = parseSweepManifest(
-        replaced(*json, "\"format_version\": 4", "\"format_version\": 3"), "m.json");
+        replaced(*json, "\"format_version\": 5", "\"format_version\": 3"), "m.json");
     ASSERT_FALSE(older);
     EXPECT_TRUE(contains(older.error().message,
                          "camera.raw_format: is a field of format version 4, not of version 3"))
+        << older.error().message;
+}
+
+TEST(ParseSweepManifest, TheLightsPowerRoundTripsAndIsVersion5s) {
+    Sweep sweep;
+    sweep.header = smallHeader();
+    sweep.header.camera.light_power_dn_s = 3.25e9;
+    sweep.frames = {frameAt(sweep.header, 0)};
+    sweep.frames[0].exr_file = "a.exr";
+    auto json = formatSweepManifest(sweep);
+    ASSERT_TRUE(json) << json.error().message;
+    EXPECT_TRUE(contains(*json, "\"light_power_dn_s\": 3250000000")) << *json;
+    auto read = parseSweepManifest(*json, "m.json");
+    ASSERT_TRUE(read) << read.error().message;
+    EXPECT_EQ(read->header, sweep.header);
+    EXPECT_FALSE(contains(validManifest(), "light_power"));
+    EXPECT_FALSE(parseSweepManifest(validManifest())->header.camera.light_power_dn_s);
+    for (const char* bad : {"0", "-1"}) {
+        auto refused = parseSweepManifest(
+            replaced(*json, "\"light_power_dn_s\": 3250000000",
+                     std::string("\"light_power_dn_s\": ") + bad),
+            "m.json");
+        ASSERT_FALSE(refused) << bad;
+        EXPECT_TRUE(contains(refused.error().message, "m.json: camera.light_power_dn_s: "))
+            << refused.error().message;
+    }
+    auto older = parseSweepManifest(
+        replaced(*json, "\"format_version\": 5", "\"format_version\": 4"), "m.json");
+    ASSERT_FALSE(older);
+    EXPECT_TRUE(contains(older.error().message,
+                         "camera.light_power_dn_s: is a field of format version 5, not of "
+                         "version 4"))
         << older.error().message;
 }
 
