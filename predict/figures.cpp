@@ -60,6 +60,12 @@ double contrastRatio(double scene_min, double scene_max, double flare) {
     return s / (s + 2.0 * flare);
 }
 
+double glareIndicator(double scene_log_average, double flare_mean) {
+    FLARELAB_CHECK(scene_log_average > 0.0 && std::isfinite(scene_log_average));
+    FLARELAB_CHECK(flare_mean >= 0.0);
+    return flare_mean / scene_log_average;
+}
+
 std::pair<double, double> coveredTheta(const fit::FlareModel& model) {
     const double lo = model.valid_from_deg, hi = model.valid_to_deg;
     if (hi <= 0.0) return {-hi, -lo};
@@ -103,6 +109,7 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
         std::max<int64_t>(1, std::llround(static_cast<double>(width) * model.lens.sensor_height_mm /
                                           model.lens.sensor_width_mm));
     t.nodes_.resize(static_cast<size_t>(t.theta_count_ * t.phi_count_));
+    t.centre_.resize(static_cast<size_t>(t.theta_count_));
     // One drawing per theta serves every roll: the ghosts at roll 0 on a square canvas as wide
     // as the frame's diagonal, and for each roll the canvas pixels that the frame, turned the
     // other way, covers (a pixel p of the frame at roll phi sees the canvas at R(-phi) p).
@@ -137,6 +144,20 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
         const ImageRGB canvas = fit::renderGhostStates(states, mapping, side, side);
         std::vector<double> y(static_cast<size_t>(side * side));
         for (size_t k = 0; k < y.size(); ++k) y[k] = luminance(canvas.pixels.data() + 3 * k);
+        // The image centre: roll turns about it, so one value serves every phi. The pixels within
+        // 1.5 of it (a few), averaged.
+        double centre_sum = 0.0;
+        int centre_count = 0;
+        for (int64_t v = 0; v < side; ++v)
+            for (int64_t u = 0; u < side; ++u) {
+                const double dx = static_cast<double>(u) + 0.5 - mapping.centre_x_px;
+                const double dy = static_cast<double>(v) + 0.5 - mapping.centre_y_px;
+                if (dx * dx + dy * dy <= 2.25) {
+                    centre_sum += std::max(0.0, y[static_cast<size_t>(v * side + u)]);
+                    ++centre_count;
+                }
+            }
+        t.centre_[static_cast<size_t>(i)] = centre_count > 0 ? centre_sum / centre_count : 0.0;
         std::vector<double> inside;
         inside.reserve(y.size());
         for (int64_t j = 0; j < t.phi_count_; ++j) {

@@ -49,6 +49,13 @@ FlareFigures flareFigures(const ImageRGB& image);
 // the caller; FLARELAB_CHECK here).
 double contrastRatio(double scene_min, double scene_max, double flare);
 
+// The glare indicator of §9.2 of the thesis: the flare over the scene's log-average (the key a
+// tone mapper exposes for), both in one unit. The flare's mean stands for the overlay: its own
+// log-average is ruled by the black pixels of a flare that covers part of the frame, so it would
+// call a bright ghost over a tenth of the frame harmless. 0 for no flare; 1: the flare adds as
+// much light as the scene's key. scene_log_average > 0, flare >= 0 (FLARELAB_CHECK).
+double glareIndicator(double scene_log_average, double flare_mean);
+
 // The light angles theta (>= 0) that `model` answers for: its head angles folded onto theta (a
 // negative head angle is the light on the other side, playback.h), [from, to] with from < to
 // unless the model's range is degenerate.
@@ -91,6 +98,9 @@ public:
         return nodes_[static_cast<size_t>(i * phi_count_ + j)];
     }
     double thetaAt(int64_t i) const;
+    // The flare at the image's centre (luminance per pixel, like the figures) for a unit light
+    // at theta_i: the same for every roll. predict/lab_figures.h integrates it.
+    double centreFlare(int64_t i) const { return centre_[static_cast<size_t>(i)]; }
     double phiAt(int64_t j) const { return static_cast<double>(j) * phi_step_deg_; }
 
 private:
@@ -102,6 +112,7 @@ private:
     int64_t phi_count_ = 0;
     double capture_pixels_ = 0.0;
     std::vector<FlareFigures> nodes_;
+    std::vector<double> centre_;
 };
 
 }  // namespace flarelab::predict

@@ -126,6 +126,11 @@ std::optional<double> cameraContrastRatio(const PreparedCamera& camera, double f
     return contrastRatio(*camera.scene.scene_min_dn, *camera.scene.scene_max_dn, flare_mean);
 }
 
+std::optional<double> cameraGlareIndicator(const PreparedCamera& camera, double flare_mean) {
+    if (!camera.scene.scene_log_average_dn || !(flare_mean >= 0.0)) return std::nullopt;
+    return glareIndicator(*camera.scene.scene_log_average_dn, flare_mean);
+}
+
 Result<CameraFigures> fixedLightFigures(const PreparedCamera& camera,
                                         std::span<const SceneLight> lights,
                                         RangePolicy policy) {
@@ -162,7 +167,10 @@ Result<CameraFigures> fixedLightFigures(const PreparedCamera& camera,
         first = false;
         out.lights.push_back(lf);
     }
-    if (out.known) out.contrast_ratio = cameraContrastRatio(camera, out.sum.mean);
+    if (out.known) {
+        out.contrast_ratio = cameraContrastRatio(camera, out.sum.mean);
+        out.glare_indicator = cameraGlareIndicator(camera, out.sum.mean);
+    }
     return out;
 }
 
@@ -218,6 +226,7 @@ Result<Timeline> predictTimeline(const SceneSun& sun,
         ct.flare_mean.assign(steps, kNaN);
         ct.flare_peak.assign(steps, kNaN);
         ct.contrast_loss.assign(steps, kNaN);
+        ct.glare_indicator.assign(steps, kNaN);
         ct.sun_state.assign(steps, LightState::BehindCamera);
         for (size_t t = 0; t < steps; ++t) {
             double mean = fixed->sum.mean, peak = fixed->sum.max;
@@ -258,6 +267,7 @@ Result<Timeline> predictTimeline(const SceneSun& sun,
             ct.flare_peak[t] = peak;
             if (const auto ratio = cameraContrastRatio(camera, mean))
                 ct.contrast_loss[t] = 1.0 - *ratio;
+            if (const auto glare = cameraGlareIndicator(camera, mean)) ct.glare_indicator[t] = *glare;
         }
         timeline.cameras.push_back(std::move(ct));
     }
@@ -276,6 +286,9 @@ std::vector<std::vector<double>> switchingFigures(const Timeline& timeline, Swit
                 break;
             case SwitchFigure::FlarePeak:
                 out.push_back(c.flare_peak);
+                break;
+            case SwitchFigure::GlareIndicator:
+                out.push_back(c.glare_indicator);
                 break;
         }
     }

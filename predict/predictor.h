@@ -72,6 +72,7 @@ struct CameraFigures {
     FlareFigures sum;
     bool known = true;  // false when a light was refused (outside the model's range)
     std::optional<double> contrast_ratio;  // eq. 9.3 when the scene gives the camera's range
+    std::optional<double> glare_indicator;  // when the scene gives the camera's log-average
 };
 
 // The fixed lights' figures for one camera, from its table.
@@ -81,6 +82,8 @@ Result<CameraFigures> fixedLightFigures(const PreparedCamera& camera,
 
 // The eq. 9.3 ratio of a camera for a flare mean, when the scene gives its range.
 std::optional<double> cameraContrastRatio(const PreparedCamera& camera, double flare_mean);
+// glareIndicator against the camera's scene_log_average_dn; nullopt without one.
+std::optional<double> cameraGlareIndicator(const PreparedCamera& camera, double flare_mean);
 
 // One frame of a camera: the fixed lights and, when given, the sun in `sun_direction`.
 struct SunLight {
@@ -99,6 +102,7 @@ struct CameraTimeline {
     std::vector<double> flare_mean;
     std::vector<double> flare_peak;
     std::vector<double> contrast_loss;  // 1 - eq. 9.3's ratio; NaN without the scene's range
+    std::vector<double> glare_indicator;  // NaN without the scene's log-average
     std::vector<LightState> sun_state;  // BehindCamera also below the horizon
     int64_t steps_sun_down = 0;
     int64_t steps_drawn = 0;  // the sun in the model's range, drawn

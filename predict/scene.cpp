@@ -362,7 +362,8 @@ Result<SceneCamera> readCamera(const json& value,
         Fields::open(value, scene, path,
                      {"name", "model", "gltf_camera", "position_m", "pan_deg", "tilt_deg",
                       "roll_deg", "look_at_m", "exposure_s", "f_number", "gain", "width_px",
-                      "height_px", "scene_min_dn", "scene_max_dn", "rig_illuminance_lux"});
+                      "height_px", "scene_min_dn", "scene_max_dn", "scene_log_average_dn",
+                      "rig_illuminance_lux"});
     if (!opened) return opened.error();
     const Fields& f = *opened;
     SceneCamera camera;
@@ -459,6 +460,9 @@ Result<SceneCamera> readExposure(const Fields& f, SceneCamera camera) {
                       number(**min_dn) + " is above scene_max_dn (" + number(**max_dn) + ")");
     camera.scene_min_dn = *min_dn;
     camera.scene_max_dn = *max_dn;
+    auto log_average = f.optionalNumber("scene_log_average_dn", kPositive);
+    if (!log_average) return log_average.error();
+    camera.scene_log_average_dn = *log_average;
 
     auto rig = f.optionalNumber("rig_illuminance_lux", kPositive);
     if (!rig) return rig.error();
@@ -600,10 +604,12 @@ Result<SceneSwitching> readSwitching(const Fields& root, const Scene& scene) {
         switching.figure = SwitchFigure::FlareMean;
     } else if (*figure == "flare-peak") {
         switching.figure = SwitchFigure::FlarePeak;
+    } else if (*figure == "glare") {
+        switching.figure = SwitchFigure::GlareIndicator;
     } else {
         return f.fail("figure", quotedText(*figure) +
-                                    " is not a figure; use \"contrast-loss\", \"flare-mean\" or "
-                                    "\"flare-peak\"");
+                                    " is not a figure; use \"contrast-loss\", \"flare-mean\", "
+                                    "\"flare-peak\" or \"glare\"");
     }
     const bool contrast = switching.figure == SwitchFigure::ContrastLoss;
     // A contrast loss is a fraction of the ideal contrast; the flare figures are DN.
@@ -620,6 +626,13 @@ Result<SceneSwitching> readSwitching(const Fields& root, const Scene& scene) {
                               "camera " + quotedText(scene.cameras[i].name) +
                                   " has no scene_min_dn and scene_max_dn, which switching by "
                                   "contrast-loss needs (the contrast ratio, eq. 9.3)");
+    if (switching.figure == SwitchFigure::GlareIndicator)
+        for (size_t i = 0; i < scene.cameras.size(); ++i)
+            if (!scene.cameras[i].scene_log_average_dn)
+                return failAt(f.scene(), indexed("cameras", i),
+                              "camera " + quotedText(scene.cameras[i].name) +
+                                  " has no scene_log_average_dn, which switching by glare needs "
+                                  "(the glare indicator's reference)");
     return switching;
 }
 

@@ -26,6 +26,8 @@
 //     "scene_min_dn": 40, "scene_max_dn": 3500, // the scene's darkest and brightest parts as the
 //                                               // camera records them (both or neither), for the
 //                                               // contrast ratio (eq. 9.3)
+//     "scene_log_average_dn": 600,              // the scene's log-average as the camera records
+//                                               // it (its key), for the glare indicator (§9.2)
 //     "rig_illuminance_lux": 2000               // the rig light's illuminance at the lens during
 //                                               // the capture: needed by photometric lights
 //   }],
@@ -112,6 +114,7 @@ struct SceneCamera {
     std::optional<int64_t> height_px;
     std::optional<double> scene_min_dn;
     std::optional<double> scene_max_dn;
+    std::optional<double> scene_log_average_dn;  // > 0: the glare indicator's reference
     std::optional<double> rig_illuminance_lux;
 };
 

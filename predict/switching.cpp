@@ -31,6 +31,8 @@ const char* switchFigureName(SwitchFigure figure) {
             return "flare-mean";
         case SwitchFigure::FlarePeak:
             return "flare-peak";
+        case SwitchFigure::GlareIndicator:
+            return "glare";
     }
     return "unknown";
 }

@@ -27,8 +27,10 @@ enum class SwitchFigure {
     ContrastLoss,  // 1 - eq. 9.3's K_real / K_ideal, from the flare's mean
     FlareMean,     // the flare's mean, in the camera's DN
     FlarePeak,     // the flare's brightest pixel (an upper bound when several lights add)
+    GlareIndicator,  // the flare's mean over the scene's log-average (§9.2 of the thesis)
 };
-const char* switchFigureName(SwitchFigure figure);  // "contrast-loss", "flare-mean", "flare-peak"
+// "contrast-loss", "flare-mean", "flare-peak", "glare"
+const char* switchFigureName(SwitchFigure figure);
 
 inline constexpr int64_t kMaxSwitchingStates = 50'000'000;
 

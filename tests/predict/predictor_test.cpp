@@ -152,6 +152,7 @@ TEST_F(PredictorTest, TheSunsTimelineAddsTheFixedLightsAndKnowsWhenItCannotSay) 
     c.pose.tilt_deg = middle->elevation_deg + 4.0;
     c.scene_min_dn = 5.0;
     c.scene_max_dn = 500.0;
+    c.scene_log_average_dn = 80.0;
     auto prepared = prepareCamera(c);
     ASSERT_TRUE(prepared);
     const SceneLight lights[] = {relativeLight(
@@ -185,6 +186,7 @@ TEST_F(PredictorTest, TheSunsTimelineAddsTheFixedLightsAndKnowsWhenItCannotSay) 
     ASSERT_TRUE(t);
     EXPECT_NEAR(ct.flare_mean[mid], fixed->sum.mean + 2.0 * 0.5 * t->mean, 1e-9);
     EXPECT_NEAR(ct.contrast_loss[mid], 1.0 - 505.0 / (505.0 + 2.0 * ct.flare_mean[mid]), 1e-12);
+    EXPECT_NEAR(ct.glare_indicator[mid], ct.flare_mean[mid] / 80.0, 1e-12);
     EXPECT_EQ(
         ct.steps_drawn + ct.steps_refused + ct.steps_clamped + ct.steps_behind + ct.steps_sun_down,
         121);
@@ -204,6 +206,10 @@ TEST_F(PredictorTest, TheSunsTimelineAddsTheFixedLightsAndKnowsWhenItCannotSay) 
     const auto series = switchingFigures(*timeline, SwitchFigure::ContrastLoss);
     ASSERT_EQ(series.size(), 1u);
     EXPECT_EQ(series[0].size(), 121u);
+    const auto glare = switchingFigures(*timeline, SwitchFigure::GlareIndicator);
+    ASSERT_EQ(glare.size(), 1u);
+    EXPECT_EQ(glare[0][mid], ct.glare_indicator[mid]);
+    EXPECT_NEAR(fixed->glare_indicator.value(), fixed->sum.mean / 80.0, 1e-12);
 }
 
 TEST_F(PredictorTest, AFrameDrawsTheFixedLightsAndTheSun) {

@@ -37,7 +37,7 @@ constexpr const char* kFullScene = R"({
     "f_number": 8,
     "gain": 2,
     "width_px": 1920, "height_px": 1080,
-    "scene_min_dn": 40, "scene_max_dn": 3500,
+    "scene_min_dn": 40, "scene_max_dn": 3500, "scene_log_average_dn": 600,
     "rig_illuminance_lux": 2000
   }, {
     "name": "side",
@@ -143,6 +143,7 @@ TEST(ParseScene, ReadsEveryFieldOfAFullScene) {
     EXPECT_EQ(main.height_px, 1080);
     EXPECT_EQ(main.scene_min_dn, 40.0);
     EXPECT_EQ(main.scene_max_dn, 3500.0);
+    EXPECT_EQ(main.scene_log_average_dn, 600.0);
     EXPECT_EQ(main.rig_illuminance_lux, 2000.0);
 
     const SceneCamera& side = s.cameras[1];
@@ -703,8 +704,8 @@ TEST(ParseScene, SwitchingNeedsASunAndSceneLevelsForContrast) {
             s.erase("frames");
         },
         {"scene.json: switching: needs a sun"}, scene);
-    expectBroken([](json& s) { s["switching"]["figure"] = "glare"; },
-                 {"switching.figure: \"glare\" is not a figure"}, scene);
+    expectBroken([](json& s) { s["switching"]["figure"] = "veiling"; },
+                 {"switching.figure: \"veiling\" is not a figure"}, scene);
     expectBroken([](json& s) { s["switching"]["threshold"] = -1; },
                  {"switching.threshold: must be >= 0, got -1"}, scene);
     expectBroken([](json& s) { s["switching"]["min_dwell_s"] = -1; },
@@ -720,6 +721,17 @@ TEST(ParseScene, SwitchingNeedsASunAndSceneLevelsForContrast) {
     EXPECT_TRUE(parse(scene));
     expectBroken([](json& s) { s["switching"]["threshold"] = 1.5; },
                  {"switching.threshold: must be in [0, 1], got 1.5"}, scene);
+
+    // The glare indicator needs each camera's log-average.
+    scene["switching"] = {{"figure", "glare"}, {"threshold", 0.2}};
+    expectBroken([](json&) {}, {"cameras[0]: camera \"main\" has no scene_log_average_dn"}, scene);
+    expectBroken([](json& s) { s["cameras"][0]["scene_log_average_dn"] = 0; },
+                 {"cameras[0].scene_log_average_dn: must be > 0, got 0"}, scene);
+    scene["cameras"][0]["scene_log_average_dn"] = 400;
+    parsed = parse(scene);
+    ASSERT_TRUE(parsed) << parsed.error().message;
+    EXPECT_EQ(parsed->switching->figure, SwitchFigure::GlareIndicator);
+    EXPECT_EQ(parsed->cameras[0].scene_log_average_dn, 400.0);
 }
 
 TEST(ParseScene, NeverFailsSilentlyOnATruncatedScene) {
