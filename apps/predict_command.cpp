@@ -17,6 +17,7 @@ struct PredictState {
     double table_phi_step_deg = 10.0;
     int64_t table_width = 240;
     double exposure_stops = 0.0;
+    double black_spot_deg = predict::LabFigureOptions{}.black_spot_deg;
 };
 
 int run(const PredictState& s, std::ostream& out, std::ostream& err) {
@@ -25,6 +26,7 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
     options.table.phi_step_deg = s.table_phi_step_deg;
     options.table.width = s.table_width;
     options.exposure_stops = s.exposure_stops;
+    options.lab.black_spot_deg = s.black_spot_deg;
     options.on_note = [&err](const std::string& note) {
         err << "flarelab: predict: note: " << note << "\n";
     };
@@ -63,6 +65,11 @@ void addPredictCommand(CLI::App& app, std::ostream& out, std::ostream& err, int&
         ->capture_default_str();
     cmd->add_option("--exposure-stops", s->exposure_stops,
                     "frames' PNG exposure, stops above the camera's white (scene_max_dn)")
+        ->capture_default_str();
+    cmd->add_option("--black-spot-deg", s->black_spot_deg,
+                    "angular diameter of the black spot (veiling glare index) and of the chart's "
+                    "centre patch (image flare), deg")
+        ->check(CLI::Range(0.001, 20.0))
         ->capture_default_str();
     cmd->callback([s, &out, &err, &exit_code] { exit_code = run(*s, out, err); });
 }

@@ -216,7 +216,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
     ReportTable cameras_table;
     cameras_table.title = "Each camera, fixed lights together";
     cameras_table.header = {"camera", "model",      "f-number",   "exposure (s)",
-                            "image",  "flare mean", "flare peak", "contrast ratio (eq. 9.3)",
+                            "image",  "flare mean", "flare peak", "contrast ratio (eq. 9.3)", "glare indicator",
                             "notes"};
     std::string figures_csv =
         "camera,light,state,theta_deg,phi_deg,model_theta_deg,flare_min,flare_max,flare_mean,"
@@ -252,6 +252,8 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
         cj["fixed_lights"] = figuresJson(figures->sum);
         cj["contrast_ratio"] =
             figures->contrast_ratio ? nlohmann::json(*figures->contrast_ratio) : nlohmann::json();
+        cj["glare_indicator"] =
+            figures->glare_indicator ? nlohmann::json(*figures->glare_indicator) : nlohmann::json();
         nlohmann::json lights_json = nlohmann::json::array();
         for (const LightFigures& lf : figures->lights) {
             const bool placed = lf.placed.state != LightState::AtCamera;
@@ -289,7 +291,8 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
              std::to_string(camera.width) + "x" + std::to_string(camera.height),
              figures->known ? fmt(figures->sum.mean) : "unknown",
              figures->known ? fmt(figures->sum.max) : "unknown",
-             figures->contrast_ratio ? fmt(*figures->contrast_ratio, "%.4f") : "", notes});
+             figures->contrast_ratio ? fmt(*figures->contrast_ratio, "%.4f") : "",
+             figures->glare_indicator ? fmt(*figures->glare_indicator, "%.4g") : "", notes});
         output.cameras.push_back(std::move(predicted));
     }
     report["cameras"] = cameras_json;
@@ -301,7 +304,10 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
     }
     html.sections.push_back(summary);
 
-    // The models: the flare of the rig's light along theta, and the ghosts' parameters.
+    // The models: the flare of the rig's light along theta, the lab figures, and the ghosts'
+    // parameters.
+    std::string lab_csv = "model,theta_deg,centre_flare_dn_s,pst\n";
+    nlohmann::json models_json = nlohmann::json::array();
     for (size_t c = 0; c < cameras->size(); ++c) {
         const PreparedCamera& camera = (*cameras)[c];
         bool seen = false;
@@ -334,6 +340,54 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
             flare.series.push_back(mean);
         }
         section.plots.push_back(flare);
+        auto lab = labFigures(camera.model, camera.table, options.lab);
+        if (!lab) return fail(lab.error());
+        nlohmann::json lab_json;
+        lab_json["model"] = shown(camera.scene.model_path);
+        lab_json["black_spot_deg"] = options.lab.black_spot_deg;
+        lab_json["scaled"] = lab->scaled;
+        for (size_t i = 0; i < lab->theta_deg.size(); ++i) {
+            lab_csv += csv(shown(camera.scene.model_path)) + "," + fmt(lab->theta_deg[i]) + "," +
+                       fmt(lab->centre_flare[i]) + "," +
+                       (lab->scaled ? fmt(lab->pst[i]) : std::string()) + "\n";
+        }
+        if (lab->scaled) {
+            lab_json["veiling_glare_index"] = num(lab->vgi);
+            lab_json["vgi_theta_deg"] = {lab->vgi_from_deg, lab->vgi_to_deg};
+            lab_json["image_flare"] = num(lab->image_flare);
+            lab_json["image_flare_complete"] = lab->image_flare_complete;
+            lab_json["frame_field_deg"] = lab->frame_field_deg;
+            lab_json["light_power_dn_s"] = *camera.model.capture.light_power_dn_s;
+            section.paragraphs.push_back(
+                "Lab figures of the ghosts (predict/lab_figures.h; scatter is not in a model, so "
+                "a bench measures more): veiling glare index on axis (ISO 9358's ratio, a black "
+                "spot of " + fmt(options.lab.black_spot_deg) + " deg in a bright field from " +
+                fmt(lab->vgi_from_deg) + " to " + fmt(lab->vgi_to_deg) + " deg) " +
+                fmt(100.0 * lab->vgi, "%.3g") + " %; image flare at the centre patch of a chart "
+                "filling the frame (ISO 18844's black-patch method) " +
+                fmt(100.0 * lab->image_flare, "%.3g") + " %" +
+                (lab->image_flare_complete
+                     ? std::string(".")
+                     : " (the model stops at " + fmt(lab->vgi_to_deg) +
+                           " deg, short of the frame's corner at " +
+                           fmt(lab->frame_field_deg, "%.1f") + " deg: a lower bound).") +
+                " Point source transmittance along theta below (lab.csv).");
+            ReportPlot pst;
+            pst.title = "Point source transmittance along theta (ghosts, roll 0)";
+            pst.x_label = "theta (deg)";
+            pst.y_label = "PST";
+            pst.log_y = true;
+            pst.series.push_back(ReportSeries{"PST", lab->theta_deg, lab->pst});
+            section.plots.push_back(pst);
+        } else {
+            lab_json["missing"] = lab->missing;
+            section.paragraphs.push_back(
+                "No lab figures (PST, veiling glare index, image flare): the model lacks " +
+                lab->missing +
+                " (the light's power comes from the sweep of a simulated rig, or from `flarelab "
+                "fit --light-power-dn-s` measured apart).");
+        }
+        models_json.push_back(lab_json);
         section.plots.push_back(parameterPlot(camera.model, "centre_x_mm", "mm"));
         section.plots.push_back(parameterPlot(camera.model, "half_height_mm", "mm"));
         section.plots.push_back(parameterPlot(camera.model, "ln_inner_rgb[1]", "ln(DN/s)"));
@@ -354,7 +408,8 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
         const double step_s = std::chrono::duration<double>(timeline->sun.step).count();
         std::string tcsv = "time_utc,sun_zenith_deg,sun_azimuth_deg";
         for (const auto& camera : *cameras)
-            for (const char* column : {" flare_mean", " flare_peak", " contrast_loss", " sun"})
+            for (const char* column :
+                 {" flare_mean", " flare_peak", " contrast_loss", " glare_indicator", " sun"})
                 tcsv += "," + csv(camera.scene.name + column);
         tcsv += "\n";
         for (size_t i = 0; i < steps; ++i) {
@@ -363,7 +418,8 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
                     "," + fmt(p.azimuth_deg, "%.5f");
             for (const auto& ct : timeline->cameras)
                 tcsv += "," + fmt(ct.flare_mean[i]) + "," + fmt(ct.flare_peak[i]) + "," +
-                        fmt(ct.contrast_loss[i]) + "," + lightStateName(ct.sun_state[i]);
+                        fmt(ct.contrast_loss[i]) + "," + fmt(ct.glare_indicator[i]) + "," +
+                        lightStateName(ct.sun_state[i]);
             tcsv += "\n";
         }
         if (auto w = writeTextFileAtomically((fs::path(out_dir) / "timeline.csv").string(), tcsv);
@@ -390,7 +446,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
             "camera",  "below horizon",      "behind camera",   "in the model's range", "clamped",
             "refused", "flare mean, median", "flare mean, max", "contrast loss, max"};
         nlohmann::json tj = nlohmann::json::array();
-        ReportPlot mean_plot, loss_plot;
+        ReportPlot mean_plot, loss_plot, glare_plot;
         mean_plot.title = "Flare mean along the day";
         mean_plot.x_label = "hours from " + formatIso8601(scene->sun->from);
         mean_plot.y_label = "flare mean (DN)";
@@ -398,6 +454,9 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
         loss_plot.title = "Contrast loss along the day (1 - eq. 9.3)";
         loss_plot.x_label = mean_plot.x_label;
         loss_plot.y_label = "contrast loss";
+        glare_plot.title = "Glare indicator along the day (flare mean over the scene's log-average)";
+        glare_plot.x_label = mean_plot.x_label;
+        glare_plot.y_label = "glare indicator";
         std::vector<double> hours(steps);
         for (size_t i = 0; i < steps; ++i) hours[i] = static_cast<double>(i) * step_s / 3600.0;
         for (size_t c = 0; c < cameras->size(); ++c) {
@@ -421,12 +480,18 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
                           {"flare_mean_median", num(median(ct.flare_mean))},
                           {"flare_mean_max", num(maximum(ct.flare_mean))},
                           {"flare_peak_max", num(maximum(ct.flare_peak))},
-                          {"contrast_loss_max", num(maximum(ct.contrast_loss))}});
+                          {"contrast_loss_max", num(maximum(ct.contrast_loss))},
+                          {"glare_indicator_max", num(maximum(ct.glare_indicator))}});
+            summary_of_timeline.cameras.back().glare_indicator_max = maximum(ct.glare_indicator);
             ReportSeries m{name, hours, ct.flare_mean};
             mean_plot.series.push_back(m);
             bool any_loss = false;
             for (double v : ct.contrast_loss) any_loss |= std::isfinite(v);
             if (any_loss) loss_plot.series.push_back(ReportSeries{name, hours, ct.contrast_loss});
+            bool any_glare = false;
+            for (double v : ct.glare_indicator) any_glare |= std::isfinite(v);
+            if (any_glare)
+                glare_plot.series.push_back(ReportSeries{name, hours, ct.glare_indicator});
         }
         report["timeline"] = {{"from_utc", formatIso8601(scene->sun->from)},
                               {"to_utc", formatIso8601(scene->sun->to)},
@@ -450,6 +515,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
             if (!plan) return fail(plan.error());
             plan_ms = msSince(start);
             if (sw.figure == SwitchFigure::ContrastLoss) loss_plot.threshold = sw.threshold;
+            if (sw.figure == SwitchFigure::GlareIndicator) glare_plot.threshold = sw.threshold;
             ReportPlot plan_plot;
             plan_plot.title = "Switching plan (" + std::string(switchFigureName(sw.figure)) +
                               " <= " + fmt(sw.threshold) + ", shots of at least " +
@@ -532,6 +598,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
         }
         section.plots.push_back(mean_plot);
         if (!loss_plot.series.empty()) section.plots.push_back(loss_plot);
+        if (!glare_plot.series.empty()) section.plots.push_back(glare_plot);
         if (plan_plot_kept) section.plots.push_back(*plan_plot_kept);
         html.sections.push_back(section);
     }
@@ -621,6 +688,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
     report["frames"] = frames_json;
     html.sections.push_back(frames_section);
     output.timings = {tables_ms, timeline_ms, plan_ms, frames_ms};
+    report["models"] = models_json;
     report["timings_ms"] = {{"tables", tables_ms},
                             {"timeline", timeline_ms},
                             {"switching", plan_ms},
@@ -630,6 +698,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
     output.report_json = report.dump(2) + "\n";
     for (const auto& [name, text] :
          {std::pair<std::string, std::string>{"figures.csv", figures_csv},
+          {"lab.csv", lab_csv},
           {"report.json", output.report_json},
           {"report.html", reportHtml(html)}}) {
         if (auto w = writeTextFileAtomically((dir / name).string(), text); !w)

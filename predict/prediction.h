@@ -25,6 +25,7 @@
 
 #include "common/result.h"
 #include "predict/figures.h"
+#include "predict/lab_figures.h"
 #include "predict/playback.h"
 #include "predict/predictor.h"
 #include "predict/switching.h"
@@ -34,6 +35,7 @@ namespace flarelab::predict {
 struct PredictOptions {
     FigureTableOptions table = {0.0, 10.0, 240};  // `flarelab predict`'s defaults
     double exposure_stops = 0.0;                  // the frames' PNGs, above the camera's white
+    LabFigureOptions lab;                         // the models' lab figures
     // How the report and error messages name the scene; empty: by its path. With
     // paths_relative_to_scene, the files the scene names (models, glTF) are shown by their path
     // below the scene's folder, as the scene gives them: a caller that put the scene in a folder
@@ -80,6 +82,7 @@ struct CameraTimelineSummary {
     double flare_mean_max = 0.0;
     double flare_peak_max = 0.0;
     double contrast_loss_max = 0.0;
+    double glare_indicator_max = 0.0;  // NaN without the scene's log-average
 };
 
 struct TimelineSummary {

@@ -172,6 +172,53 @@ TEST_F(PredictCommand, AStaticSceneDrawsOneFramePerCamera) {
     EXPECT_FALSE(fs::exists(out / "timeline.csv"));
 }
 
+// A model that knows its light's power gets the lab figures; one that does not says what it
+// lacks. The glare indicator follows the scene's log-average and can drive the switching.
+TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
+    fit::FlareModel lit = predict::testing::movingDiscModel();
+    lit.capture.light_power_dn_s = 5.0e6;
+    ASSERT_TRUE(fit::writeModel((dir_ / "models" / "lit.flm").string(), lit));
+    std::string scene = twoCameraScene();
+    scene = scene.replace(scene.find("models/disc.flm"), 15, "models/lit.flm");
+    const std::string key = "\"scene_log_average_dn\": 50, ";
+    for (size_t at = scene.find("\"scene_max_dn\": 500"); at != std::string::npos;
+         at = scene.find("\"scene_max_dn\": 500", at + key.size() + 1))
+        scene.insert(at, key);
+    scene.replace(scene.find("\"contrast-loss\""), 15, "\"glare\"");
+    const fs::path out = dir_ / "lab";
+    const CommandRun r = predict({writeScene(scene), "-o", out.string(), "--table-phi-step", "30",
+                                  "--black-spot-deg", "2"});
+    ASSERT_EQ(r.code, 0) << r.err;
+    const auto report = nlohmann::json::parse(readText(out / "report.json"));
+    ASSERT_EQ(report["models"].size(), 2u);
+    const auto& with = report["models"][0];
+    EXPECT_TRUE(contains(with["model"].get<std::string>(), "models/lit.flm"));
+    ASSERT_TRUE(with["scaled"].get<bool>());
+    EXPECT_EQ(with["black_spot_deg"], 2.0);
+    // The disc covers the image centre up to 2 deg: the bright field from 1 deg adds to it.
+    EXPECT_GT(with["veiling_glare_index"].get<double>(), 0.0);
+    EXPECT_GE(with["veiling_glare_index"].get<double>(), with["image_flare"].get<double>());
+    EXPECT_FALSE(with["image_flare_complete"].get<bool>());  // 10 deg of a 23 deg field
+    const auto& without = report["models"][1];
+    EXPECT_FALSE(without["scaled"].get<bool>());
+    EXPECT_EQ(without["missing"], "capture.light_power_dn_s");
+    const std::string lab = readText(out / "lab.csv");
+    EXPECT_TRUE(contains(lab, "model,theta_deg,centre_flare_dn_s,pst\n")) << lab;
+    EXPECT_TRUE(contains(lab, "models/lit.flm,0,")) << lab;
+    EXPECT_TRUE(contains(lab, "models/disc.flm,10,")) << lab;  // no PST: an empty last column
+    const std::string html = readText(out / "report.html");
+    EXPECT_TRUE(contains(html, "Point source transmittance")) << html.substr(0, 400);
+    EXPECT_TRUE(contains(html, "the model lacks capture.light_power_dn_s"));
+
+    // The glare indicator: the fixed lights' mean over 50 DN, and the plan's figure.
+    const auto& left = report["cameras"][0];
+    EXPECT_NEAR(left["glare_indicator"].get<double>(),
+                left["fixed_lights"]["mean"].get<double>() / 50.0, 1e-12);
+    EXPECT_EQ(report["switching"]["figure"], "glare");
+    EXPECT_TRUE(report["timeline"]["cameras"][1].contains("glare_indicator_max"));
+    EXPECT_TRUE(contains(readText(out / "timeline.csv"), "right glare_indicator"));
+}
+
 TEST_F(PredictCommand, BadScenesAreRefusedNamingTheField) {
     const fs::path out = dir_ / "bad";
     CommandRun r = predict({writeScene(R"({
