@@ -13,7 +13,9 @@
 #include "fit/model_eval.h"
 #include "fit/model_file.h"
 #include "optics/prescription.h"
+#include "drivers/sim_camera.h"
 #include "predict/figures.h"
+#include "predict/lab_figures.h"
 #include "predict/predictor.h"
 #include "predict/switching.h"
 
@@ -170,6 +172,62 @@ Result<PredictBenchResult> runPredictBench(const PredictBenchOptions& o, std::os
         r.model_energy_median_rel_err = median(model_energy);
         r.contrast_median_abs_err = median(contrast);
         r.contrast_worst_abs_err = worst(contrast);
+
+        // The lab figures: the model's centre flare (the table's) against the simulator's at the
+        // same angles, averaged over the same disc (1.5 table pixels about the centre).
+        drivers::SimCameraOptions sim;
+        sim.width_px = width;
+        sim.height_px = height;
+        if (fit::fittedInColour(*model)) sim.format = hdr::RawFormat::BayerRGGB;
+        const auto sim_power = drivers::simLightPower(lens->lens, sim);
+        if (!sim_power)
+            return makeError(ErrorCode::Internal, "bench predict: the lens passes no light");
+        r.light_power_from_model = model->capture.light_power_dn_s.has_value();
+        r.light_power_dn_s = model->capture.light_power_dn_s.value_or(*sim_power);
+        if (r.light_power_from_model)
+            r.light_power_rel_err = std::abs(r.light_power_dn_s - *sim_power) / *sim_power;
+        fit::FlareModel scaled = *model;
+        scaled.capture.light_power_dn_s = r.light_power_dn_s;
+        auto lab = predict::labFigures(scaled, *default_table);
+        if (!lab) return lab.error();
+        if (lab->scaled) {
+            const double radius_px = 1.5 * static_cast<double>(width) /
+                                     static_cast<double>(predict::FigureTableOptions{}.width);
+            std::vector<double> truth_centre;
+            for (double t : lab->theta_deg) {
+                // A light at theta on the side the model covers (playback.h).
+                const double a = t >= model->valid_from_deg && t <= model->valid_to_deg ? t : -t;
+                auto frame = (*truth)(a);
+                if (!frame) return frame.error();
+                double sum = 0.0;
+                int n = 0;
+                for (int64_t y = 0; y < height; ++y)
+                    for (int64_t x = 0; x < width; ++x) {
+                        const double dx = x + 0.5 - 0.5 * width, dy = y + 0.5 - 0.5 * height;
+                        if (dx * dx + dy * dy > radius_px * radius_px) continue;
+                        const float* p = frame->image.at(x, y);
+                        sum += 0.2126 * p[0] + 0.7152 * p[1] + 0.0722 * p[2];
+                        ++n;
+                    }
+                truth_centre.push_back(n > 0 ? sum / n : 0.0);
+            }
+            auto truth_lab = predict::labFiguresOfCentre(scaled, lab->theta_deg, truth_centre);
+            if (!truth_lab) return truth_lab.error();
+            r.vgi = lab->vgi;
+            r.vgi_truth = truth_lab->vgi;
+            r.vgi_from_deg = lab->vgi_from_deg;
+            r.vgi_to_deg = lab->vgi_to_deg;
+            r.image_flare = lab->image_flare;
+            r.image_flare_truth = truth_lab->image_flare;
+            r.image_flare_complete = lab->image_flare_complete;
+            const double top = *std::max_element(truth_centre.begin(), truth_centre.end());
+            std::vector<double> errors;
+            for (size_t i = 0; i < truth_centre.size(); ++i)
+                if (truth_centre[i] > 1e-3 * top)
+                    errors.push_back(std::abs(lab->centre_flare[i] - truth_centre[i]) /
+                                     truth_centre[i]);
+            r.centre_flare_median_rel_err = errors.empty() ? -1.0 : median(errors);
+        }
     }
 
     // 3. A broadcast: cameras on a circle around a stadium's centre, looking at it, in Vienna on
@@ -262,6 +320,19 @@ void printPredictBench(const PredictBenchResult& r, std::ostream& out) {
                       r.contrast_worst_abs_err);
         out << line;
     }
+    if (r.vgi_truth >= 0.0) {
+        std::snprintf(
+            line, sizeof line,
+            "lab figures (light power %.4g DN/s, %s): veiling glare index %.4g %% against the "
+            "simulator's %.4g %% (%.3g to %.3g deg), image flare %.4g %% against %.4g %%%s; centre "
+            "flare error median %.3f\n",
+            r.light_power_dn_s,
+            r.light_power_from_model ? "the model's" : "the simulated camera's", 100.0 * r.vgi,
+            100.0 * r.vgi_truth, r.vgi_from_deg, r.vgi_to_deg, 100.0 * r.image_flare,
+            100.0 * r.image_flare_truth, r.image_flare_complete ? "" : " (the model ends inside the frame)",
+            r.centre_flare_median_rel_err);
+        out << line;
+    }
     std::snprintf(line, sizeof line,
                   "broadcast: %d cameras x %lld steps: timeline %.1f ms, switching plan %.1f ms "
                   "(best of the runs); drawing every frame instead: about %.0f s\n",
@@ -294,6 +365,16 @@ nlohmann::json predictBenchJson(const PredictBenchResult& r) {
             {"model_energy_median_rel_err", r.model_energy_median_rel_err},
             {"contrast_median_abs_err", r.contrast_median_abs_err},
             {"contrast_worst_abs_err", r.contrast_worst_abs_err},
+            {"light_power_from_model", r.light_power_from_model},
+            {"light_power_dn_s", r.light_power_dn_s},
+            {"light_power_rel_err", r.light_power_rel_err},
+            {"vgi", r.vgi},
+            {"vgi_truth", r.vgi_truth},
+            {"vgi_deg", {r.vgi_from_deg, r.vgi_to_deg}},
+            {"image_flare", r.image_flare},
+            {"image_flare_truth", r.image_flare_truth},
+            {"image_flare_complete", r.image_flare_complete},
+            {"centre_flare_median_rel_err", r.centre_flare_median_rel_err},
             {"steps", r.steps},
             {"cameras", r.cameras},
             {"timeline_ms", r.timeline_ms},

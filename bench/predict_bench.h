@@ -11,7 +11,11 @@
 //   2. With the lens prescription: the model's predicted flare mean (the table) against the
 //      simulator's ground truth (drivers/sim_truth.h, the same camera as the capture, noiseless
 //      ghosts) at seeded random angles at the capture's roll, and the contrast ratio (eq. 9.3) for
-//      a scene whose contrast the true flare cuts to 90 %.
+//      a scene whose contrast the true flare cuts to 90 %. And the lab figures
+//      (predict/lab_figures.h): the on-axis veiling glare index and the centre-patch image flare
+//      from the model's table against the same integrals of the simulator's centre flare,
+//      rendered at every node of the table; the light's power is the model's, else the
+//      simulated camera's (drivers::simLightPower), the same for both.
 //   3. A broadcast: `cameras` cameras on one model around a stadium, the sun over `hours` at
 //      `step_s` (predictTimeline), and the switching plan (planSwitching, 10 s shots), best of
 //      `repeat`; beside it, drawing one frame per instant and camera, extrapolated from drawing
@@ -66,6 +70,14 @@ struct PredictBenchResult {
     double model_energy_median_rel_err = -1.0;  // the model drawn itself, without the table
     double contrast_median_abs_err = -1.0;      // |K_pred - K_true| at K_true = 0.9
     double contrast_worst_abs_err = -1.0;
+    bool light_power_from_model = false;  // else the simulated camera's
+    double light_power_dn_s = 0.0;
+    double light_power_rel_err = -1.0;    // the model's against the simulated camera's
+    double vgi = -1.0, vgi_truth = -1.0;  // fractions
+    double vgi_from_deg = 0.0, vgi_to_deg = 0.0;
+    double image_flare = -1.0, image_flare_truth = -1.0;
+    bool image_flare_complete = false;
+    double centre_flare_median_rel_err = -1.0;  // per node, where the truth is above 1e-3 of its max
     // The broadcast.
     int64_t steps = 0;
     int cameras = 0;
