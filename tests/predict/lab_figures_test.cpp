@@ -153,6 +153,19 @@ TEST(LabFigures, RefusesABlackSpotOutOfRangeAndStopsWhereTheModelStops) {
     EXPECT_TRUE(std::isfinite(lab->vgi));
 }
 
+TEST(LabFigures, AModelWithoutGhostsHasNoVeil) {
+    fit::FlareModel empty = testing::movingDiscModel(0);
+    empty.capture.light_power_dn_s = 1.0e6;
+    auto table = FlareFigureTable::build(empty, FigureTableOptions{1.0, 30.0, 48});
+    ASSERT_TRUE(table) << table.error().message;
+    auto lab = labFigures(empty, *table);
+    ASSERT_TRUE(lab) << lab.error().message;
+    ASSERT_TRUE(lab->scaled);
+    EXPECT_EQ(lab->vgi, 0.0);
+    EXPECT_EQ(lab->image_flare, 0.0);
+    for (double p : lab->pst) EXPECT_EQ(p, 0.0);
+}
+
 TEST(LabFigures, ACentreFlareFromElsewhereIsCheckedFirst) {
     const fit::FlareModel model = evenVeilModel(1.0, 10.0, 1.0e6);
     const double nan = std::nan("");
