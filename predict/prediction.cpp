@@ -120,12 +120,42 @@ ReportPlot parameterPlot(const fit::FlareModel& model,
     return plot;
 }
 
+constexpr const char* kStopped = "stopped before the prediction ended";
+
 // `text` with every `from` replaced by `to`.
 std::string replaced(std::string text, const std::string& from, const std::string& to) {
     if (from.empty()) return text;
     for (size_t at = text.find(from); at != std::string::npos; at = text.find(from, at + to.size()))
         text.replace(at, from.size(), to);
     return text;
+}
+
+// prepareCameras, and with a stop check (a server's) one model at a time, asking between them:
+// the cameras that share a model are prepared together, so each table is still built once. An
+// error is then the first of the first model's cameras that fails, not of the scene's order.
+Result<std::vector<PreparedCamera>> prepare(const std::vector<SceneCamera>& cameras,
+                                            const FigureTableOptions& table,
+                                            const std::function<bool()>& stopped) {
+    if (!stopped) return prepareCameras(cameras, table);
+    std::vector<std::optional<PreparedCamera>> placed(cameras.size());
+    for (size_t first = 0; first < cameras.size(); ++first) {
+        if (placed[first]) continue;
+        if (stopped()) return makeError(ErrorCode::Unsupported, kStopped);
+        std::vector<size_t> group;
+        std::vector<SceneCamera> sharing;
+        for (size_t c = first; c < cameras.size(); ++c)
+            if (cameras[c].model_path == cameras[first].model_path) {
+                group.push_back(c);
+                sharing.push_back(cameras[c]);
+            }
+        auto prepared = prepareCameras(sharing, table);
+        if (!prepared) return prepared.error();
+        for (size_t k = 0; k < group.size(); ++k) placed[group[k]] = std::move((*prepared)[k]);
+    }
+    std::vector<PreparedCamera> out;
+    out.reserve(cameras.size());
+    for (auto& camera : placed) out.push_back(std::move(*camera));
+    return out;
 }
 
 }  // namespace
@@ -145,7 +175,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
     };
     const auto fail = [&](const Error& e) { return Error{e.code, shown(e.message)}; };
     const auto stopped = [&] { return options.stop_requested && options.stop_requested(); };
-    const Error stop = makeError(ErrorCode::Unsupported, "stopped before the prediction ended");
+    const Error stop = makeError(ErrorCode::Unsupported, kStopped);
 
     auto scene = loadScene(scene_path);
     if (!scene) return fail(scene.error());
@@ -169,7 +199,7 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
     output.fixed_lights = static_cast<int64_t>(scene->lights.size());
     output.sun = scene->sun.has_value();
     auto start = Clock::now();
-    auto cameras = prepareCameras(scene->cameras, options.table);
+    auto cameras = prepare(scene->cameras, options.table, options.stop_requested);
     if (!cameras) return fail(cameras.error());
     const double tables_ms = msSince(start);
     // Each camera once per instant of `frames`, or once with the fixed lights.

@@ -48,9 +48,10 @@ struct PredictOptions {
     // before the work they bound begins.
     int64_t max_timeline_samples = 0;
     int64_t max_frame_pixels = 0;
-    // Asked between the steps of the work (each camera's figures, the timeline, each frame);
-    // true stops it there with an Unsupported error ("stopped"). Tables are built without a
-    // check: a table takes seconds at the sizes the daemon allows.
+    // Asked between the steps of the work (each model's table, each camera's figures, the
+    // timeline, each frame); true stops it there with an Unsupported error ("stopped"). A table
+    // under way is finished first. With it, cameras are prepared a model at a time, so an error
+    // among several is the first of the first model's cameras rather than of the scene's order.
     std::function<bool()> stop_requested;
     // Called with each note of the scene's glTF import once the cameras are prepared (the
     // command line prints them as they come); they are in PredictionOutput::notes too.
