@@ -177,7 +177,10 @@ public:
         : manager_(manager),
           options_(std::move(options)),
           limiter_(options_.calls_per_s, options_.burst),
-          unix_listener_(unix_listener) {}
+          unix_listener_(unix_listener),
+          predict_root_((fs::path(manager.options().runner.state_dir) / "predict").string()) {
+        clearPredictWork(predict_root_);
+    }
 
     Status DescribeRig(ServerContext* ctx,
                        const v1::DescribeRigRequest*,
@@ -320,6 +323,51 @@ public:
         return manager_.result(request->job_id(), out);
     }
 
+    // Any client the daemon admits may predict: it does not touch the rig. One at a time, as a
+    // prediction takes the machine's cores (its tables are drawn in parallel); a second is
+    // refused at once rather than queued, so that no call waits without a word.
+    Status Predict(ServerContext* ctx,
+                   const v1::PredictRequest* request,
+                   v1::PredictResponse* out) override {
+        Caller client;
+        if (Status ok = admit(ctx, &client); !ok.ok()) return ok;
+        Status status = checkPredictRequest(*request, options_.predict);
+        std::unique_lock slot(predict_mutex_, std::defer_lock);
+        if (status.ok() && !slot.try_lock())
+            status = Status(StatusCode::RESOURCE_EXHAUSTED,
+                            "another prediction is running; the daemon runs one at a time: "
+                            "retry when it ends");
+        if (status.ok()) {
+            const auto start = std::chrono::steady_clock::now();
+            status = runPredict(
+                *request, options_.predict, predict_root_,
+                [this, ctx] { return stopping_.load() || ctx->IsCancelled(); }, out);
+            if (status.ok())
+                logEvent(LogLevel::Info, "predict.done",
+                         {{"client", client.name},
+                          {"peer", client.peer},
+                          {"cameras", std::to_string(out->cameras_size())},
+                          {"outputs", std::to_string(out->outputs_size())},
+                          {"ms", std::to_string(static_cast<int64_t>(
+                                     std::chrono::duration<double, std::milli>(
+                                         std::chrono::steady_clock::now() - start)
+                                         .count()))}});
+        }
+        if (!status.ok()) {
+            out->Clear();
+            logEvent(LogLevel::Info, "request.refused",
+                     {{"rpc", "Predict"},
+                      {"client", client.name},
+                      {"peer", client.peer},
+                      {"code", std::to_string(status.error_code())},
+                      {"message", status.error_message()}});
+        }
+        return status;
+    }
+
+    // Predictions under way stop at their next step (the daemon is stopping).
+    void stopPredictions() { stopping_ = true; }
+
 private:
     Status admit(ServerContext* ctx, Caller* client) {
         const std::string grpc_peer = ctx->peer();
@@ -365,6 +413,9 @@ private:
     RateLimiter limiter_;
     const UnixListener* unix_listener_;
     std::atomic<size_t> watchers_{0};
+    const std::string predict_root_;  // the daemon's own: STATE/predict
+    std::mutex predict_mutex_;        // held by the prediction under way
+    std::atomic<bool> stopping_{false};
 };
 
 }  // namespace
@@ -466,6 +517,7 @@ void DaemonServer::shutdown(double deadline_s) {
     if (!impl_) return;
     std::call_once(impl_->stopped, [&] {
         if (impl_->unix_listener) impl_->unix_listener->stop();
+        impl_->service->stopPredictions();
         impl_->manager->shutdown();
         impl_->server->Shutdown(std::chrono::system_clock::now() +
                                 std::chrono::milliseconds(static_cast<int64_t>(deadline_s * 1e3)));

@@ -20,7 +20,8 @@
 // Bounds, so that no client can exhaust the daemon: a request of more than max_request_bytes
 // is refused by gRPC (RESOURCE_EXHAUSTED) before it is parsed; a peer gets calls_per_s calls a
 // second on average with bursts of `burst` (RESOURCE_EXHAUSTED beyond); at most max_watchers
-// streams watch at once.
+// streams watch at once. Predictions (daemon/predict_call.h) run one at a time, within
+// ServiceOptions::predict; a second while one runs is refused (RESOURCE_EXHAUSTED).
 #pragma once
 
 #include <memory>
@@ -29,6 +30,7 @@
 
 #include "common/result.h"
 #include "daemon/job_manager.h"
+#include "daemon/predict_call.h"
 
 namespace flarelab::daemon {
 
@@ -48,6 +50,8 @@ struct ServiceOptions {
     // The rig's devices (rig "devices"), by URI, as flarelabd was given them.
     std::vector<std::string> cameras;
     std::vector<std::string> heads;
+    // What one Predict call may take, write and hand back.
+    PredictLimits predict;
 };
 
 struct ServerOptions {
