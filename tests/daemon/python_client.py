@@ -1,17 +1,20 @@
 #!/usr/bin/env python3
 # The control API from outside our C++ client: Python stubs generated from proto/daemon.proto at
 # run time drive a real flarelabd through a whole sweep on the simulated rig (check, start, a
-# retried start, watch, result, list) and stop it with SIGTERM. Only the .proto is shared with
-# the daemon, so this proves the API, not our client library, is what works.
+# retried start, watch, result, list), a prediction of a planner's scene (Predict, with its
+# model handed in, and a path it must refuse), and stop it with SIGTERM. Only the .proto is
+# shared with the daemon, so this proves the API, not our client library, is what works.
 #
 # By hand (Debian's python3-grpcio and python3-grpc-tools, or protoc with grpc_python_plugin):
 #
 #     python3 tests/daemon/python_client.py --flarelabd build/release/apps/flarelabd \
-#         --proto-dir proto --lens data/lenses/heliar-tronnier.csv
+#         --proto-dir proto --lens data/lenses/heliar-tronnier.csv \
+#         --scene tests/data/scenes/report-test.json --model tests/data/models/moving-disc.flm
 #
 # Exit status 0 when every check holds; 1, with the failed check and the daemon's log, when not.
 import argparse
 import json
+import math
 import os
 import shutil
 import signal
@@ -103,6 +106,84 @@ def sweepConfig(pb, lens_path):
         previews=True,
         fit=True,
     )
+
+
+def predictRequest(pb, args, model_path):
+    """The scene of --scene with its model named `model_path`, and --model as the file."""
+    with open(args.scene) as f:
+        scene = json.load(f)
+    for camera in scene["cameras"]:
+        camera["model"] = model_path
+    with open(args.model, "rb") as f:
+        model = f.read()
+    return pb.PredictRequest(
+        scene_json=json.dumps(scene),
+        files=[pb.NamedFile(name=os.path.basename(args.model), content=model)],
+        scene_name="planner-scene.json",
+        options=pb.PredictOptions(table_phi_step_deg=30, return_report_files=True),
+    )
+
+
+def checkPredict(args, pb, stub):
+    """A prediction of --scene with --model, its figures held against its report.json."""
+    model_name = os.path.basename(args.model)
+    response = stub.Predict(predictRequest(pb, args, model_name), metadata=CLIENT, timeout=120)
+    report = json.loads(response.report_json)
+    names = [c.name for c in response.cameras]
+    check(
+        names == [c["name"] for c in report["cameras"]] and len(names) > 0,
+        "Predict: cameras %s, report.json has %s" % (names, [c["name"] for c in report["cameras"]]),
+    )
+    check(report["scene"] == "planner-scene.json", "Predict: report.json names the scene %r"
+          % report["scene"])
+    drawn = 0
+    for camera, reported in zip(response.cameras, report["cameras"]):
+        check(camera.model == model_name, "Predict: camera %s has model %r" % (camera.name,
+                                                                           camera.model))
+        for field in ("min", "max", "mean", "log_average", "total"):
+            value = getattr(camera.fixed_lights, field)
+            check(
+                math.isfinite(value) and value == reported["fixed_lights"][field],
+                "Predict: camera %s fixed_lights.%s %r, report.json %r"
+                % (camera.name, field, value, reported["fixed_lights"][field]),
+            )
+        if reported["contrast_ratio"] is not None:
+            check(
+                camera.HasField("contrast_ratio")
+                and camera.contrast_ratio == reported["contrast_ratio"],
+                "Predict: camera %s contrast_ratio differs from report.json" % camera.name,
+            )
+        for light, reported_light in zip(camera.lights, reported["lights"]):
+            check(
+                light.state == reported_light["state"]
+                and light.figures.mean == reported_light["figures"]["mean"],
+                "Predict: camera %s light %s differs from report.json" % (camera.name, light.name),
+            )
+            drawn += light.state == "drawn"
+        drawn += camera.fixed_lights.mean > 0
+    check(drawn > 0, "Predict: no light drawn and no flare at any camera")
+    if "switching" in report:
+        shots = [(s.camera, s.from_utc, s.to_utc) for s in response.switching.shots]
+        expected = [(s["camera"], s["from_utc"], s["to_utc"]) for s in report["switching"]["segments"]]
+        check(shots == expected, "Predict: shots %s, report.json %s" % (shots, expected))
+    outputs = {f.name for f in response.outputs}
+    check(
+        {"report.html", "figures.csv"} <= outputs,
+        "Predict: outputs %s lack report.html or figures.csv" % sorted(outputs),
+    )
+
+    # A scene that names a file outside what it was handed is refused, naming the field.
+    for path in ("../" + model_name, os.path.abspath(args.model)):
+        try:
+            stub.Predict(predictRequest(pb, args, path), metadata=CLIENT, timeout=60)
+            raise CheckFailed("Predict: the model path %r was accepted" % path)
+        except grpc.RpcError as e:
+            check(
+                e.code() == grpc.StatusCode.INVALID_ARGUMENT
+                and "cameras[0].model" in (e.details() or ""),
+                "Predict: model %r gave %s (%s), expected INVALID_ARGUMENT naming cameras[0].model"
+                % (path, e.code().name, e.details()),
+            )
 
 
 def runChecks(args, pb, rpc, daemon, socket_path, output_root):
@@ -203,6 +284,9 @@ def runChecks(args, pb, rpc, daemon, socket_path, output_root):
             job.id in [j.id for j in listed.jobs],
             "ListJobs: %s does not list %s" % ([j.id for j in listed.jobs], job.id),
         )
+
+        # A planner's prediction over the same socket.
+        checkPredict(args, pb, stub)
     finally:
         channel.close()
 
@@ -221,6 +305,8 @@ def main():
     parser.add_argument("--flarelabd", required=True, help="the daemon binary")
     parser.add_argument("--proto-dir", required=True, help="the repository's proto/ folder")
     parser.add_argument("--lens", required=True, help="a lens CSV, as in data/lenses")
+    parser.add_argument("--scene", required=True, help="a scene file to predict (flarelab-scene)")
+    parser.add_argument("--model", required=True, help="the model file every camera of it uses")
     args = parser.parse_args()
 
     # Under /tmp: a Unix socket path must stay under about 100 bytes.
@@ -247,7 +333,10 @@ def main():
         )
         runChecks(args, pb, rpc, daemon, socket_path, os.path.realpath(output_root))
         failed = False
-        print("python_client: a whole sweep over the API in %.1f s" % (time.monotonic() - began))
+        print(
+            "python_client: a whole sweep and a prediction over the API in %.1f s"
+            % (time.monotonic() - began)
+        )
     except CheckFailed as e:
         print("python_client: FAILED: %s" % e, file=sys.stderr)
     except grpc.RpcError as e:
