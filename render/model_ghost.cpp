@@ -782,8 +782,10 @@ struct BranchTile {
 // pointer, so that no AVX vector crosses a call compiled without AVX), its SSE ones otherwise.
 #if defined(__x86_64__) && defined(__GLIBC__)
 extern "C" {
-__m256d _ZGVdN4v_log(__m256d);
-__m256d _ZGVdN4v_exp(__m256d);
+// Declared with AVX2 as their definitions are: Clang refuses an AVX vector passed to a function
+// it believes is compiled without AVX (the ABI would differ), even from an AVX2 caller.
+[[gnu::target("avx2")]] __m256d _ZGVdN4v_log(__m256d);
+[[gnu::target("avx2")]] __m256d _ZGVdN4v_exp(__m256d);
 __m128d _ZGVbN2v_log(__m128d);
 __m128d _ZGVbN2v_exp(__m128d);
 }
