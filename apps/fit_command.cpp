@@ -43,6 +43,7 @@ struct FitState {
     int shape_frames = fit::ShadingRefitOptions{}.shape_frames_per_ghost;
     double shape_outline = fit::ShadingRefitOptions{}.shape_min_outline_in_frame;
     std::optional<double> light_power_dn_s;
+    bool keep_samples = false;
     bool quiet = false;
 };
 
@@ -164,6 +165,7 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.frame.cost.max_samples = s.samples;
     options.frame.cost.distance.iterations = s.distance_iterations;
     options.poly.fixed_degree = s.degree;
+    options.keep_samples = s.keep_samples;
     options.frame_stride = s.every;
     options.link.enabled = s.link;
     options.link.max_gap_frames = s.link_max_gap;
@@ -510,6 +512,9 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_option("--lens", fs->lens_file,
                     "the lens prescription, recorded in the model (gives the sensor size)");
     fit->add_option("--sensor-mm", fs->sensor, "sensor size WxH in mm (when nothing else says)");
+    fit->add_flag("--keep-samples", fs->keep_samples,
+                  "keep each parameter's per-frame values in the model, for reports (3 to 5 "
+                  "times larger)");
     fit->add_option("--light-power-dn-s", fs->light_power_dn_s,
                     "the rig light's own image summed over the sensor, DN/s at the capture's gain "
                     "(measured apart, e.g. through an ND filter): the lab figures' scale")

@@ -268,6 +268,31 @@ Status checkParameter(const FlareModel& m,
     }
     const double from = p.pieces.front().angle_from_deg;
     const double to = p.pieces.back().angle_to_deg;
+    if (!p.sample_angles_deg.empty() || !p.sample_values.empty()) {
+        if (m.format_version < 4)
+            return check.fail(at + ".sample_angles_deg",
+                              "is a field of format version 4, not of version " +
+                                  std::to_string(m.format_version));
+        if (p.sample_angles_deg.size() != p.sample_values.size())
+            return check.fail(at + ".sample_values",
+                              std::to_string(p.sample_values.size()) + " values for " +
+                                  std::to_string(p.sample_angles_deg.size()) + " angles");
+        if (auto ok = check.count(at + ".sample_angles_deg", p.sample_angles_deg.size(), 0,
+                                  kModelMaxSamples);
+            !ok)
+            return ok;
+        for (size_t i = 0; i < p.sample_angles_deg.size(); ++i) {
+            const double a = p.sample_angles_deg[i];
+            if (auto ok = check.finite(indexed(at + ".sample_angles_deg", i), a); !ok) return ok;
+            if (auto ok = check.finite(indexed(at + ".sample_values", i), p.sample_values[i]); !ok)
+                return ok;
+            if (a < from || a > to || (i > 0 && !(a > p.sample_angles_deg[i - 1])))
+                return check.fail(indexed(at + ".sample_angles_deg", i),
+                                  formatDouble(a) +
+                                      " is not increasing inside the pieces' span " +
+                                      formatDouble(from) + ".." + formatDouble(to));
+        }
+    }
     if (from < m.valid_from_deg || to > m.valid_to_deg)
         return check.fail(at + ".pieces", "cover " + formatDouble(from) + ".." + formatDouble(to) +
                                               ", outside valid_range (" +
@@ -394,6 +419,8 @@ FlareModel fromProto(const v1::FlareModel& m) {
                 parameter.pieces.push_back({q.angle_from_deg(), q.angle_to_deg(),
                                             toVector(q.coefficients()), q.residual_rms(),
                                             q.residual_max(), q.samples()});
+            parameter.sample_angles_deg = toVector(p.sample_angles_deg());
+            parameter.sample_values = toVector(p.sample_values());
             ghost.parameters.push_back(std::move(parameter));
         }
         ghost.fit = {g.fit().frames_fitted(), g.fit().first_angle_deg(), g.fit().last_angle_deg()};
@@ -458,6 +485,8 @@ v1::FlareModel toProto(const FlareModel& model) {
                 q->set_residual_max(piece.residual_max);
                 q->set_samples(static_cast<uint32_t>(piece.samples));
             }
+            for (const double a : parameter.sample_angles_deg) p->add_sample_angles_deg(a);
+            for (const double v : parameter.sample_values) p->add_sample_values(v);
         }
         v1::ModelGhostFit* f = g->mutable_fit();
         f->set_frames_fitted(static_cast<uint32_t>(ghost.fit.frames_fitted));
@@ -507,12 +536,24 @@ Status limitCounts(const v1::FlareModel& m, const Checker& check) {
                                   kModelMaxParameters);
             !ok)
             return ok;
-        for (int j = 0; j < g.parameters_size(); ++j)
-            if (auto ok = check.count(
-                    indexed(at + ".parameters", static_cast<size_t>(j)) + ".pieces",
-                    static_cast<size_t>(g.parameters(j).pieces_size()), 1, kModelMaxPieces);
+        for (int j = 0; j < g.parameters_size(); ++j) {
+            const std::string param_at = indexed(at + ".parameters", static_cast<size_t>(j));
+            if (auto ok = check.count(param_at + ".pieces",
+                                      static_cast<size_t>(g.parameters(j).pieces_size()), 1,
+                                      kModelMaxPieces);
                 !ok)
                 return ok;
+            if (auto ok = check.count(param_at + ".sample_angles_deg",
+                                      static_cast<size_t>(g.parameters(j).sample_angles_deg_size()),
+                                      0, kModelMaxSamples);
+                !ok)
+                return ok;
+            if (auto ok = check.count(param_at + ".sample_values",
+                                      static_cast<size_t>(g.parameters(j).sample_values_size()), 0,
+                                      kModelMaxSamples);
+                !ok)
+                return ok;
+        }
     }
     return Ok{};
 }

@@ -47,6 +47,8 @@
 //     (first from to last to) lies inside valid_range, and all parameters of a ghost share one
 //     span, so a ghost is either fully defined at an angle or not at all.
 //   - fit: frames_fitted >= 1, first_angle_deg <= last_angle_deg.
+//   - a parameter's samples (version 4): sample_angles_deg and sample_values of one length,
+//     0..kModelMaxSamples, finite, the angles strictly increasing inside the pieces' span.
 // Errors: NotFound (no such file), IoError (unreadable, or larger than kModelMaxFileBytes),
 // ParseError (malformed bytes or text, unknown fields, broken rules), Unsupported (another
 // format_version).
@@ -69,6 +71,7 @@ inline constexpr size_t kModelMaxGhosts = 4096;
 inline constexpr size_t kModelMaxParameters = 256;   // per ghost
 inline constexpr size_t kModelMaxPieces = 256;       // per parameter
 inline constexpr size_t kModelMaxCoefficients = 32;  // per piece; degree <= 31
+inline constexpr size_t kModelMaxSamples = 100000;   // kept per-frame values, per parameter
 inline constexpr size_t kModelMaxStringBytes = 4096;
 inline constexpr int64_t kModelMaxSide = int64_t{1} << 15;  // capture width and height, pixels
 inline constexpr int kModelMaxApertureBlades = 64;  // what optics::CameraDescription accepts
@@ -126,6 +129,10 @@ struct ModelParameter {
     std::optional<double> lower_bound;
     std::optional<double> upper_bound;
     std::vector<ModelPiece> pieces;  // ordered, contiguous
+    // Version 4, optional (SweepFitOptions::keep_samples): the per-frame values the pieces were
+    // fitted to, at increasing angles inside the pieces' span; both empty or of one length.
+    std::vector<double> sample_angles_deg;
+    std::vector<double> sample_values;
     bool operator==(const ModelParameter&) const = default;
 };
 

@@ -1206,6 +1206,14 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
                                                 piece.coefficients, piece.rms_residual,
                                                 piece.max_abs_residual, piece.sample_count});
             }
+            if (options.keep_samples) {
+                // Strictly increasing angles (a track holds one sample per frame).
+                for (size_t i = 0; i < n; ++i)
+                    if (i == 0 || angles[i] > parameter.sample_angles_deg.back()) {
+                        parameter.sample_angles_deg.push_back(angles[i]);
+                        parameter.sample_values.push_back(series[i]);
+                    }
+            }
             ghost.parameters.push_back(std::move(parameter));
         }
         model.ghosts.push_back(std::move(ghost));

@@ -80,6 +80,9 @@ struct SweepFitOptions {
     double duplicate_radius = 0.12;
     int max_missed = 3;        // frames a track may go undetected before it ends, >= 0
     int min_track_frames = 5;  // shorter tracks are not modelled (capped by the sweep length)
+    // Keep each parameter's per-frame values in the model (ModelParameter::sample_values), for a
+    // report to show the series against its data; a model about 3 to 5 times larger.
+    bool keep_samples = false;
     int start_frame = -1;      // -1: chosen automatically
     int start_probes = 9;      // frames detected to choose the start, >= 1
     int max_ghosts = 64;       // live tracks at most, >= 1

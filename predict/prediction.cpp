@@ -78,6 +78,13 @@ double maximum(const std::vector<double>& v) {
 
 // Each ghost's parameter `name` along theta at roll 0, one series per ghost (at most 24, the
 // brightest at their peak), evaluated from the model's series.
+bool modelKeptSamples(const fit::FlareModel& model) {
+    for (const fit::ModelGhost& g : model.ghosts)
+        for (const fit::ModelParameter& p : g.parameters)
+            if (!p.sample_values.empty()) return true;
+    return false;
+}
+
 ReportPlot parameterPlot(const fit::FlareModel& model,
                          const std::string& parameter,
                          const std::string& label) {
@@ -115,8 +122,21 @@ ReportPlot parameterPlot(const fit::FlareModel& model,
     std::vector<size_t> order(series.size());
     for (size_t i = 0; i < order.size(); ++i) order[i] = i;
     std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return peak[a] > peak[b]; });
-    for (size_t i = 0; i < order.size() && i < 24; ++i)
+    std::vector<ReportSeries> fitted;
+    for (size_t i = 0; i < order.size() && i < 24; ++i) {
+        const int64_t id = series[order[i]].first;
         plot.series.push_back(std::move(series[order[i]].second));
+        // The per-frame values the series was fitted to, when the model kept them.
+        for (const fit::ModelGhost& ghost : model.ghosts) {
+            if (ghost.id != id) continue;
+            for (const fit::ModelParameter& p : ghost.parameters)
+                if (p.name == parameter && !p.sample_values.empty())
+                    fitted.push_back(ReportSeries{"ghost " + std::to_string(id) + ", fitted",
+                                                  p.sample_angles_deg, p.sample_values, false,
+                                                  true});
+        }
+    }
+    for (ReportSeries& f : fitted) plot.series.push_back(std::move(f));
     return plot;
 }
 
@@ -350,9 +370,12 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
             camera.model.lens.description + ": " + std::to_string(camera.model.ghosts.size()) +
             " ghosts, valid from " + fmt(camera.model.valid_from_deg) + " to " +
             fmt(camera.model.valid_to_deg) +
-            " deg. The curves are the model's series evaluated along theta (the per-frame fits "
-            "they compress are not stored in model files; their residuals are, in `flarelab model "
-            "show`).");
+            " deg. The curves are the model's series evaluated along theta" +
+            (modelKeptSamples(camera.model)
+                 ? std::string(", the dots the per-frame fits they compress.")
+                 : std::string(" (the model kept no per-frame fits, `flarelab fit "
+                               "--keep-samples`; their residuals are in `flarelab model "
+                               "show`).")));
         ReportPlot flare;
         flare.title = "Flare of the rig's light along theta (model units, DN/s)";
         flare.x_label = "theta (deg)";

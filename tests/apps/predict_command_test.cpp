@@ -175,7 +175,7 @@ TEST_F(PredictCommand, AStaticSceneDrawsOneFramePerCamera) {
 // A model that knows its light's power gets the lab figures; one that does not says what it
 // lacks. The glare indicator follows the scene's log-average and can drive the switching.
 TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
-    fit::FlareModel lit = predict::testing::movingDiscModel();
+    fit::FlareModel lit = predict::testing::movingDiscModel(1, true);
     lit.capture.light_power_dn_s = 5.0e6;
     ASSERT_TRUE(fit::writeModel((dir_ / "models" / "lit.flm").string(), lit));
     std::string scene = twoCameraScene();
@@ -209,6 +209,10 @@ TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
     const std::string html = readText(out / "report.html");
     EXPECT_TRUE(contains(html, "Point source transmittance")) << html.substr(0, 400);
     EXPECT_TRUE(contains(html, "the model lacks capture.light_power_dn_s"));
+    // The kept per-frame values are drawn as dots beside their series; the other model has none.
+    EXPECT_TRUE(contains(html, "ghost 1, fitted")) << html.substr(0, 400);
+    EXPECT_TRUE(contains(html, "the dots the per-frame fits they compress"));
+    EXPECT_TRUE(contains(html, "the model kept no per-frame fits"));
 
     // The glare indicator: the fixed lights' mean over 50 DN, and the plan's figure.
     const auto& left = report["cameras"][0];

@@ -64,6 +64,8 @@ FlareModel sampleModel() {
     ModelParameter y{"segment[0].p0.y_mm", "mm", std::nullopt, std::nullopt, {}};
     y.pieces.push_back({-2.0, 0.5, {1.0, 2.0}, 0.5, 1.5, 13});
     y.pieces.push_back({0.5, 3.0, {-1.0, 0.0, 3.0, 1e-300}, 0.25, 0.75, 13});
+    y.sample_angles_deg = {-2.0, 0.5, 3.0};  // the per-frame values kept (version 4)
+    y.sample_values = {1.0, 2.5, -1.0};
     b.parameters = {y};
     b.fit = {26, -2.0, 3.0};
     m.ghosts = {a, b};
@@ -200,6 +202,20 @@ std::vector<BrokenCase> brokenCases() {
         {"format_version", [](FlareModel& m) { m.format_version = 5; }},
         // Version 4's light power in a version 3 model; one that is not a power.
         {"capture.light_power_dn_s", [](FlareModel& m) { m.format_version = 3; }},
+        // Version 4's kept samples in a version 3 model; broken samples.
+        {"ghosts[1].parameters[0].sample_angles_deg",
+         [](FlareModel& m) {
+             m.format_version = 3;
+             m.capture.light_power_dn_s.reset();
+         }},
+        {"ghosts[1].parameters[0].sample_values",
+         [](FlareModel& m) { m.ghosts[1].parameters[0].sample_values.pop_back(); }},
+        {"ghosts[1].parameters[0].sample_angles_deg[1]",
+         [](FlareModel& m) { m.ghosts[1].parameters[0].sample_angles_deg[1] = -2.0; }},
+        {"ghosts[1].parameters[0].sample_angles_deg[2]",
+         [](FlareModel& m) { m.ghosts[1].parameters[0].sample_angles_deg[2] = 3.5; }},
+        {"ghosts[1].parameters[0].sample_values[0]",
+         [nan](FlareModel& m) { m.ghosts[1].parameters[0].sample_values[0] = nan; }},
         {"capture.light_power_dn_s", [](FlareModel& m) { m.capture.light_power_dn_s = 0.0; }},
         {"capture.light_power_dn_s", [nan](FlareModel& m) { m.capture.light_power_dn_s = nan; }},
         // Version 3's raw format in a version 2 model; a name that is no raw format.
@@ -436,6 +452,11 @@ TEST(ReadModel, AVersion1ModelStillReads) {
     old.lens.coat_unspecified_surfaces.reset();
     old.capture.raw_format.clear();
     old.capture.light_power_dn_s.reset();
+    for (ModelGhost& g : old.ghosts)
+        for (ModelParameter& p : g.parameters) {
+            p.sample_angles_deg.clear();
+            p.sample_values.clear();
+        }
     const std::string bytes = modelBytes(old);
     ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x01", 2));
     const Result<FlareModel> binary = readModelFromMemory(bytes, "old.flaremodel");

@@ -219,6 +219,32 @@ TEST(SweepFit, TracksTwoGhostsAndBuildsModel) {
         EXPECT_EQ(ghost.parameters.size(), static_cast<size_t>(kGhostParameterCount));
         EXPECT_EQ(ghost.fit.frames_fitted, 13);
     }
+    // Kept samples: each parameter's per-frame values, as the tracks hold them; playback is the
+    // same with or without them.
+    EXPECT_TRUE(model->ghosts[0].parameters[0].sample_values.empty());
+    SweepFitOptions keep = options;
+    keep.keep_samples = true;
+    auto kept = buildModel(*result, modelShell(0.0, 6.0), keep);
+    ASSERT_TRUE(kept) << kept.error().message;
+    EXPECT_TRUE(validateModel(*kept));
+    for (size_t g = 0; g < kept->ghosts.size(); ++g) {
+        const auto& track = result->tracks[g];
+        for (int p = 0; p < kGhostParameterCount; ++p) {
+            const ModelParameter& parameter = kept->ghosts[g].parameters[static_cast<size_t>(p)];
+            ASSERT_EQ(parameter.sample_angles_deg.size(), track.samples.size());
+            for (size_t i = 0; i < track.samples.size(); ++i)
+                EXPECT_EQ(parameter.sample_angles_deg[i], track.samples[i].angle_deg);
+            if (parameter.name == "centre_x_mm")
+                for (size_t i = 0; i < track.samples.size(); ++i)
+                    EXPECT_EQ(parameter.sample_values[i],
+                              track.samples[i].state.shape.centre_x_mm);
+        }
+    }
+    auto drawn = renderModel(*model, 2.25, 0.0, 48, 32);
+    auto drawn_kept = renderModel(*kept, 2.25, 0.0, 48, 32);
+    ASSERT_TRUE(drawn && drawn_kept);
+    EXPECT_EQ(drawn->pixels, drawn_kept->pixels);
+
     const double held_out = 2.25;  // between frames
     auto at = modelGhostsAt(*model, held_out, 0.0);
     ASSERT_TRUE(at) << at.error().message;

@@ -12,7 +12,8 @@
 
 namespace flarelab::predict::testing {
 
-inline fit::FlareModel movingDiscModel(int ghosts = 1) {
+// keep_samples: the model keeps the per-frame values (SweepFitOptions::keep_samples).
+inline fit::FlareModel movingDiscModel(int ghosts = 1, bool keep_samples = false) {
     fit::FlareModel shell;
     shell.software_version = "flarelab test";
     shell.lens.description = "moving disc";
@@ -44,7 +45,9 @@ inline fit::FlareModel movingDiscModel(int ghosts = 1) {
         tracks.tracks.push_back(track);
     }
     if (ghosts == 0) return shell;
-    auto built = fit::buildModel(tracks, shell, fit::SweepFitOptions{});
+    fit::SweepFitOptions options;
+    options.keep_samples = keep_samples;
+    auto built = fit::buildModel(tracks, shell, options);
     EXPECT_TRUE(built) << built.error().message;
     return built ? *built : shell;
 }
