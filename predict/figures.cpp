@@ -125,6 +125,12 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
     std::atomic_flag error_taken = ATOMIC_FLAG_INIT;
     tbb::parallel_for(int64_t{0}, t.theta_count_, [&](int64_t i) {
         if (failed.load(std::memory_order_relaxed)) return;
+        if (options.stop_requested && options.stop_requested()) {
+            if (!error_taken.test_and_set())
+                first_error = makeError(ErrorCode::Unsupported, "stopped");
+            failed.store(true);
+            return;
+        }
         const double theta = t.thetaAt(i);
         // The roll that shows the light at phi 0 (model_eval.h: a negative head angle is the
         // light at |angle| turned half a turn).

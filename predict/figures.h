@@ -16,6 +16,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <utility>
 #include <vector>
@@ -65,6 +66,9 @@ struct FigureTableOptions {
     double theta_step_deg = 0.0;  // 0: the model's capture step, at most 0.5 deg
     double phi_step_deg = 5.0;    // (0, 90], a divisor of 360 within 1e-9
     int64_t width = 240;          // the frame's width in the drawing; the height keeps the aspect
+    // Asked before each theta is drawn, from any thread (a server's check that its client is
+    // still there); true ends the build with Unsupported ("stopped") within one drawing per core.
+    std::function<bool()> stop_requested;
 };
 
 // Figures of a unit light (model units: DN/s of the capture, for the rig's light) at a grid of

@@ -1,6 +1,7 @@
 #include "predict/prediction.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cctype>
 #include <chrono>
 #include <cmath>
@@ -168,7 +169,16 @@ Result<std::vector<PreparedCamera>> prepare(const std::vector<SceneCamera>& came
                 group.push_back(c);
                 sharing.push_back(cameras[c]);
             }
-        auto prepared = prepareCameras(sharing, table);
+        // The table asks too, between its angles: a table takes seconds.
+        std::atomic<bool> stopped_in_table{false};
+        FigureTableOptions stoppable = table;
+        stoppable.stop_requested = [&] {
+            if (!stopped()) return false;
+            stopped_in_table = true;
+            return true;
+        };
+        auto prepared = prepareCameras(sharing, stoppable);
+        if (!prepared && stopped_in_table) return makeError(ErrorCode::Unsupported, kStopped);
         if (!prepared) return prepared.error();
         for (size_t k = 0; k < group.size(); ++k) placed[group[k]] = std::move((*prepared)[k]);
     }

@@ -3,8 +3,10 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <random>
+#include <thread>
 #include <vector>
 
 #include "fit/model_eval.h"
@@ -110,6 +112,26 @@ TEST(FlareFigureTable, CoversEveryAngleTheModelDrawsOnEitherSide) {
     ASSERT_TRUE(image);
     EXPECT_NEAR(table->at(5.0, 0.0)->mean, flareFigures(*image).mean,
                 0.03 * flareFigures(*image).mean);
+}
+
+TEST(FlareFigureTable, StopsBetweenAngles) {
+    // Asked before each angle is drawn: told to stop at the fifth question, the build ends with
+    // "stopped" having asked at most once more per worker thread, not once per angle (41).
+    const fit::FlareModel model = testing::movingDiscModel();
+    std::atomic<int> asked{0};
+    FigureTableOptions options{0.25, 30.0, 48};
+    options.stop_requested = [&] { return ++asked >= 5; };
+    auto table = FlareFigureTable::build(model, options);
+    ASSERT_FALSE(table);
+    EXPECT_EQ(table.error().code, ErrorCode::Unsupported);
+    EXPECT_EQ(table.error().message, "figure table: stopped");
+    EXPECT_LE(asked.load(), 5 + static_cast<int>(std::thread::hardware_concurrency()));
+    // Never told to stop: the whole table, one question per angle.
+    asked = 0;
+    options.stop_requested = [&] { return ++asked < 0; };
+    table = FlareFigureTable::build(model, options);
+    ASSERT_TRUE(table) << table.error().message;
+    EXPECT_EQ(asked.load(), table->thetaCount());
 }
 
 TEST(FlareFigureTable, RefusesBadOptionsAndEmptyRanges) {
