@@ -1,9 +1,11 @@
 // libFuzzer target for what clients hand the daemon (daemon/sweep_config.h, daemon/journal.h).
 //
-// The bytes are read three ways: as a StartSweepRequest on the wire (what gRPC hands the service
+// The bytes are read four ways: as a StartSweepRequest on the wire (what gRPC hands the service
 // after its size limit), whose config then goes through prepareSweep, the check every request
-// passes before the daemon acts on it; as a journal record (protobuf JSON, what a restarted
-// daemon reads back); and as a requested output directory. A refusal must be InvalidArgument
+// passes before the daemon acts on it; as a PredictRequest, through checkPredictRequest, the
+// check that runs before a prediction writes anything (daemon/predict_call.h); as a journal
+// record (protobuf JSON, what a restarted daemon reads back); and as a requested output
+// directory. A refused prediction must be INVALID_ARGUMENT or RESOURCE_EXHAUSTED with a message. A refusal must be InvalidArgument
 // (ParseError for a record) and start with the field it names; an accepted config must have its
 // defaults filled, angles that increase inside [from, to], a bracket of positive times and an
 // output directory below the root. Every violation is a trap, so libFuzzer records the input.
@@ -14,6 +16,7 @@
 #include <string>
 
 #include "daemon/journal.h"
+#include "daemon/predict_call.h"
 #include "daemon/sweep_config.h"
 
 namespace {
@@ -64,6 +67,15 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
             require(p.config.sim().seed() != 0 && p.config.gain() > 0.0);
             require(below(p.output_dir, root()));
             require(std::isfinite(p.rig_time_s) && p.rig_time_s >= 0.0);
+        }
+    }
+    flarelab::v1::PredictRequest predict;
+    if (predict.ParseFromString(bytes)) {
+        const grpc::Status checked = checkPredictRequest(predict, PredictLimits{});
+        if (!checked.ok()) {
+            require(checked.error_code() == grpc::StatusCode::INVALID_ARGUMENT ||
+                    checked.error_code() == grpc::StatusCode::RESOURCE_EXHAUSTED);
+            require(!checked.error_message().empty());
         }
     }
     auto record = Journal::parse(bytes, "fuzz-input");
