@@ -85,6 +85,12 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
                          "figure table: phi_step_deg must lie in (0, 90] and divide 360");
     if (options.width < 8 || options.width > 4096)
         return makeError(ErrorCode::InvalidArgument, "figure table: width must lie in 8..4096");
+    if (options.field_points.size() > 8)
+        return makeError(ErrorCode::InvalidArgument, "figure table: at most 8 field points");
+    for (double h : options.field_points)
+        if (!(h > 0.0 && h <= 1.0))
+            return makeError(ErrorCode::InvalidArgument,
+                             "figure table: field points must lie in (0, 1] (of the half-diagonal)");
     if (!(model.lens.sensor_width_mm > 0.0 && model.lens.sensor_height_mm > 0.0))
         return makeError(ErrorCode::InvalidArgument, "figure table: the model has no sensor size");
     // theta >= 0; a model of negative head angles covers |angle| (playback.h).
@@ -110,6 +116,9 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
                                           model.lens.sensor_width_mm));
     t.nodes_.resize(static_cast<size_t>(t.theta_count_ * t.phi_count_));
     t.centre_.resize(static_cast<size_t>(t.theta_count_));
+    t.field_points_ = options.field_points;
+    t.field_.assign(t.field_points_.size(),
+                    std::vector<double>(static_cast<size_t>(t.theta_count_ * t.phi_count_), 0.0));
     // One drawing per theta serves every roll: the ghosts at roll 0 on a square canvas as wide
     // as the frame's diagonal, and for each roll the canvas pixels that the frame, turned the
     // other way, covers (a pixel p of the frame at roll phi sees the canvas at R(-phi) p).
@@ -164,6 +173,29 @@ Result<FlareFigureTable> FlareFigureTable::build(const fit::FlareModel& model,
                 }
             }
         t.centre_[static_cast<size_t>(i)] = centre_count > 0 ? centre_sum / centre_count : 0.0;
+        // The field points: the frame's point p at roll phi sees the canvas at R(-phi) p,
+        // sampled bilinearly.
+        for (size_t k = 0; k < t.field_points_.size(); ++k) {
+            const double px = t.field_points_[k] * half_w, py = t.field_points_[k] * half_h;
+            for (int64_t j = 0; j < t.phi_count_; ++j) {
+                const double phi = t.phiAt(j) * std::numbers::pi / 180.0;
+                const double c = std::cos(phi), s = std::sin(phi);
+                const double u = c * px + s * py + mapping.centre_x_px - 0.5;
+                const double v = -s * px + c * py + mapping.centre_y_px - 0.5;
+                const int64_t u0 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(u)), 0,
+                                                       side - 2);
+                const int64_t v0 = std::clamp<int64_t>(static_cast<int64_t>(std::floor(v)), 0,
+                                                       side - 2);
+                const double a = std::clamp(u - static_cast<double>(u0), 0.0, 1.0);
+                const double b = std::clamp(v - static_cast<double>(v0), 0.0, 1.0);
+                const auto at = [&](int64_t x, int64_t yy) {
+                    return std::max(0.0, y[static_cast<size_t>(yy * side + x)]);
+                };
+                t.field_[k][static_cast<size_t>(i * t.phi_count_ + j)] =
+                    (1 - a) * (1 - b) * at(u0, v0) + a * (1 - b) * at(u0 + 1, v0) +
+                    (1 - a) * b * at(u0, v0 + 1) + a * b * at(u0 + 1, v0 + 1);
+            }
+        }
         std::vector<double> inside;
         inside.reserve(y.size());
         for (int64_t j = 0; j < t.phi_count_; ++j) {

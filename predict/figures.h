@@ -69,6 +69,10 @@ struct FigureTableOptions {
     // Asked before each theta is drawn, from any thread (a server's check that its client is
     // still there); true ends the build with Unsupported ("stopped") within one drawing per core.
     std::function<bool()> stop_requested;
+    // Points of the frame where the flare is also kept for every node (the lab figures' black
+    // patches off axis, predict/lab_figures.h): relative image heights in (0, 1], fractions of
+    // the half-diagonal along the diagonal towards the frame's corner at +x, +y.
+    std::vector<double> field_points = {0.5, 0.7};
 };
 
 // Figures of a unit light (model units: DN/s of the capture, for the rig's light) at a grid of
@@ -105,6 +109,13 @@ public:
     // The flare at the image's centre (luminance per pixel, like the figures) for a unit light
     // at theta_i: the same for every roll. predict/lab_figures.h integrates it.
     double centreFlare(int64_t i) const { return centre_[static_cast<size_t>(i)]; }
+    // The flare at field point k (FigureTableOptions::field_points) for a unit light at node
+    // (i, j): the frame at roll phi_j, the light at theta_i, whose own image lies at
+    // f tan(theta_i) (cos phi_j, sin phi_j) on the sensor.
+    const std::vector<double>& fieldPoints() const { return field_points_; }
+    double fieldFlare(size_t k, int64_t i, int64_t j) const {
+        return field_[k][static_cast<size_t>(i * phi_count_ + j)];
+    }
     double phiAt(int64_t j) const { return static_cast<double>(j) * phi_step_deg_; }
 
 private:
@@ -117,6 +128,8 @@ private:
     double capture_pixels_ = 0.0;
     std::vector<FlareFigures> nodes_;
     std::vector<double> centre_;
+    std::vector<double> field_points_;
+    std::vector<std::vector<double>> field_;  // [point][node]
 };
 
 }  // namespace flarelab::predict

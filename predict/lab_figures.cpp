@@ -115,6 +115,46 @@ Result<LabFigures> labFigures(const fit::FlareModel& model,
     for (int64_t i = 0; i < table.thetaCount(); ++i)
         l->pst.push_back(table.node(i, 0).mean / pixelArea(model) /
                          (*model.capture.light_power_dn_s / pupil_area));
+
+    // Off axis: every node's light, at theta_i and roll phi_j, images at
+    // f tan(theta_i) (cos phi_j, sin phi_j); the spot hides those within half its diameter of
+    // the point's own direction, and the chart holds those whose image lies in the frame.
+    const double f = *model.lens.focal_length_mm;
+    const double w = model.lens.sensor_width_mm, h = model.lens.sensor_height_mm;
+    const double scale = f * f / (pixelArea(model) * *model.capture.light_power_dn_s);
+    const double cos_spot = std::cos(0.5 * options.black_spot_deg * kDeg);
+    const int64_t n = table.thetaCount(), m = table.phiCount();
+    const double dphi = 2.0 * std::numbers::pi / static_cast<double>(m);
+    for (size_t k = 0; k < table.fieldPoints().size(); ++k) {
+        LabFieldPoint point;
+        point.height = table.fieldPoints()[k];
+        const double px = point.height * 0.5 * w, py = point.height * 0.5 * h;
+        const double norm = std::sqrt(px * px + py * py + f * f);
+        const double dx = px / norm, dy = py / norm, dz = f / norm;
+        point.field_deg = std::acos(dz) / kDeg;
+        double veil = 0.0, chart = 0.0;
+        for (int64_t i = 0; i < n; ++i) {
+            const double t = table.thetaAt(i) * kDeg;
+            const double lo = i > 0 ? table.thetaAt(i - 1) : table.thetaAt(i);
+            const double hi = i + 1 < n ? table.thetaAt(i + 1) : table.thetaAt(i);
+            const double weight = std::sin(t) * 0.5 * (hi - lo) * kDeg * dphi;
+            for (int64_t j = 0; j < m; ++j) {
+                const double phi = table.phiAt(j) * kDeg;
+                const double c = std::cos(phi), s = std::sin(phi);
+                const double cos_to_point =
+                    std::sin(t) * c * dx + std::sin(t) * s * dy + std::cos(t) * dz;
+                if (cos_to_point >= cos_spot) continue;  // behind the black spot
+                const double v = table.fieldFlare(k, i, j) * weight;
+                veil += v;
+                const double r = f * std::tan(t);
+                if (std::abs(r * c) <= 0.5 * w && std::abs(r * s) <= 0.5 * h) chart += v;
+            }
+        }
+        const double white = std::pow(dz, 4.0);  // cos^4 of the field angle
+        point.vgi = scale * veil / white;
+        point.image_flare = scale * chart / white;
+        l->field.push_back(point);
+    }
     return l;
 }
 

@@ -33,7 +33,12 @@
 //
 // What a model holds is its ghosts: scatter from surfaces, dust and the lens barrel, which a
 // bench's VGI also measures, is not in it, so these are the ghost part of each figure, a lower
-// bound of a bench's value. Off-axis black spots and the chart's other patches are not computed.
+// bound of a bench's value.
+//
+// Off axis (LabFieldPoint): a spot or patch at a field point of the table, the flare there summed
+// over every node's light (the table keeps it per node), over a white of cos^4 of the point's
+// field angle. The points are image heights along the diagonal (0.5 and 0.7 by default), not the
+// positions of ISO 18844's chart, whose text the project does not hold.
 #pragma once
 
 #include <string>
@@ -51,6 +56,17 @@ struct LabFigureOptions {
     double black_spot_deg = 1.0;
 };
 
+// The veiling glare index and the image flare at a black spot or patch off axis (a field point of
+// the table, FigureTableOptions::field_points), summed over the table's nodes: theta by the
+// trapezoid rule, roll at the table's step. The white there is the centre's times cos^4 of the
+// field angle (an ideal rectilinear lens; a real lens's vignetting is not in a model).
+struct LabFieldPoint {
+    double height = 0.0;    // of the half-diagonal, towards the corner at +x, +y
+    double field_deg = 0.0;  // the point's field angle
+    double vgi = 0.0;
+    double image_flare = 0.0;
+};
+
 struct LabFigures {
     bool scaled = false;   // false: the model lacks the scale, and only centre_flare is filled
     std::string missing;   // what it lacks ("capture.light_power_dn_s", ...), when not scaled
@@ -63,6 +79,7 @@ struct LabFigures {
     double image_flare = 0.0;          // when scaled; a fraction
     double frame_field_deg = 0.0;      // the field angle of the frame's corner
     bool image_flare_complete = false;  // the model reaches the frame's corner
+    std::vector<LabFieldPoint> field;   // off axis (labFigures, when scaled)
 };
 
 // InvalidArgument for options out of range. A model without the scale is not an error (see

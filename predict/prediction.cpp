@@ -421,6 +421,19 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
             lab_json["image_flare_complete"] = lab->image_flare_complete;
             lab_json["frame_field_deg"] = lab->frame_field_deg;
             lab_json["light_power_dn_s"] = *camera.model.capture.light_power_dn_s;
+            nlohmann::json field = nlohmann::json::array();
+            std::string off_axis;
+            for (const LabFieldPoint& point : lab->field) {
+                field.push_back({{"image_height", point.height},
+                                 {"field_deg", point.field_deg},
+                                 {"veiling_glare_index", num(point.vgi)},
+                                 {"image_flare", num(point.image_flare)}});
+                off_axis += std::string(off_axis.empty() ? "" : "; ") + "at image height " +
+                            fmt(point.height) + " (" + fmt(point.field_deg, "%.1f") +
+                            " deg) " + fmt(100.0 * point.vgi, "%.3g") + " % and " +
+                            fmt(100.0 * point.image_flare, "%.3g") + " %";
+            }
+            lab_json["off_axis"] = field;
             section.paragraphs.push_back(
                 "Lab figures of the ghosts (predict/lab_figures.h; scatter is not in a model, so "
                 "a bench measures more): veiling glare index on axis (ISO 9358's ratio, a black "
@@ -434,6 +447,10 @@ Result<PredictionOutput> predictScene(const std::string& scene_path,
                      : " (the model stops at " + fmt(lab->vgi_to_deg) +
                            " deg, short of the frame's corner at " +
                            fmt(lab->frame_field_deg, "%.1f") + " deg: a lower bound).") +
+                (off_axis.empty() ? std::string()
+                                  : " Off axis, the index and the image flare " + off_axis +
+                                        " (the white falling as cos^4; roll sampled at the "
+                                        "table's step).") +
                 " Point source transmittance along theta below (lab.csv).");
             ReportPlot pst;
             pst.title = "Point source transmittance along theta (ghosts, roll 0)";

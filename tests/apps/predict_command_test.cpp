@@ -199,6 +199,9 @@ TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
     EXPECT_GT(with["veiling_glare_index"].get<double>(), 0.0);
     EXPECT_GE(with["veiling_glare_index"].get<double>(), with["image_flare"].get<double>());
     EXPECT_FALSE(with["image_flare_complete"].get<bool>());  // 10 deg of a 23 deg field
+    ASSERT_EQ(with["off_axis"].size(), 2u);  // image heights 0.5 and 0.7
+    EXPECT_EQ(with["off_axis"][1]["image_height"], 0.7);
+    EXPECT_GT(with["off_axis"][1]["field_deg"].get<double>(), 0.0);
     const auto& without = report["models"][1];
     EXPECT_FALSE(without["scaled"].get<bool>());
     EXPECT_EQ(without["missing"], "capture.light_power_dn_s");

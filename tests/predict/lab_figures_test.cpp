@@ -100,6 +100,73 @@ TEST(LabFigures, AnEvenVeilHasTheClosedForms) {
     EXPECT_LT(lab->image_flare, lab->vgi);  // a chart is the part of the field in the frame
 }
 
+TEST(LabFigures, OffAxisAnEvenVeilIsTheFieldsSolidAngleOverCos4) {
+    // At image heights 0.5 and 0.7 the veil is v everywhere; the white there falls as cos^4.
+    const double v = 2.0, power = 3.0e6, to = 30.0, f = 50.0;
+    const fit::FlareModel model = evenVeilModel(v, to, power);
+    FigureTableOptions options{0.5, 5.0, 96};
+    options.field_points = {0.5, 0.7};
+    auto table = FlareFigureTable::build(model, options);
+    ASSERT_TRUE(table) << table.error().message;
+    auto lab = labFigures(model, *table, LabFigureOptions{1.0});
+    ASSERT_TRUE(lab) << lab.error().message;
+    ASSERT_EQ(lab->field.size(), 2u);
+    const double pixel_area = (36.0 / 72) * (24.0 / 48);
+    const double scale = f * f / (pixel_area * power);
+    for (const LabFieldPoint& p : lab->field) {
+        const double x = p.height * 18.0, y = p.height * 12.0;
+        const double cos_p = f / std::sqrt(x * x + y * y + f * f);
+        EXPECT_NEAR(p.field_deg, std::acos(cos_p) / kDeg, 1e-9);
+        const double whole = 2.0 * std::numbers::pi * (1.0 - std::cos(to * kDeg));
+        const double white = std::pow(cos_p, 4.0);
+        EXPECT_NEAR(p.vgi, scale * v * whole / white, 5e-3 * p.vgi) << p.height;
+        // The chart: the frame's solid angle (the spot's is a thousandth of it).
+        double solid = 0.0;
+        const int n = 1000;
+        for (int i = 0; i < n; ++i)
+            for (int j = 0; j < n; ++j) {
+                const double sx = -18.0 + 36.0 * (i + 0.5) / n, sy = -12.0 + 24.0 * (j + 0.5) / n;
+                const double c = f / std::sqrt(f * f + sx * sx + sy * sy);
+                solid += (36.0 / n) * (24.0 / n) * c * c * c / (f * f);
+            }
+        EXPECT_NEAR(p.image_flare, scale * v * solid / white, 0.02 * p.image_flare) << p.height;
+    }
+    // Further out, the same veil is a larger share of a dimmer white.
+    EXPECT_GT(lab->field[1].vgi, lab->field[0].vgi);
+    EXPECT_GT(lab->field[0].vgi, lab->vgi);
+}
+
+TEST(LabFigures, OffAxisAGhostCountsWhereItLies) {
+    // The moving disc (radius 3 mm) lies 1.5 mm per degree of the light on the far side of it:
+    // at 3 deg it covers the point at height 0.2 along the diagonal (3.6 mm right, 2.4 mm down)
+    // only for some rolls; the table's samples there follow the drawing at every roll.
+    fit::FlareModel model = testing::movingDiscModel();
+    FigureTableOptions options{0.5, 10.0, 144};
+    options.field_points = {0.2};
+    auto table = FlareFigureTable::build(model, options);
+    ASSERT_TRUE(table) << table.error().message;
+    ASSERT_EQ(table->fieldPoints().size(), 1u);
+    const int64_t i = 6;  // 3 deg: the disc's centre at 4.5 mm from the image centre
+    int covered = 0, clear = 0;
+    ASSERT_DOUBLE_EQ(table->thetaAt(i), 3.0);
+    for (int64_t j = 0; j < table->phiCount(); ++j) {
+        const double phi = table->phiAt(j);
+        auto image = fit::renderModel(model, 3.0, phi, 144, 96);
+        ASSERT_TRUE(image);
+        // The point 3.6 mm right of and 2.4 mm below the centre: pixel (72 + 14.4, 48 + 9.6) of
+        // the 4 px/mm drawing.
+        const double drawn = image->at(86, 57)[1];
+        EXPECT_NEAR(table->fieldFlare(0, i, j), drawn, 0.35 * std::max(1.0, drawn)) << phi;
+        covered += drawn > 1.0;
+        clear += drawn == 0.0;
+    }
+    EXPECT_GT(covered, 0);  // the disc passes over the point at some rolls, not at others
+    EXPECT_GT(clear, 0);
+    auto lab = labFigures(model, *table);
+    ASSERT_TRUE(lab);
+    EXPECT_TRUE(lab->field.empty());  // no light power: no figures
+}
+
 TEST(LabFigures, TheCentreFlareFollowsTheGhostOffTheCentre) {
     // The moving disc (radius 3 mm, centre -1.5 mm per degree) covers the centre up to 2 deg.
     fit::FlareModel model = testing::movingDiscModel();
@@ -135,6 +202,15 @@ TEST(LabFigures, AModelWithoutItsScaleSaysWhatItLacks) {
 }
 
 TEST(LabFigures, RefusesABlackSpotOutOfRangeAndStopsWhereTheModelStops) {
+    {
+        fit::FlareModel m = evenVeilModel(1.0, 10.0, 1.0e6);
+        for (const std::vector<double>& points :
+             {std::vector<double>{0.0}, std::vector<double>{1.5}, std::vector<double>(9, 0.5)}) {
+            FigureTableOptions o{0.5, 30.0, 48};
+            o.field_points = points;
+            EXPECT_FALSE(FlareFigureTable::build(m, o)) << points.size();
+        }
+    }
     const fit::FlareModel model = evenVeilModel(1.0, 10.0, 1.0e6);
     auto table = FlareFigureTable::build(model, FigureTableOptions{0.5, 30.0, 48});
     ASSERT_TRUE(table) << table.error().message;
