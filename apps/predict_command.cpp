@@ -3,6 +3,7 @@
 #include <memory>
 #include <ostream>
 #include <string>
+#include <vector>
 
 #include "predict/prediction.h"
 
@@ -18,6 +19,7 @@ struct PredictState {
     int64_t table_width = 240;
     double exposure_stops = 0.0;
     double black_spot_deg = predict::LabFigureOptions{}.black_spot_deg;
+    std::vector<double> lab_heights = predict::FigureTableOptions{}.field_points;
 };
 
 int run(const PredictState& s, std::ostream& out, std::ostream& err) {
@@ -27,6 +29,7 @@ int run(const PredictState& s, std::ostream& out, std::ostream& err) {
     options.table.width = s.table_width;
     options.exposure_stops = s.exposure_stops;
     options.lab.black_spot_deg = s.black_spot_deg;
+    options.table.field_points = s.lab_heights;
     options.on_note = [&err](const std::string& note) {
         err << "flarelab: predict: note: " << note << "\n";
     };
@@ -70,6 +73,12 @@ void addPredictCommand(CLI::App& app, std::ostream& out, std::ostream& err, int&
                     "angular diameter of the black spot (veiling glare index) and of the chart's "
                     "centre patch (image flare), deg")
         ->check(CLI::Range(0.001, 20.0))
+        ->capture_default_str();
+    cmd->add_option("--lab-heights", s->lab_heights,
+                    "image heights (of the half-diagonal, along the diagonal) of the off-axis "
+                    "black spots and chart patches, at most 8")
+        ->delimiter(',')
+        ->check(CLI::Range(0.001, 1.0))
         ->capture_default_str();
     cmd->callback([s, &out, &err, &exit_code] { exit_code = run(*s, out, err); });
 }

@@ -187,7 +187,7 @@ TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
     scene.replace(scene.find("\"contrast-loss\""), 15, "\"glare\"");
     const fs::path out = dir_ / "lab";
     const CommandRun r = predict({writeScene(scene), "-o", out.string(), "--table-phi-step", "30",
-                                  "--black-spot-deg", "2"});
+                                  "--black-spot-deg", "2", "--lab-heights", "0.5,0.7"});
     ASSERT_EQ(r.code, 0) << r.err;
     const auto report = nlohmann::json::parse(readText(out / "report.json"));
     ASSERT_EQ(report["models"].size(), 2u);
@@ -201,6 +201,16 @@ TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
     EXPECT_FALSE(with["image_flare_complete"].get<bool>());  // 10 deg of a 23 deg field
     ASSERT_EQ(with["off_axis"].size(), 2u);  // image heights 0.5 and 0.7
     EXPECT_EQ(with["off_axis"][1]["image_height"], 0.7);
+    // Other heights; a height outside (0, 1] is refused.
+    const CommandRun one = predict({writeScene(scene), "-o", (dir_ / "one").string(),
+                                    "--table-phi-step", "30", "--lab-heights", "0.9", "--json"});
+    ASSERT_EQ(one.code, 0) << one.err;
+    const auto one_report = nlohmann::json::parse(one.out);
+    ASSERT_EQ(one_report["models"][0]["off_axis"].size(), 1u);
+    EXPECT_EQ(one_report["models"][0]["off_axis"][0]["image_height"], 0.9);
+    EXPECT_NE(predict({writeScene(scene), "-o", (dir_ / "bad").string(), "--lab-heights", "1.5"})
+                  .code,
+              0);
     EXPECT_GT(with["off_axis"][1]["field_deg"].get<double>(), 0.0);
     const auto& without = report["models"][1];
     EXPECT_FALSE(without["scaled"].get<bool>());
