@@ -75,6 +75,15 @@ struct FigureTableOptions {
     std::vector<double> field_points = {0.5, 0.7};
 };
 
+// The options with these steps and width and the rest at their defaults.
+inline FigureTableOptions tableOptions(double theta_step_deg, double phi_step_deg, int64_t width) {
+    FigureTableOptions o;
+    o.theta_step_deg = theta_step_deg;
+    o.phi_step_deg = phi_step_deg;
+    o.width = width;
+    return o;
+}
+
 // Figures of a unit light (model units: DN/s of the capture, for the rig's light) at a grid of
 // (theta, phi) over the model's valid angles and a whole turn of roll, interpolated bilinearly
 // (periodic in phi). Roll changes the figures only through the frame's edges (ghosts leaving the

@@ -33,7 +33,7 @@
 namespace flarelab::predict {
 
 struct PredictOptions {
-    FigureTableOptions table = {0.0, 10.0, 240};  // `flarelab predict`'s defaults
+    FigureTableOptions table = tableOptions(0.0, 10.0, 240);  // `flarelab predict`'s defaults
     double exposure_stops = 0.0;                  // the frames' PNGs, above the camera's white
     LabFigureOptions lab;                         // the models' lab figures
     // How the report and error messages name the scene; empty: by its path. With

@@ -102,7 +102,7 @@ TEST(FlareFigureTable, CoversEveryAngleTheModelDrawsOnEitherSide) {
     // Head angles -20..10: a light at theta 15 is the head angle -15 turned half a turn.
     fit::FlareModel model = testing::movingDiscModel();
     model.capture.from_deg = model.valid_from_deg = -20.0;
-    auto table = FlareFigureTable::build(model, FigureTableOptions{1.0, 30.0, 48});
+    auto table = FlareFigureTable::build(model, tableOptions(1.0, 30.0, 48));
     ASSERT_TRUE(table) << table.error().message;
     EXPECT_EQ(table->thetaFromDeg(), 0.0);
     EXPECT_EQ(table->thetaToDeg(), 20.0);
@@ -119,7 +119,7 @@ TEST(FlareFigureTable, StopsBetweenAngles) {
     // "stopped" having asked at most once more per worker thread, not once per angle (41).
     const fit::FlareModel model = testing::movingDiscModel();
     std::atomic<int> asked{0};
-    FigureTableOptions options{0.25, 30.0, 48};
+    FigureTableOptions options = tableOptions(0.25, 30.0, 48);
     options.stop_requested = [&] { return ++asked >= 5; };
     auto table = FlareFigureTable::build(model, options);
     ASSERT_FALSE(table);

@@ -62,7 +62,7 @@ TEST(ArcInsideFrame, MatchesCountingPointsOnTheCircle) {
 TEST(LabFigures, AnEvenVeilHasTheClosedForms) {
     const double v = 3.0, power = 4.0e6, to = 30.0;
     const fit::FlareModel model = evenVeilModel(v, to, power);
-    auto table = FlareFigureTable::build(model, FigureTableOptions{0.5, 30.0, 72});
+    auto table = FlareFigureTable::build(model, tableOptions(0.5, 30.0, 72));
     ASSERT_TRUE(table) << table.error().message;
     auto lab = labFigures(model, *table, LabFigureOptions{2.0});
     ASSERT_TRUE(lab) << lab.error().message;
@@ -104,7 +104,7 @@ TEST(LabFigures, OffAxisAnEvenVeilIsTheFieldsSolidAngleOverCos4) {
     // At image heights 0.5 and 0.7 the veil is v everywhere; the white there falls as cos^4.
     const double v = 2.0, power = 3.0e6, to = 30.0, f = 50.0;
     const fit::FlareModel model = evenVeilModel(v, to, power);
-    FigureTableOptions options{0.5, 5.0, 96};
+    FigureTableOptions options = tableOptions(0.5, 5.0, 96);
     options.field_points = {0.5, 0.7};
     auto table = FlareFigureTable::build(model, options);
     ASSERT_TRUE(table) << table.error().message;
@@ -141,7 +141,7 @@ TEST(LabFigures, OffAxisAGhostCountsWhereItLies) {
     // at 3 deg it covers the point at height 0.2 along the diagonal (3.6 mm right, 2.4 mm down)
     // only for some rolls; the table's samples there follow the drawing at every roll.
     fit::FlareModel model = testing::movingDiscModel();
-    FigureTableOptions options{0.5, 10.0, 144};
+    FigureTableOptions options = tableOptions(0.5, 10.0, 144);
     options.field_points = {0.2};
     auto table = FlareFigureTable::build(model, options);
     ASSERT_TRUE(table) << table.error().message;
@@ -170,7 +170,7 @@ TEST(LabFigures, OffAxisAGhostCountsWhereItLies) {
 TEST(LabFigures, TheCentreFlareFollowsTheGhostOffTheCentre) {
     // The moving disc (radius 3 mm, centre -1.5 mm per degree) covers the centre up to 2 deg.
     fit::FlareModel model = testing::movingDiscModel();
-    auto table = FlareFigureTable::build(model, FigureTableOptions{0.5, 30.0, 144});
+    auto table = FlareFigureTable::build(model, tableOptions(0.5, 30.0, 144));
     ASSERT_TRUE(table) << table.error().message;
     auto lab = labFigures(model, *table);
     ASSERT_TRUE(lab) << lab.error().message;
@@ -191,7 +191,7 @@ TEST(LabFigures, TheCentreFlareFollowsTheGhostOffTheCentre) {
 TEST(LabFigures, AModelWithoutItsScaleSaysWhatItLacks) {
     fit::FlareModel model = testing::movingDiscModel();
     model.lens.f_number.reset();
-    auto table = FlareFigureTable::build(model, FigureTableOptions{1.0, 30.0, 48});
+    auto table = FlareFigureTable::build(model, tableOptions(1.0, 30.0, 48));
     ASSERT_TRUE(table) << table.error().message;
     auto lab = labFigures(model, *table);
     ASSERT_TRUE(lab) << lab.error().message;
@@ -206,13 +206,13 @@ TEST(LabFigures, RefusesABlackSpotOutOfRangeAndStopsWhereTheModelStops) {
         fit::FlareModel m = evenVeilModel(1.0, 10.0, 1.0e6);
         for (const std::vector<double>& points :
              {std::vector<double>{0.0}, std::vector<double>{1.5}, std::vector<double>(9, 0.5)}) {
-            FigureTableOptions o{0.5, 30.0, 48};
+            FigureTableOptions o = tableOptions(0.5, 30.0, 48);
             o.field_points = points;
             EXPECT_FALSE(FlareFigureTable::build(m, o)) << points.size();
         }
     }
     const fit::FlareModel model = evenVeilModel(1.0, 10.0, 1.0e6);
-    auto table = FlareFigureTable::build(model, FigureTableOptions{0.5, 30.0, 48});
+    auto table = FlareFigureTable::build(model, tableOptions(0.5, 30.0, 48));
     ASSERT_TRUE(table) << table.error().message;
     for (double spot : {0.0, -1.0, 20.5, std::nan("")}) {
         auto lab = labFigures(model, *table, LabFigureOptions{spot});
@@ -232,7 +232,7 @@ TEST(LabFigures, RefusesABlackSpotOutOfRangeAndStopsWhereTheModelStops) {
 TEST(LabFigures, AModelWithoutGhostsHasNoVeil) {
     fit::FlareModel empty = testing::movingDiscModel(0);
     empty.capture.light_power_dn_s = 1.0e6;
-    auto table = FlareFigureTable::build(empty, FigureTableOptions{1.0, 30.0, 48});
+    auto table = FlareFigureTable::build(empty, tableOptions(1.0, 30.0, 48));
     ASSERT_TRUE(table) << table.error().message;
     auto lab = labFigures(empty, *table);
     ASSERT_TRUE(lab) << lab.error().message;
@@ -255,7 +255,7 @@ TEST(LabFigures, ACentreFlareFromElsewhereIsCheckedFirst) {
     for (const auto& [theta, centre] : bad)
         EXPECT_FALSE(labFiguresOfCentre(model, theta, centre)) << theta.size();
     // The same values as the table's give the same index.
-    auto table = FlareFigureTable::build(model, FigureTableOptions{0.5, 30.0, 48});
+    auto table = FlareFigureTable::build(model, tableOptions(0.5, 30.0, 48));
     ASSERT_TRUE(table);
     auto from_table = labFigures(model, *table);
     ASSERT_TRUE(from_table);
