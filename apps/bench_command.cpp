@@ -59,6 +59,8 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     render->add_flag("!--no-trade", options->trade, "skip the grid-size x merge trade table");
     render->add_flag("!--no-scaling", options->scaling, "skip the lights and image-size tables");
     render->add_flag("!--no-cull", options->cull, "skip the ghost-culling table");
+    render->add_flag("!--no-centre-edges", options->centre_edges,
+                     "skip the table of interior edges drawn by pixel centre");
     render
         ->add_option("--truth-samples", options->truth_samples,
                      "also PSNR against N x N point samples per pixel (0: not)")

@@ -338,6 +338,42 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
         }
     }
 
+    // Interior edges drawn by pixel centre (MergeOptions::centre_edge_jump) per lens: the time
+    // and the PSNR against the truth for each largest density jump (tiled, light merge, one
+    // light, no culling, so that the edges alone change).
+    doc["centre_edges"] = nlohmann::json::array();
+    if (o.centre_edges && !o.quick) {
+        out << "\n## Interior edges by pixel centre (" << o.width << "x" << o.height
+            << ", 1 light, light merge, no culling; PSNR against every ghost, exact tracer, no "
+               "merge)\n\n"
+            << "| lens | centre_edge_jump | total ms | draw ms | PSNR dB |\n|---|---|---|---|---|\n";
+        for (size_t li = 0; li < lenses.size(); ++li) {
+            const std::string name = std::filesystem::path(o.lens_files[li]).stem().string();
+            const auto lights = lightsFor(1);
+            log << "bench render: centre edges: " << name << ", the truth\n";
+            auto truth = timed(lenses[li], lights, truthOptions(baseOptions(o)), 1);
+            if (!truth) return truth.error();
+            for (const double jump : {0.0, 0.003, 0.01, 0.03, 0.1}) {
+                log << "bench render: centre edges: " << name << ", " << jump << "\n";
+                render::SceneOptions options = baseOptions(o);
+                options.merge = render::kLightMerge;
+                options.merge.centre_edge_jump = jump;
+                options.cull_relative_l2 = 0.0;
+                auto run = timed(lenses[li], lights, options, o.repeat);
+                if (!run) return run.error();
+                const double p = psnrOr(run->image, truth->image);
+                doc["centre_edges"].push_back({{"name", name},
+                                               {"centre_edge_jump", jump},
+                                               {"total_ms", run->total_ms},
+                                               {"draw_ms", run->stats.draw_ms},
+                                               {"psnr_db", finiteOrNull(p)}});
+                out << "| " << name << " | " << jump << " | " << fixed(run->total_ms) << " | "
+                    << fixed(run->stats.draw_ms) << " | " << fixed(p) << " |\n";
+                out.flush();
+            }
+        }
+    }
+
     // The speed/accuracy trade, against a dense grid.
     const size_t trade_lens = [&] {
         for (size_t i = 0; i < o.lens_files.size(); ++i)

@@ -36,6 +36,7 @@ struct RenderBenchOptions {
     bool trade = true;    // grid size x merge against a dense-grid reference
     bool scaling = true;  // lights 1..8, image 480p..4K
     bool cull = true;     // ghost culling: cull_relative_l2 from 0 to 1e-2, per lens
+    bool centre_edges = true;  // interior edges by pixel centre: centre_edge_jump 0 to 0.1
     // N > 0: also draw the main configuration with N x N point samples per pixel (the same
     // primitives; RasterOptions::supersample) and report the default image's PSNR against it
     // (`truth_psnr_db`, `truth_ms`): how far pixel-area integration is from the sampled truth.
@@ -44,7 +45,8 @@ struct RenderBenchOptions {
 
 // Runs the benchmark, prints Markdown tables to `out` as it goes (progress to `log`) and returns
 // the JSON document: {"settings", "lenses": [{name, lights, tiled_ms, reference_ms, speedup,
-// psnr_db, ...}], "merge", "tiles", "trade", "lights_scaling", "size_scaling"}.
+// psnr_db, ...}], "merge", "tiles", "cull", "centre_edges", "trade", "lights_scaling",
+// "size_scaling"}.
 Result<nlohmann::json> runRenderBench(const RenderBenchOptions& options,
                                       std::ostream& out,
                                       std::ostream& log);

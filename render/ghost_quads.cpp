@@ -45,6 +45,7 @@ void setUpConvex(Primitive& p) {
         edge.gy = sign * dx;
         edge.closed = forward;  // of the two quads sharing the edge, the one running s -> e
         edge.reach = 0.5 * (std::abs(dx) + std::abs(dy));
+        edge.by_centre = (p.quad.centre_edges >> i) & 1u;
     }
     for (int i = 0; i < 4; ++i) {
         const Eigen::Vector2d u = c[i].position_px - c[(i + 3) % 4].position_px;
@@ -141,6 +142,51 @@ bool linesStraight(const At& at, int x0, int y0, int size, double gamma) {
     return true;
 }
 
+// Distance from the origin to the convex hull of four points, 0 when the hull holds it.
+double hullDistanceFromOrigin(const std::array<Eigen::Vector2d, 4>& p) {
+    // The origin lies in the hull when it lies in one of the four triangles of three corners.
+    for (int skip = 0; skip < 4; ++skip) {
+        int sides[3], k = 0;
+        std::array<Eigen::Vector2d, 3> t;
+        for (int i = 0; i < 4; ++i)
+            if (i != skip) t[static_cast<size_t>(k++)] = p[static_cast<size_t>(i)];
+        for (int e = 0; e < 3; ++e)
+            sides[e] = orientation(t[static_cast<size_t>(e)], t[static_cast<size_t>((e + 1) % 3)],
+                                   Eigen::Vector2d::Zero());
+        const bool no_negative = sides[0] >= 0 && sides[1] >= 0 && sides[2] >= 0;
+        const bool no_positive = sides[0] <= 0 && sides[1] <= 0 && sides[2] <= 0;
+        if (no_negative || no_positive) return 0.0;
+    }
+    // Outside: the nearest point lies on a hull edge, and every pair's segment lies in the hull,
+    // so the nearest of the six segments is it.
+    double best = std::numeric_limits<double>::infinity();
+    for (int i = 0; i < 4; ++i)
+        for (int j = i + 1; j < 4; ++j) {
+            const Eigen::Vector2d& a = p[static_cast<size_t>(i)];
+            const Eigen::Vector2d d = p[static_cast<size_t>(j)] - a;
+            const double length2 = d.squaredNorm();
+            const double t = length2 > 0.0 ? std::clamp(-a.dot(d) / length2, 0.0, 1.0) : 0.0;
+            best = std::min(best, (a + t * d).norm());
+        }
+    return best;
+}
+
+// Whether no stop outline of inscribed radius `radius` nor clear aperture can cut the quad (its
+// interpolated values are convex mixtures of its corners', as Primitive::stop_radius and
+// vignette_clear decide it), or it is dropped whole (preparePrimitive: every corner vignetted, or
+// its stop coordinates' hull misses the stop).
+bool uncut(const Quad& q, double radius) {
+    bool clear = true, all_cut = true;
+    std::array<Eigen::Vector2d, 4> stop_uv;
+    for (size_t i = 0; i < 4; ++i) {
+        const QuadCorner& c = q.corners[i];
+        stop_uv[i] = {c.stop_u, c.stop_v};
+        clear = clear && c.aperture_ratio <= 1.0f && stop_uv[i].norm() <= radius;
+        all_cut = all_cut && c.aperture_ratio > 1.0f;
+    }
+    return clear || all_cut || hullDistanceFromOrigin(stop_uv) > 1.0;
+}
+
 // A single cell becomes a quad when one of its corners is a valid ray and all four have a
 // position.
 bool cellHasQuad(const optics::RayGrid& grid, int ix, int iy) {
@@ -152,6 +198,61 @@ bool cellHasQuad(const optics::RayGrid& grid, int ix, int iy) {
         all_placed = all_placed && c->has_position;
     }
     return any_valid && all_placed;
+}
+
+constexpr double kCentreEdgeMinWidthPx = 1.0;
+
+// Sets Quad::centre_edges (MergeOptions::centre_edge_jump): quads i and j share an edge when the
+// block across it has the same extent along it; they lie on either side when both are strictly
+// convex and turn the same way; their densities are cells over area on the sensor.
+template <class Block>
+void markCentreEdges(GhostQuads& out,
+                     const std::vector<Block>& blocks,
+                     const std::vector<int32_t>& owner,
+                     int cells,
+                     double jump) {
+    const size_t n = out.quads.size();
+    std::vector<int8_t> turn(n, 0);
+    std::vector<double> density(n, 0.0);
+    for (size_t i = 0; i < n; ++i) {
+        const Quad& q = out.quads[i];
+        const double area = quadArea(q);
+        // A pixel must meet few quads for its centre to stand for it: each at least a pixel wide
+        // (its area over its longest edge; below that a pixel holds quads no centre falls in).
+        double longest = 0.0;
+        for (int k = 0; k < 4; ++k)
+            longest = std::max(longest, (q.corners[(k + 1) % 4].position_px -
+                                         q.corners[k].position_px).norm());
+        if (!(area >= kCentreEdgeMinWidthPx * longest) || !quadIsConvex(q)) continue;
+        turn[i] = static_cast<int8_t>(
+            orientation(q.corners[0].position_px, q.corners[1].position_px,
+                        q.corners[2].position_px));
+        const double size = blocks[i].size;
+        density[i] = size * size / area;
+    }
+    const auto at = [&](int x, int y) -> int32_t {
+        if (x < 0 || y < 0 || x >= cells || y >= cells) return -1;
+        return owner[static_cast<size_t>(y) * cells + x];
+    };
+    for (size_t i = 0; i < n; ++i) {
+        if (turn[i] == 0) continue;
+        const Block& b = blocks[i];
+        // Edge k runs from corner k to k + 1: top, right, bottom, left; the cell across it, and
+        // whether the block there must start at the same x (top, bottom) or y (right, left).
+        const int across[4][2] = {
+            {b.x0, b.y0 - 1}, {b.x0 + b.size, b.y0}, {b.x0, b.y0 + b.size}, {b.x0 - 1, b.y0}};
+        uint8_t bits = 0;
+        for (int k = 0; k < 4; ++k) {
+            const int32_t j = at(across[k][0], across[k][1]);
+            if (j < 0 || turn[static_cast<size_t>(j)] != turn[i]) continue;
+            const Block& o = blocks[static_cast<size_t>(j)];
+            const bool same_extent = o.size == b.size && (k % 2 == 0 ? o.x0 == b.x0 : o.y0 == b.y0);
+            if (!same_extent) continue;
+            const double a = density[i], c = density[static_cast<size_t>(j)];
+            if (std::abs(a - c) <= jump * std::max(a, c)) bits |= static_cast<uint8_t>(1u << k);
+        }
+        out.quads[i].centre_edges = bits;
+    }
 }
 
 }  // namespace
@@ -192,8 +293,9 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                     };
                     if (!(child(0, 0) && child(1, 0) && child(0, 1) && child(1, 1))) continue;
                     const int x0 = bx * size, y0 = by * size;
-                    if (linesStraight(pixel, x0, y0, size, merge.gamma) &&
-                        quadIsConvex(quadFrom(grid, mapping, x0, y0, size)))
+                    if (!linesStraight(pixel, x0, y0, size, merge.gamma)) continue;
+                    const Quad merged = quadFrom(grid, mapping, x0, y0, size);
+                    if (quadIsConvex(merged) && uncut(merged, merge.clear_stop_radius))
                         whole[k][static_cast<size_t>(by) * side + bx] = 1;
                 }
         }
@@ -209,6 +311,22 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
         return levels > 0 && whole[0][static_cast<size_t>(iy) * cells + ix] ? 0 : -1;
     };
     out.quads.reserve(static_cast<size_t>(cells) * static_cast<size_t>(cells));
+    const bool centre_edges = merge.centre_edge_jump > 0.0;
+    // For the interior edges: each quad's block (origin, size) and the quad covering each cell.
+    struct Block {
+        int x0, y0, size;
+    };
+    std::vector<Block> blocks;
+    std::vector<int32_t> owner;
+    if (centre_edges) owner.assign(static_cast<size_t>(cells) * cells, -1);
+    const auto emit = [&](int ix, int iy, int size) {
+        out.quads.push_back(quadFrom(grid, mapping, ix, iy, size));
+        if (!centre_edges) return;
+        const auto index = static_cast<int32_t>(blocks.size());
+        blocks.push_back({ix, iy, size});
+        for (int y = iy; y < iy + size; ++y)
+            std::fill_n(owner.begin() + static_cast<ptrdiff_t>(y) * cells + ix, size, index);
+    };
     for (int iy = 0; iy < cells; ++iy) {
         for (int ix = 0; ix < cells; ++ix) {
             const int level = steps > 0 ? levelOf(ix, iy) : -1;
@@ -216,17 +334,18 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
                 // A merged block is emitted once, at its first cell.
                 const int size = 1 << level;
                 if (ix % size != 0 || iy % size != 0) continue;
-                out.quads.push_back(quadFrom(grid, mapping, ix, iy, size));
+                emit(ix, iy, size);
                 out.cells.resize(out.quads.size(), 1);
                 out.cells.back() = static_cast<uint16_t>(size * size);
                 continue;
             }
             if (!cellHasQuad(grid, ix, iy)) continue;
-            out.quads.push_back(quadFrom(grid, mapping, ix, iy, 1));
+            emit(ix, iy, 1);
             if (!out.cells.empty()) out.cells.push_back(1);
         }
     }
     if (!out.cells.empty()) out.cells.resize(out.quads.size(), 1);
+    if (centre_edges) markCentreEdges(out, blocks, owner, cells, merge.centre_edge_jump);
     return out;
 }
 
@@ -276,7 +395,7 @@ Result<AdaptiveQuads> adaptiveQuads(const optics::Lens& lens,
             !linesStraight(stop, b.x0, b.y0, b.size, merge.gamma))
             return std::nullopt;
         Quad quad = quadFrom(grid, mapping, b.x0, b.y0, b.size);
-        if (!quadIsConvex(quad)) return std::nullopt;
+        if (!quadIsConvex(quad) || !uncut(quad, merge.clear_stop_radius)) return std::nullopt;
         for (int j = 0; j < 2; ++j)
             for (int i = 0; i < 2; ++i)
                 if (!quadIsConvex(quadFrom(grid, mapping, b.x0 + i * half, b.y0 + j * half, half)))
@@ -335,34 +454,6 @@ constexpr int kNonConvexSamples = 4;
 // weights lose their digits, and their light fits in one pixel anyway.
 constexpr double kMinIntegratedArea = 1e-9;
 
-// Distance from the origin to the convex hull of four points, 0 when the hull holds it.
-double hullDistanceFromOrigin(const std::array<Eigen::Vector2d, 4>& p) {
-    // The origin lies in the hull when it lies in one of the four triangles of three corners.
-    for (int skip = 0; skip < 4; ++skip) {
-        int sides[3], k = 0;
-        std::array<Eigen::Vector2d, 3> t;
-        for (int i = 0; i < 4; ++i)
-            if (i != skip) t[static_cast<size_t>(k++)] = p[static_cast<size_t>(i)];
-        for (int e = 0; e < 3; ++e)
-            sides[e] = orientation(t[static_cast<size_t>(e)], t[static_cast<size_t>((e + 1) % 3)],
-                                   Eigen::Vector2d::Zero());
-        const bool no_negative = sides[0] >= 0 && sides[1] >= 0 && sides[2] >= 0;
-        const bool no_positive = sides[0] <= 0 && sides[1] <= 0 && sides[2] <= 0;
-        if (no_negative || no_positive) return 0.0;
-    }
-    // Outside: the nearest point lies on a hull edge, and every pair's segment lies in the hull,
-    // so the nearest of the six segments is it.
-    double best = std::numeric_limits<double>::infinity();
-    for (int i = 0; i < 4; ++i)
-        for (int j = i + 1; j < 4; ++j) {
-            const Eigen::Vector2d& a = p[static_cast<size_t>(i)];
-            const Eigen::Vector2d d = p[static_cast<size_t>(j)] - a;
-            const double length2 = d.squaredNorm();
-            const double t = length2 > 0.0 ? std::clamp(-a.dot(d) / length2, 0.0, 1.0) : 0.0;
-            best = std::min(best, (a + t * d).norm());
-        }
-    return best;
-}
 
 }  // namespace
 
@@ -591,6 +682,10 @@ double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask&
     for (const EdgeFunction& e : p.edge) {
         // The edge function is linear: over the pixel it stays within `reach` of its centre value.
         const double a = e.at(cx, cy);
+        if (e.by_centre) {  // an interior edge: the pixel is wholly on its centre's side
+            if (!(a > 0.0 || (a == 0.0 && e.closed))) return 0.0;
+            continue;
+        }
         if (!(a > -e.reach)) return 0.0;
         if (a < e.reach) {
             poly.cut(a, e.gradX(), e.gradY());
@@ -807,8 +902,9 @@ void narrowSpan(int64_t& lo, int64_t& hi, double r, double g, double threshold, 
 // be at least their reach over the row): as convexAreaValue decides, a pixel is outside when an
 // edge function at its centre is at or below -reach, wholly inside when every one is at least
 // its reach (then the pixel's part is the whole square, its centroid the centre, and unmasked
-// primitives need no more than the throughput there). Along the row each edge function is
-// monotone, so both sets are spans: [lo, hi] not outside, [in_lo, in_hi] wholly inside.
+// primitives need no more than the throughput there); an interior edge (EdgeFunction::by_centre)
+// only decides by the centre's side. Along the row each edge function is monotone, so both sets
+// are spans: [lo, hi] not outside, [in_lo, in_hi] wholly inside.
 void addConvexRow(const Primitive& p,
                   int64_t x0,
                   int64_t x1,
@@ -824,6 +920,16 @@ void addConvexRow(const Primitive& p,
         const EdgeFunction& e = p.edge[i];
         const double r = e.c + e.gy * cy, g = e.gx, reach = e.reach;
         const auto at = [&](int64_t x) { return r + g * (static_cast<double>(x) + 0.5); };
+        if (e.by_centre) {  // the pixels whose centre is on the inside are wholly in
+            const bool closed = e.closed;
+            const auto owns = [&](int64_t x) {
+                const double a = at(x);
+                return a > 0.0 || (a == 0.0 && closed);
+            };
+            narrowSpan(lo, hi, r, g, 0.0, owns);
+            narrowSpan(in_lo, in_hi, r, g, 0.0, owns);
+            continue;
+        }
         narrowSpan(lo, hi, r, g, -reach, [&](int64_t x) { return at(x) > -reach; });
         narrowSpan(in_lo, in_hi, r, g, reach, [&](int64_t x) { return at(x) >= reach; });
     }
@@ -882,7 +988,9 @@ void addPrimitiveBlock(const Primitive& p,
         for (const double cy : ys)
             for (const double cx : xs) {
                 const double size = std::abs(e.c) + std::abs(e.gy * cy) + std::abs(e.gx * cx);
-                clear = clear && e.at(cx, cy) >= e.reach + 1e-12 * size;
+                // An interior edge needs only the centres strictly inside.
+                const double a = e.at(cx, cy), margin = 1e-12 * size;
+                clear = clear && (e.by_centre ? a > margin : a >= e.reach + margin);
             }
         if (!clear) check |= 1u << i;
     }

@@ -26,6 +26,7 @@
 
 #include <Eigen/Core>
 #include <array>
+#include <cstdint>
 #include <optional>
 
 namespace flarelab::render {
@@ -40,6 +41,10 @@ struct QuadCorner {
 
 struct Quad {
     std::array<QuadCorner, 4> corners;  // grid order (i,j), (i+1,j), (i+1,j+1), (i,j+1)
+    // Bit k: the edge from corner k to corner k+1 is an interior edge of a smooth stretch of the
+    // ghost (render/ghost_quads.h MergeOptions::centre_edge_jump), drawn by the pixel centre's
+    // side instead of cut by area. 0 for every quad not made by quadsFromGrid with that option.
+    uint8_t centre_edges = 0;
 };
 
 // The sign of the cross product (b - a) x (c - a) = (bx - ax)(cy - ay) - (by - ay)(cx - ax),

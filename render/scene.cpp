@@ -123,6 +123,8 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return invalid("merge steps must lie in 0..7");
     if (!(options.merge.gamma >= 0.0) || !std::isfinite(options.merge.gamma))
         return invalid("merge gamma must be finite and >= 0");
+    if (!(options.merge.centre_edge_jump >= 0.0 && options.merge.centre_edge_jump <= 1.0))
+        return invalid("merge centre_edge_jump must lie in 0..1");
     if (options.raster.supersample < 0 || options.raster.supersample > 64)
         return invalid("raster supersample must lie in 0..64");
     if (options.probe_grid < 2 || options.probe_grid > 256)
@@ -179,11 +181,14 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         if (!rendered) return rendered.error();
         pattern = std::move(*rendered);
     }
-    std::vector<Primitive> primitives;
+    // The primitives waiting to be drawn, one array per ghost grid (moved, never copied).
+    std::vector<std::vector<Primitive>> pending;
+    size_t pending_count = 0;
     double draw_ms = 0.0;
     const auto flush = [&]() -> Status {
         TileStats batch;
-        if (Status drawn = renderTiled(image, primitives, lens.aperture(), options.tiles, &batch);
+        if (Status drawn =
+                renderTiledChunks(image, pending, lens.aperture(), options.tiles, &batch);
             !drawn)
             return drawn;
         st.tiles.primitives += batch.primitives;
@@ -193,7 +198,8 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         st.tiles.build_ms += batch.build_ms;
         st.tiles.traverse_ms += batch.traverse_ms;
         draw_ms += batch.build_ms + batch.traverse_ms;
-        primitives.clear();
+        pending.clear();
+        pending_count = 0;
         return Ok{};
     };
     // One grid per light, ghost and channel, with its eq. 13 size from a probe grid whose entry
@@ -289,6 +295,9 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         task.l2_share = task.power * task.power / task.area_px;
         return Ok{};
     };
+    // Merged quads stay clear of this lens's stop outline (MergeOptions::clear_stop_radius).
+    MergeOptions merge = options.merge;
+    merge.clear_stop_radius = StopMask(lens.aperture()).inscribedRadius();
     const auto traceTask = [&](const Task& task) {
         Traced out;
         const double theta = degToRad(task.light->theta_deg), phi = degToRad(task.light->phi_deg);
@@ -297,7 +306,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         grid_options.tracer = options.grid_tracer;
         if (options.adaptive_grid && options.grid_tracer != optics::GridTracer::Exact) {
             auto adaptive = adaptiveQuads(lens, *task.path, theta, phi, kChannel_nm[task.channel],
-                                          task.n, grid_options, mapping, options.merge);
+                                          task.n, grid_options, mapping, merge);
             if (!adaptive) {
                 out.status = adaptive.error();
                 return out;
@@ -313,7 +322,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
             out.status = grid.error();
             return out;
         }
-        out.quads = quadsFromGrid(*grid, mapping, options.merge);
+        out.quads = quadsFromGrid(*grid, mapping, merge);
         out.quad_count = static_cast<int64_t>(out.quads.quads.size());
         out.rays = static_cast<int64_t>(task.n) * task.n;
         return out;
@@ -416,6 +425,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                 const Task& task = tasks[first + i];
                 traced[i] = traceTask(task);
                 const GhostQuads& quads = traced[i].quads;
+                prepared[i].reserve(quads.quads.size());
                 for (size_t q = 0; q < quads.quads.size(); ++q)
                     if (auto p = preparePrimitive(quads.quads[q], quads.cellArea(q), task.channel,
                                                   task.light->rgb[task.channel], options.width,
@@ -427,13 +437,14 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                 if (!traced[i].status) return traced[i].status.error();
                 if (traced[i].quad_count == 0) continue;
                 count(traced[i]);
-                primitives.insert(primitives.end(), prepared[i].begin(), prepared[i].end());
-                if (static_cast<int64_t>(primitives.size()) >= options.max_pending_primitives) {
+                pending_count += prepared[i].size();
+                pending.push_back(std::move(prepared[i]));
+                if (pending_count >= static_cast<size_t>(options.max_pending_primitives)) {
                     if (Status drawn = flush(); !drawn) return drawn.error();
                 }
             }
         }
-        if (!primitives.empty()) {
+        if (pending_count > 0) {
             if (Status drawn = flush(); !drawn) return drawn.error();
         }
     } else {

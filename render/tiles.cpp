@@ -22,6 +22,21 @@ double millisecondsSince(Clock::time_point start) {
 
 int64_t ceilDiv(int64_t a, int64_t b) { return (a + b - 1) / b; }
 
+// The tiled renderer on primitives held anywhere (one array, or a frame's arrays one per ghost
+// grid, which need not be copied into one).
+Status renderTiledAt(ImageRGB& image,
+                     std::span<const Primitive* const> primitives,
+                     std::span<const GhostPrimitive> ghosts,
+                     const optics::ApertureShape& aperture,
+                     const TileOptions& options,
+                     TileStats* stats);
+
+std::vector<const Primitive*> addressesOf(std::span<const Primitive> primitives) {
+    std::vector<const Primitive*> out(primitives.size());
+    for (size_t i = 0; i < primitives.size(); ++i) out[i] = &primitives[i];
+    return out;
+}
+
 }  // namespace
 
 Status renderTiled(ImageRGB& image,
@@ -29,7 +44,7 @@ Status renderTiled(ImageRGB& image,
                    const optics::ApertureShape& aperture,
                    const TileOptions& options,
                    TileStats* stats) {
-    return renderTiled(image, primitives, {}, aperture, options, stats);
+    return renderTiledAt(image, addressesOf(primitives), {}, aperture, options, stats);
 }
 
 Status renderTiled(ImageRGB& image,
@@ -38,6 +53,31 @@ Status renderTiled(ImageRGB& image,
                    const optics::ApertureShape& aperture,
                    const TileOptions& options,
                    TileStats* stats) {
+    return renderTiledAt(image, addressesOf(primitives), ghosts, aperture, options, stats);
+}
+
+Status renderTiledChunks(ImageRGB& image,
+                         std::span<const std::vector<Primitive>> chunks,
+                         const optics::ApertureShape& aperture,
+                         const TileOptions& options,
+                         TileStats* stats) {
+    std::vector<const Primitive*> addresses;
+    size_t total = 0;
+    for (const auto& chunk : chunks) total += chunk.size();
+    addresses.reserve(total);
+    for (const auto& chunk : chunks)
+        for (const Primitive& p : chunk) addresses.push_back(&p);
+    return renderTiledAt(image, addresses, {}, aperture, options, stats);
+}
+
+namespace {
+
+Status renderTiledAt(ImageRGB& image,
+                     std::span<const Primitive* const> primitives,
+                     std::span<const GhostPrimitive> ghosts,
+                     const optics::ApertureShape& aperture,
+                     const TileOptions& options,
+                     TileStats* stats) {
     const int dense = options.dense_tile_px, coarse = options.coarse_tile_px;
     if (dense < 1 || dense > 256)
         return makeError(ErrorCode::InvalidArgument, "tiles: dense_tile_px must lie in 1..256");
@@ -45,7 +85,7 @@ Status renderTiled(ImageRGB& image,
         return makeError(ErrorCode::InvalidArgument,
                          "tiles: coarse_tile_px must be a multiple of dense_tile_px, at most 4096");
     for (size_t i = 0; i < primitives.size(); ++i) {
-        const Primitive& p = primitives[i];
+        const Primitive& p = *primitives[i];
         if (p.x0 < 0 || p.y0 < 0 || p.x1 >= image.width || p.y1 >= image.height || p.x0 > p.x1 ||
             p.y0 > p.y1 || p.channel < 0 || p.channel > 2)
             return makeError(ErrorCode::InvalidArgument,
@@ -70,7 +110,7 @@ Status renderTiled(ImageRGB& image,
     };
     const auto range = [&](uint32_t index) {
         if (index < quad_count) {
-            const Primitive& p = primitives[index];
+            const Primitive& p = *primitives[index];
             return Range{p.x0, p.y0, p.x1, p.y1};
         }
         const GhostPrimitive& g = ghosts[index - quad_count];
@@ -243,7 +283,7 @@ Status renderTiled(ImageRGB& image,
         st.dense_entries += static_cast<int64_t>(list.size());
         st.memory_bytes += static_cast<int64_t>(list.capacity() * sizeof(uint32_t) + sizeof(list));
     }
-    st.memory_bytes += static_cast<int64_t>(primitives.size() * sizeof(Primitive) +
+    st.memory_bytes += static_cast<int64_t>(primitives.size() * (sizeof(Primitive) + sizeof(void*)) +
                                             ghosts.size() * sizeof(GhostPrimitive));
     st.ghost_tiles_smooth = smooth_tiles.load();
     st.ghost_tiles_edge = edge_tiles.load();
@@ -307,7 +347,7 @@ Status renderTiled(ImageRGB& image,
                               branch);
                 continue;
             }
-            const Primitive& p = primitives[index];
+            const Primitive& p = *primitives[index];
             const int64_t x0 = std::max(tx, p.x0), x1 = std::min(tx1, p.x1);
             const int64_t y0 = std::max(ty, p.y0), y1 = std::min(ty1, p.y1);
             addPrimitiveBlock(p, x0, y0, x1, y1, stop,
@@ -323,5 +363,7 @@ Status renderTiled(ImageRGB& image,
     st.traverse_ms = millisecondsSince(traverse_start);
     return Ok{};
 }
+
+}  // namespace
 
 }  // namespace flarelab::render

@@ -34,6 +34,7 @@
 
 #include <cstdint>
 #include <span>
+#include <vector>
 
 #include "common/image.h"
 #include "common/result.h"
@@ -67,6 +68,14 @@ Status renderTiled(ImageRGB& image,
                    const optics::ApertureShape& aperture,
                    const TileOptions& options = {},
                    TileStats* stats = nullptr);
+
+// The same with the primitives in several arrays, drawn as if they were one array in their order
+// (a frame's grids, each prepared on its own, are not copied together).
+Status renderTiledChunks(ImageRGB& image,
+                         std::span<const std::vector<Primitive>> chunks,
+                         const optics::ApertureShape& aperture,
+                         const TileOptions& options = {},
+                         TileStats* stats = nullptr);
 
 // The same with model ghosts (prepared for this image's size) after the quads. InvalidArgument
 // also for a ghost whose pixel range leaves the image.

@@ -94,7 +94,7 @@ TEST(GridFiller, TracesThePointsItIsGivenOnceAndAsTheWholeGridDoes) {
 
 // A third of the ghosts of three lenses at two angles: the adaptive quads tile part of the grid and
 // draw the image that tracing the whole grid and merging draws, to 45 dB per ghost with the light
-// merge; with the heavy merge (gamma 0.1) most blocks pass at the first level and most rays are
+// merge; with the heavy merge (gamma 0.1) most blocks pass at the first level and many rays are
 // never traced. With the light merge's gamma (0.001) they save rays only where the whole grid
 // merges too (the toy lens's ghosts hardly merge at all): not asserted.
 TEST(AdaptiveQuads, DrawWhatTheWholeMergedGridDrawsWithFewerRays) {
@@ -120,7 +120,10 @@ TEST(AdaptiveQuads, DrawWhatTheWholeMergedGridDrawsWithFewerRays) {
                     if (merge.gamma > kLightMerge.gamma) continue;
                     const auto grid = optics::traceRayGrid(lens, path, theta, 0.5, 550.0, n);
                     ASSERT_TRUE(grid);
-                    const GhostQuads whole = quadsFromGrid(*grid, mapping, merge);
+                    // Every edge cut by area, as the adaptive quads are drawn.
+                    MergeOptions cut = merge;
+                    cut.centre_edge_jump = 0.0;
+                    const GhostQuads whole = quadsFromGrid(*grid, mapping, cut);
                     ImageRGB a(240, 160), b(240, 160);
                     rasterizeReference(a, adaptive->quads, 1, 1.0f, lens.aperture());
                     rasterizeReference(b, whole, 1, 1.0f, lens.aperture());
@@ -132,8 +135,10 @@ TEST(AdaptiveQuads, DrawWhatTheWholeMergedGridDrawsWithFewerRays) {
                     EXPECT_GE(*db, 45.0) << file << " ghost " << g << " at " << fraction;
                 }
             }
+            // Blocks the stop's outline or a clear aperture crosses are refined down to single
+            // cells (MergeOptions::clear_stop_radius), which costs rays on small grids like these.
             if (merge.gamma > kLightMerge.gamma) {
-                EXPECT_LT(rays, rays_whole / 2) << file << ": the heavy merge's blocks";
+                EXPECT_LT(rays, rays_whole * 6 / 10) << file << ": the heavy merge's blocks";
             }
         }
     }

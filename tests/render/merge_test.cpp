@@ -118,6 +118,134 @@ TEST(FillRule, APixelCentreOnASharedEdgeIsCountedOnce) {
             EXPECT_FLOAT_EQ(image.at(x, y)[0], 1.0f / 16.0f) << x << "," << y;
 }
 
+int markedEdges(const GhostQuads& q) {
+    int bits = 0;
+    for (const Quad& quad : q.quads) bits += __builtin_popcount(quad.centre_edges);
+    return bits;
+}
+
+MergeOptions centreEdges(int steps, double jump) {
+    MergeOptions m;
+    m.steps = steps;
+    m.centre_edge_jump = jump;
+    return m;
+}
+
+TEST(InteriorEdges, AreTheWholeEdgesBetweenQuadsOfTheSameDensityOnEitherSide) {
+    // 17 x 17 rays, 16 x 16 cells, affine: each of the 2 x 16 x 15 interior edges is marked from
+    // both sides, no border edge is, and nothing is marked without the option.
+    const auto affine = syntheticGrid(17, [](int ix, int iy) {
+        return Eigen::Vector2d(10.3 + 3.0 * ix + 0.5 * iy, 7.1 + 2.5 * iy + 0.2 * ix);
+    });
+    EXPECT_EQ(markedEdges(quadsFromGrid(affine, kIdentity)), 0);
+    EXPECT_EQ(markedEdges(quadsFromGrid(affine, kIdentity, centreEdges(0, 0.01))), 2 * 2 * 16 * 15);
+    // Merged into four 8 x 8 blocks: the four edges between them, from both sides.
+    const GhostQuads blocks = quadsFromGrid(affine, kIdentity, centreEdges(3, 0.01));
+    ASSERT_EQ(blocks.quads.size(), 4u);
+    EXPECT_EQ(markedEdges(blocks), 8);
+
+    // Columns 3 px wide up to x = 8, 3.3 px after: the density jumps by 9 % across that line.
+    const auto stepped = syntheticGrid(17, [](int ix, int iy) {
+        const double x = ix <= 8 ? 3.0 * ix : 24.0 + 3.3 * (ix - 8);
+        return Eigen::Vector2d(5.2 + x, 5.1 + 3.0 * iy);
+    });
+    const int all = 2 * 2 * 16 * 15, across = 2 * 16;
+    EXPECT_EQ(markedEdges(quadsFromGrid(stepped, kIdentity, centreEdges(0, 0.01))), all - across);
+    EXPECT_EQ(markedEdges(quadsFromGrid(stepped, kIdentity, centreEdges(0, 0.1))), all);
+
+    // A fold: rows run down to iy = 8 and back up after, so the quads on either side of row 8
+    // turn opposite ways and overlap; the edges along the fold stay cut by area.
+    const auto folded = syntheticGrid(17, [](int ix, int iy) {
+        const double y = iy <= 8 ? 3.0 * iy : 48.0 - 3.0 * iy;
+        return Eigen::Vector2d(5.2 + 3.0 * ix, 5.1 + y + 0.01 * ix * iy);
+    });
+    EXPECT_EQ(markedEdges(quadsFromGrid(folded, kIdentity, centreEdges(0, 0.01))), all - across);
+
+    // A merged block beside single cells (a cut ray keeps the cells around it single): the
+    // block's edge runs along two cells, a T-junction, and is not marked.
+    auto cut = affine;
+    cut.samples[static_cast<size_t>(3) * 17 + 3].valid = false;
+    const GhostQuads mixed = quadsFromGrid(cut, kIdentity, centreEdges(1, 0.01));
+    for (size_t i = 0; i < mixed.quads.size(); ++i) {
+        if (mixed.cells[i] == 1) continue;
+        const Quad& q = mixed.quads[i];
+        const Eigen::Vector2d a = q.corners[0].position_px;
+        // The 2 x 2 block at cells (4, 2): its left edge (corner 3 to 0) faces single cells.
+        if (std::abs(a.x() - (10.3 + 3.0 * 4 + 0.5 * 2)) < 1e-9 &&
+            std::abs(a.y() - (7.1 + 2.5 * 2 + 0.2 * 4)) < 1e-9)
+            EXPECT_EQ(q.centre_edges & 8u, 0u);
+    }
+}
+
+TEST(InteriorEdges, DrawASmoothGhostAsTheAreaCutDoesAndKeepItsPower) {
+    // A barrel-distorted grid: the density changes smoothly from cell to cell (under 1 %
+    // between neighbours at the rim), and the throughput varies. Drawn with the interior edges
+    // by pixel centre, it must stay within a small relative error of the exact area cut.
+    auto grid = syntheticGrid(65, [](int ix, int iy) {
+        const double u = (ix - 32) / 32.0, v = (iy - 32) / 32.0, r2 = u * u + v * v;
+        const double k = 1.0 - 0.04 * r2;
+        return Eigen::Vector2d(100.37 + 90.0 * u * k, 80.21 + 70.0 * v * k);
+    });
+    for (int iy = 0; iy < 65; ++iy)
+        for (int ix = 0; ix < 65; ++ix)
+            grid.samples[static_cast<size_t>(iy) * 65 + ix].throughput =
+                0.5f + 0.5f * std::cos(0.05f * static_cast<float>(ix + 2 * iy));
+    ImageRGB exact(200, 160), centre(200, 160);
+    rasterizeReference(exact, quadsFromGrid(grid, kIdentity), 1, 1.0f, optics::ApertureShape{});
+    const GhostQuads marked = quadsFromGrid(grid, kIdentity, centreEdges(0, 0.01));
+    EXPECT_GT(markedEdges(marked), 2 * 2 * 64 * 63 * 9 / 10);
+    rasterizeReference(centre, marked, 1, 1.0f, optics::ApertureShape{});
+    double diff = 0.0, norm = 0.0;
+    for (size_t i = 0; i < exact.pixels.size(); ++i) {
+        diff += std::pow(centre.pixels[i] - exact.pixels[i], 2);
+        norm += std::pow(exact.pixels[i], 2);
+    }
+    EXPECT_LT(std::sqrt(diff / norm), 2e-3);
+    EXPECT_NEAR(imageSum(centre), imageSum(exact), 1e-3 * imageSum(exact));
+    const auto quality = psnr(centre, exact);
+    ASSERT_TRUE(quality);
+    EXPECT_GT(*quality, 55.0);
+}
+
+TEST(PrimitiveMerge, AMergedQuadIsNeverCutByTheStopOrAClearAperture) {
+    // Stop coordinates from -1.5 to 1.5 across the grid (the stop's outline crosses it) and a
+    // clear aperture cutting the right quarter: only blocks inside the stop and the aperture, or
+    // dropped whole, merge; the outline's band stays single cells.
+    auto grid = syntheticGrid(
+        33, [](int ix, int iy) { return Eigen::Vector2d(5.3 + 2.0 * ix, 5.2 + 2.0 * iy); });
+    for (int iy = 0; iy < 33; ++iy)
+        for (int ix = 0; ix < 33; ++ix) {
+            optics::GridSample& s = grid.samples[static_cast<size_t>(iy) * 33 + ix];
+            s.stop_u = static_cast<float>(3.0 * ix / 32.0 - 1.5);
+            s.stop_v = static_cast<float>(3.0 * iy / 32.0 - 1.5);
+            s.aperture_ratio = static_cast<float>(0.5 + ix / 32.0);
+            s.valid = s.aperture_ratio <= 1.0f;
+            s.open_throughput = s.throughput;
+        }
+    const GhostQuads merged = quadsFromGrid(grid, kIdentity, kLightMerge);
+    int blocks = 0;
+    for (size_t i = 0; i < merged.quads.size(); ++i) {
+        if (merged.cells[i] == 1) continue;
+        ++blocks;
+        bool clear = true, dark = true;
+        for (const QuadCorner& c : merged.quads[i].corners) {
+            clear = clear && c.aperture_ratio <= 1.0f && std::hypot(c.stop_u, c.stop_v) <= 1.0;
+            dark = dark && std::hypot(c.stop_u, c.stop_v) > 1.0;
+        }
+        EXPECT_TRUE(clear || dark) << "merged quad " << i;
+    }
+    EXPECT_GT(blocks, 0);
+    // With a smaller radius (a bladed stop's inscribed circle) fewer blocks merge.
+    MergeOptions bladed = kLightMerge;
+    bladed.clear_stop_radius = 0.8;
+    EXPECT_GT(quadsFromGrid(grid, kIdentity, bladed).quads.size(), merged.quads.size());
+    // The same light either way, against the single cells.
+    ImageRGB a(80, 80), b(80, 80);
+    rasterizeReference(a, quadsFromGrid(grid, kIdentity), 1, 1.0f, optics::ApertureShape{});
+    rasterizeReference(b, merged, 1, 1.0f, optics::ApertureShape{});
+    EXPECT_NEAR(imageSum(b), imageSum(a), 1e-3 * imageSum(a));
+}
+
 TEST(Psnr, IdenticalImagesAreInfiniteAndBadInputsAreNamed) {
     ImageRGB a(4, 3), b(4, 3), c(3, 4);
     a.pixels[5] = b.pixels[5] = 2.0f;
