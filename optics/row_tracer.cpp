@@ -54,7 +54,8 @@ FresnelPolynomial fitCoatedReflectance(double n1,
                                        double d_coat_nm,
                                        double n2,
                                        double wavelength_nm,
-                                       double relative_tolerance) {
+                                       double relative_tolerance,
+                                       double min_lo) {
     const auto exact = [&](double c) {
         return fresnelCoated(n1, n_coat, d_coat_nm, n2, c, wavelength_nm).reflectance;
     };
@@ -65,7 +66,8 @@ FresnelPolynomial fitCoatedReflectance(double n1,
         if (n1 > n) kink = std::max(kink, std::sqrt(std::max(0.0, 1.0 - (n / n1) * (n / n1))));
     constexpr int kCheck = 1024;
     std::vector<double> exact_values(kCheck + 1);
-    for (double lo = kink; lo < 0.999; lo += 0.1 * (1.0 - lo)) {
+    for (double lo = std::max(kink, std::clamp(min_lo, 0.0, 0.99)); lo < 0.999;
+         lo += 0.1 * (1.0 - lo)) {
         // A ghost's power is a product of reflectances: the error that matters is relative to
         // the smallest R on the range (an AR coating between two glasses reflects 1e-5).
         double smallest = 1.0;
@@ -119,7 +121,7 @@ namespace {
 // Fits are shared: every path of a lens crosses the same coated surfaces, in one direction or
 // the other, at the same three wavelengths.
 struct FitKey {
-    double n1, n_coat, d_coat_nm, n2, wavelength_nm, tolerance;
+    double n1, n_coat, d_coat_nm, n2, wavelength_nm, tolerance, min_lo;
     auto operator<=>(const FitKey&) const = default;
 };
 
@@ -132,7 +134,7 @@ FresnelPolynomial cachedFit(const FitKey& key) {
         if (it != fits.end()) return it->second;
     }
     FresnelPolynomial fit = fitCoatedReflectance(key.n1, key.n_coat, key.d_coat_nm, key.n2,
-                                                 key.wavelength_nm, key.tolerance);
+                                                 key.wavelength_nm, key.tolerance, key.min_lo);
     const std::lock_guard<std::mutex> lock(mutex);
     if (fits.size() > 4096) fits.clear();  // a long-running process tracing many lenses
     return fits.emplace(key, std::move(fit)).first->second;
@@ -178,6 +180,7 @@ struct KernelInput {
     bool fresnel;
     double inv_stop_semi_aperture;
     double wavelength_nm;
+    double* min_cos = nullptr;  // when set: per step, the smallest incidence cosine of a live lane
 };
 
 // Every step as loops over the lanes with no branch that depends on a lane: dead lanes compute on
@@ -283,6 +286,12 @@ template <typename T>
                 dy[i] = eta * dy[i] + f * ny;
                 dz[i] = eta * dz[i] + f * nz;
             }
+        }
+        if (in.min_cos) {
+            T least = T(1);
+            for (size_t i = 0; i < n; ++i)
+                least = alive[i] != T(0) ? std::min(least, cosi[i]) : least;
+            in.min_cos[k] = std::min(in.min_cos[k], static_cast<double>(least));
         }
         if constexpr (std::is_same_v<T, float>) {
             if (reflect || refract) {
@@ -476,7 +485,7 @@ RowTracer::RowTracer(const Lens& lens,
         if (e.coated && s.kind != Step::Stop && s.kind != Step::Image) {
             s.coating = static_cast<int>(coatings_.size());
             coatings_.push_back(cachedFit({e.n1, e.coat_index, e.coat_thickness_nm, e.n2,
-                                           wavelength_nm, options.fresnel_tolerance}));
+                                           wavelength_nm, options.fresnel_tolerance, 0.0}));
         } else {
             s.coated = false;
         }
@@ -493,7 +502,9 @@ std::pair<RowTracer::Precision, double> RowTracer::choosePrecision(std::span<con
     options_.precision = Precision::Float;
     trace(x, y, z, direction, narrow);
     options_.precision = Precision::Double;
-    trace(x, y, z, direction, wide);
+    std::vector<double> min_cos(steps_.size(), 1.0);
+    traceRecording(x, y, z, direction, wide, min_cos.data());
+    narrowCoatings(min_cos);
     // Positions count as they are; stop coordinates by what they move the ghost's stop edge on
     // the sensor: their error times the half-size of the footprint.
     double worst_position = 0.0, worst_stop = 0.0;
@@ -517,6 +528,21 @@ std::pair<RowTracer::Precision, double> RowTracer::choosePrecision(std::span<con
     return {options_.precision, worst};
 }
 
+void RowTracer::narrowCoatings(std::span<const double> min_cos) {
+    FLARELAB_CHECK_EQ(min_cos.size(), steps_.size());
+    for (size_t k = 0; k < steps_.size(); ++k) {
+        const Step& s = steps_[k];
+        if (!s.coated || s.coating < 0) continue;
+        FresnelPolynomial& poly = coatings_[static_cast<size_t>(s.coating)];
+        // The probe's smallest cosine less the margin, down to a multiple of 1/32 so that fits
+        // are shared between grids; nothing to gain below the range fitted already.
+        const double lo = std::floor((min_cos[k] - kCoatingMargin) * 32.0) / 32.0;
+        if (!(lo > poly.lo + 1.0 / 32.0)) continue;
+        poly = cachedFit({s.n1, s.coat_index, s.coat_thickness_nm, s.n2, wavelength_nm_,
+                          options_.fresnel_tolerance, lo});
+    }
+}
+
 bool RowTracer::usesAvx2() const { return options_.allow_avx2 && processorHasAvx2(); }
 
 void RowTracer::trace(std::span<const double> x,
@@ -524,9 +550,19 @@ void RowTracer::trace(std::span<const double> x,
                       double z,
                       const Eigen::Vector3d& direction,
                       TracedRow& out) const {
+    traceRecording(x, y, z, direction, out, nullptr);
+}
+
+void RowTracer::traceRecording(std::span<const double> x,
+                               std::span<const double> y,
+                               double z,
+                               const Eigen::Vector3d& direction,
+                               TracedRow& out,
+                               double* min_cos) const {
     FLARELAB_CHECK_EQ(x.size(), y.size());
     const KernelInput in{steps_.data(),    steps_.size(),           coatings_.data(),
-                         options_.fresnel, inv_stop_semi_aperture_, wavelength_nm_};
+                         options_.fresnel, inv_stop_semi_aperture_, wavelength_nm_,
+                         min_cos};
     const double z_rel = z - first_vertex_z_mm_;
     if (options_.precision == Precision::Float)
         runRow<float>(in, usesAvx2(), x, y, z_rel, direction, out);

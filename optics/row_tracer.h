@@ -52,12 +52,15 @@ struct FresnelPolynomial {
 // within `relative_tolerance` of the smallest R on the range, wherever it is used: the degree
 // grows (up to 36) and, if that is not enough, the range's lower end rises towards 1 until it is
 // met. A ghost's power is a product of reflectances, so the relative error is what reaches it.
+// The range starts at min_lo at the least (0: wherever the formula is smooth): a narrower range
+// needs a lower degree.
 FresnelPolynomial fitCoatedReflectance(double n1,
                                        double n_coat,
                                        double d_coat_nm,
                                        double n2,
                                        double wavelength_nm,
-                                       double relative_tolerance = 1e-5);
+                                       double relative_tolerance = 1e-5,
+                                       double min_lo = 0.0);
 
 // One traced row, as the ray grid keeps it. status: 0 no geometry (missed a surface, totally
 // reflected, not finite), 1 reached the sensor inside every clear aperture, 2 reached it but left
@@ -100,6 +103,8 @@ public:
     // by more than that at the scale of the footprint (the stop edge's shift on the sensor).
     // Ghost paths that magnify rounding, e.g. a strongly defocused ghost of a simple lens, get
     // double. Returns the precision chosen and the largest such distance.
+    // It also narrows each coated surface's fitted range to the probe's incidence cosines there
+    // (narrowCoatings): a lower degree for every lane after.
     std::pair<Precision, double> choosePrecision(std::span<const double> x,
                                                  std::span<const double> y,
                                                  double z,
@@ -107,6 +112,12 @@ public:
                                                  double tolerance_mm);
     Precision precision() const { return options_.precision; }
     void setPrecision(Precision precision) { options_.precision = precision; }
+
+    // Refits each coated crossing's reflectance on [c - margin, 1] rounded down to 1/32, c being
+    // min_cos[step] (one per step, as traced by a probe), where that is narrower than its range:
+    // a lower degree for every lane. Lanes that still come below the range take the exact formula.
+    static constexpr double kCoatingMargin = 0.05;
+    void narrowCoatings(std::span<const double> min_cos);
 
     // Whether trace() runs the AVX2 build on this processor with these options.
     bool usesAvx2() const;
@@ -128,6 +139,13 @@ public:
     };
 
 private:
+    void traceRecording(std::span<const double> x,
+                        std::span<const double> y,
+                        double z,
+                        const Eigen::Vector3d& direction,
+                        TracedRow& out,
+                        double* min_cos) const;
+
     std::vector<Step> steps_;
     std::vector<FresnelPolynomial> coatings_;
     double wavelength_nm_;

@@ -173,6 +173,66 @@ TEST(RowTracer, Avx2AndSse2BuildsGiveTheSameBits) {
     }
 }
 
+// The probe narrows each coated crossing's fitted range to the cosines it met: lower degrees,
+// the same throughput for rays inside the probe's range and for rays beyond it (the exact
+// formula below the range), on lenses with many coated surfaces, on axis, at half the field
+// and at its corner.
+TEST(RowTracer, CoatingsNarrowedToTheProbesCosinesKeepTheThroughput) {
+    for (const char* file : {"canon-tele-zoom-200.csv", "heliar-tronnier.csv"}) {
+        const Lens lens = shippedLens(file);
+        const auto ghosts = enumerateGhosts(lens);
+        ASSERT_TRUE(ghosts);
+        const double field_deg = radToDeg(fieldLimit_rad(lens));
+        for (const double theta_deg : {0.0, 0.5 * field_deg, field_deg}) {
+            int compared = 0;
+            for (const GhostPath& path :
+                 {GhostPath{}, ghosts->ghosts.front(), ghosts->ghosts.back()}) {
+                const Eigen::Vector3d d = lightDirection(degToRad(theta_deg), 0.3);
+                RowTracer::Options options;
+                options.precision = RowTracer::Precision::Double;
+                const RowTracer wide(lens, path, kLambdaGreen_nm, options);
+                RowTracer narrow(lens, path, kLambdaGreen_nm, options);
+                // The probe: the middle third of the entry's width; the rays: all of it and beyond.
+                const double r = lens.surfaces().front().semi_aperture_mm;
+                std::vector<double> px, py, xs, ys;
+                for (int i = 0; i < 9; ++i)
+                    for (int j = 0; j < 9; ++j) {
+                        px.push_back(r * (-0.3 + 0.075 * i));
+                        py.push_back(r * (-0.3 + 0.075 * j));
+                    }
+                for (int i = 0; i < 41; ++i)
+                    for (int j = 0; j < 41; ++j) {
+                        xs.push_back(r * (-1.2 + 0.06 * i));
+                        ys.push_back(r * (-1.2 + 0.06 * j));
+                    }
+                const double z = lens.surfaces().front().z_mm - 5.0;
+                narrow.choosePrecision(px, py, z, d, 1e-4);
+                narrow.setPrecision(RowTracer::Precision::Double);
+                size_t degrees_wide = 0, degrees_narrow = 0;
+                for (size_t k = 0; k < wide.coatings().size(); ++k) {
+                    degrees_wide += wide.coatings()[k].coefficients.size();
+                    degrees_narrow += narrow.coatings()[k].coefficients.size();
+                    EXPECT_GE(narrow.coatings()[k].lo, wide.coatings()[k].lo);
+                }
+                EXPECT_LT(degrees_narrow, degrees_wide) << file << " at " << theta_deg;
+                TracedRow a, b;
+                wide.trace(xs, ys, z, d, a);
+                narrow.trace(xs, ys, z, d, b);
+                for (size_t i = 0; i < xs.size(); ++i) {
+                    ASSERT_EQ(a.status[i], b.status[i]) << i;
+                    if (a.status[i] == 0 || !(a.throughput[i] > 0.0)) continue;
+                    EXPECT_EQ(a.x_mm[i], b.x_mm[i]);
+                    // Each series is within 1e-5 of the smallest reflectance on its range.
+                    EXPECT_NEAR(b.throughput[i] / a.throughput[i], 1.0, 1e-4)
+                        << file << " at " << theta_deg << ", ray " << i;
+                    ++compared;
+                }
+            }
+            EXPECT_GT(compared, 300) << file << " at " << theta_deg;
+        }
+    }
+}
+
 // ---- extremes ----
 
 TEST(RowTracer, OnAxisLightGivesARotationallySymmetricRow) {
