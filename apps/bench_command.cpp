@@ -351,8 +351,9 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     predict->add_option("MODEL", predict_options->model_path, "flare model file")->required();
     predict->add_option("--lens", predict_options->lens_path,
                         "the model's lens prescription: also score against the simulator");
-    predict->add_option("--constellations", predict_options->constellations,
-                        "random constellations drawn")
+    predict
+        ->add_option("--constellations", predict_options->constellations,
+                     "random constellations drawn")
         ->check(CLI::Range(1, 100000))
         ->capture_default_str();
     predict->add_option("--seed", predict_options->seed, "of the random constellations")
@@ -379,8 +380,9 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
             return;
         }
         bench::printPredictBench(*result, out);
-        exit_code =
-            writeJsonFile(*predict_json_path, bench::predictBenchJson(*result).dump(2), err) ? 0 : 1;
+        exit_code = writeJsonFile(*predict_json_path, bench::predictBenchJson(*result).dump(2), err)
+                        ? 0
+                        : 1;
     });
 }
 

@@ -346,7 +346,8 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
         out << "\n## Interior edges by pixel centre (" << o.width << "x" << o.height
             << ", 1 light, light merge, no culling; PSNR against every ghost, exact tracer, no "
                "merge)\n\n"
-            << "| lens | centre_edge_jump | total ms | draw ms | PSNR dB |\n|---|---|---|---|---|\n";
+            << "| lens | centre_edge_jump | total ms | draw ms | PSNR dB "
+               "|\n|---|---|---|---|---|\n";
         for (size_t li = 0; li < lenses.size(); ++li) {
             const std::string name = std::filesystem::path(o.lens_files[li]).stem().string();
             const auto lights = lightsFor(1);

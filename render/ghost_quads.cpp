@@ -221,12 +221,11 @@ void markCentreEdges(GhostQuads& out,
         // (its area over its longest edge; below that a pixel holds quads no centre falls in).
         double longest = 0.0;
         for (int k = 0; k < 4; ++k)
-            longest = std::max(longest, (q.corners[(k + 1) % 4].position_px -
-                                         q.corners[k].position_px).norm());
+            longest = std::max(
+                longest, (q.corners[(k + 1) % 4].position_px - q.corners[k].position_px).norm());
         if (!(area >= kCentreEdgeMinWidthPx * longest) || !quadIsConvex(q)) continue;
-        turn[i] = static_cast<int8_t>(
-            orientation(q.corners[0].position_px, q.corners[1].position_px,
-                        q.corners[2].position_px));
+        turn[i] = static_cast<int8_t>(orientation(
+            q.corners[0].position_px, q.corners[1].position_px, q.corners[2].position_px));
         const double size = blocks[i].size;
         density[i] = size * size / area;
     }
@@ -453,7 +452,6 @@ constexpr int kNonConvexSamples = 4;
 // Convex quads below this area (px^2) are splats even when integrated: their edge functions and
 // weights lose their digits, and their light fits in one pixel anyway.
 constexpr double kMinIntegratedArea = 1e-9;
-
 
 }  // namespace
 
@@ -793,8 +791,13 @@ using Float4 = float __attribute__((vector_size(16)));
 // The pixels x0..x1 of the rows y0..y1 wholly inside an unmasked convex primitive, each the
 // Wachspress-interpolated throughput at its centre (convexAreaValue's value for a pixel no edge
 // cuts, in its order of operations), four at a time.
-[[gnu::always_inline]] inline void insideRowsBody(
-    const Primitive& p, int64_t x0, int64_t y0, int64_t x1, int64_t y1, float* out, int64_t stride) {
+[[gnu::always_inline]] inline void insideRowsBody(const Primitive& p,
+                                                  int64_t x0,
+                                                  int64_t y0,
+                                                  int64_t x1,
+                                                  int64_t y1,
+                                                  float* out,
+                                                  int64_t stride) {
     const auto& c = p.quad.corners;
     const double t0 = c[0].throughput, t1 = c[1].throughput, t2 = c[2].throughput,
                  t3 = c[3].throughput;
@@ -852,15 +855,26 @@ using Float4 = float __attribute__((vector_size(16)));
     }
 }
 
-void insideRowsBase(
-    const Primitive& p, int64_t x0, int64_t y0, int64_t x1, int64_t y1, float* out, int64_t stride) {
+void insideRowsBase(const Primitive& p,
+                    int64_t x0,
+                    int64_t y0,
+                    int64_t x1,
+                    int64_t y1,
+                    float* out,
+                    int64_t stride) {
     insideRowsBody(p, x0, y0, x1, y1, out, stride);
 }
-[[gnu::target("avx2")]] void insideRowsAvx2(
-    const Primitive& p, int64_t x0, int64_t y0, int64_t x1, int64_t y1, float* out, int64_t stride) {
+[[gnu::target("avx2")]] void insideRowsAvx2(const Primitive& p,
+                                            int64_t x0,
+                                            int64_t y0,
+                                            int64_t x1,
+                                            int64_t y1,
+                                            float* out,
+                                            int64_t stride) {
     insideRowsBody(p, x0, y0, x1, y1, out, stride);
 }
-using InsideRowsFn = void (*)(const Primitive&, int64_t, int64_t, int64_t, int64_t, float*, int64_t);
+using InsideRowsFn =
+    void (*)(const Primitive&, int64_t, int64_t, int64_t, int64_t, float*, int64_t);
 // The AVX2 build where the processor has it, chosen once (as the row tracer does); both give
 // the same bits (no contraction into fused multiply-adds).
 InsideRowsFn insideRows() {

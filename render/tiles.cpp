@@ -283,8 +283,9 @@ Status renderTiledAt(ImageRGB& image,
         st.dense_entries += static_cast<int64_t>(list.size());
         st.memory_bytes += static_cast<int64_t>(list.capacity() * sizeof(uint32_t) + sizeof(list));
     }
-    st.memory_bytes += static_cast<int64_t>(primitives.size() * (sizeof(Primitive) + sizeof(void*)) +
-                                            ghosts.size() * sizeof(GhostPrimitive));
+    st.memory_bytes +=
+        static_cast<int64_t>(primitives.size() * (sizeof(Primitive) + sizeof(void*)) +
+                             ghosts.size() * sizeof(GhostPrimitive));
     st.ghost_tiles_smooth = smooth_tiles.load();
     st.ghost_tiles_edge = edge_tiles.load();
     st.memory_bytes +=
