@@ -431,6 +431,10 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                                                   task.light->rgb[task.channel], options.width,
                                                   options.height, options.raster))
                         prepared[i].push_back(*p);
+                // Kept until drawn: no room for the quads that made no primitive (off the image,
+                // outside the stop), so the pending primitives bound the memory.
+                if (prepared[i].capacity() > 2 * prepared[i].size() + 1024)
+                    prepared[i].shrink_to_fit();
                 traced[i].quads = GhostQuads{};  // the primitives hold what is needed now
             });
             for (size_t i = 0; i < traced.size(); ++i) {
