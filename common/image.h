@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "common/check.h"
+#include "common/large_pages.h"
 
 namespace flarelab {
 
@@ -21,9 +22,13 @@ struct ImageRGB {
     std::vector<float> pixels;  // width * height * 3, RGB interleaved, row-major
 
     ImageRGB() = default;
-    ImageRGB(int64_t w, int64_t h) : width(w), height(h), pixels(static_cast<size_t>(w * h * 3)) {
+    // Zeroed; a large image's storage on large pages (common/large_pages.h).
+    ImageRGB(int64_t w, int64_t h) : width(w), height(h) {
         FLARELAB_CHECK_GE(w, 0);
         FLARELAB_CHECK_GE(h, 0);
+        const size_t n = static_cast<size_t>(w * h * 3);
+        reserveLargePages(pixels, n);
+        pixels.resize(n);
     }
     float* at(int64_t x, int64_t y) {
         FLARELAB_DCHECK(x >= 0 && x < width && y >= 0 && y < height);

@@ -25,6 +25,7 @@
 #include <utility>
 #include <vector>
 
+#include "common/large_pages.h"
 #include "common/result.h"
 #include "optics/aim.h"
 #include "optics/lens.h"
@@ -61,7 +62,7 @@ struct RayGrid {
     EntryPlane plane;
     Eigen::Vector2d entry_centre_mm = Eigen::Vector2d::Zero();  // of the square on the entry plane
     double entry_half_width_mm = 0.0;
-    std::vector<GridSample> samples;  // n * n, row-major: samples[iy * n + ix]
+    LargePageVector<GridSample> samples;  // n * n, row-major: samples[iy * n + ix]
 
     const GridSample& at(int ix, int iy) const {
         return samples[static_cast<size_t>(iy) * static_cast<size_t>(n) + static_cast<size_t>(ix)];

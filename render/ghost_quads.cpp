@@ -208,7 +208,7 @@ constexpr double kCentreEdgeMinWidthPx = 1.0;
 template <class Block>
 void markCentreEdges(GhostQuads& out,
                      const std::vector<Block>& blocks,
-                     const std::vector<int32_t>& owner,
+                     const LargePageVector<int32_t>& owner,
                      int cells,
                      double jump) {
     const size_t n = out.quads.size();
@@ -316,7 +316,7 @@ GhostQuads quadsFromGrid(const optics::RayGrid& grid,
         int x0, y0, size;
     };
     std::vector<Block> blocks;
-    std::vector<int32_t> owner;
+    LargePageVector<int32_t> owner;
     if (centre_edges) owner.assign(static_cast<size_t>(cells) * cells, -1);
     const auto emit = [&](int ix, int iy, int size) {
         out.quads.push_back(quadFrom(grid, mapping, ix, iy, size));

@@ -117,7 +117,7 @@ inline constexpr MergeOptions kHeavyMerge{4, 0.1, kCentreEdgeJump, 1.0};
 // keeps the throughput it would have had (GridSample::open_throughput) and its aperture ratio
 // above 1: the rasterizer cuts the light where the interpolated ratio crosses 1.
 struct GhostQuads {
-    std::vector<Quad> quads;
+    LargePageVector<Quad> quads;
     std::vector<uint16_t> cells;  // grid cells each quad stands for (4^k); empty: all 1
     double cell_area_mm2 = 0.0;   // entry-plane area one ray stands for
     double cellArea(size_t i) const {
@@ -232,6 +232,9 @@ struct Primitive {
     std::array<EdgeFunction, 4> edge;
     std::array<double, 4> corner_area{};
 };
+
+// The primitives of one grid, as the renderer keeps them until they are drawn.
+using PrimitiveArray = LargePageVector<Primitive>;
 
 // nullopt when the quad cannot put light in the image (outside it, non-finite, no irradiance, no
 // throughput, or a convex quad wholly outside the stop or a clear aperture). cell_area_mm2 is the

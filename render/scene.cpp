@@ -182,7 +182,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         pattern = std::move(*rendered);
     }
     // The primitives waiting to be drawn, one array per ghost grid (moved, never copied).
-    std::vector<std::vector<Primitive>> pending;
+    std::vector<PrimitiveArray> pending;
     size_t pending_count = 0;
     double draw_ms = 0.0;
     const auto flush = [&]() -> Status {
@@ -416,7 +416,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         const size_t block =
             8 * static_cast<size_t>(std::max(1, tbb::this_task_arena::max_concurrency()));
         std::vector<Traced> traced;
-        std::vector<std::vector<Primitive>> prepared;
+        std::vector<PrimitiveArray> prepared;
         for (size_t first = 0; first < tasks.size(); first += block) {
             const size_t last = std::min(tasks.size(), first + block);
             traced.assign(last - first, Traced{});

@@ -57,7 +57,7 @@ Status renderTiled(ImageRGB& image,
 }
 
 Status renderTiledChunks(ImageRGB& image,
-                         std::span<const std::vector<Primitive>> chunks,
+                         std::span<const PrimitiveArray> chunks,
                          const optics::ApertureShape& aperture,
                          const TileOptions& options,
                          TileStats* stats) {

@@ -72,7 +72,7 @@ Status renderTiled(ImageRGB& image,
 // The same with the primitives in several arrays, drawn as if they were one array in their order
 // (a frame's grids, each prepared on its own, are not copied together).
 Status renderTiledChunks(ImageRGB& image,
-                         std::span<const std::vector<Primitive>> chunks,
+                         std::span<const PrimitiveArray> chunks,
                          const optics::ApertureShape& aperture,
                          const TileOptions& options = {},
                          TileStats* stats = nullptr);
