@@ -33,6 +33,7 @@ struct SimulateState {
     double merge_gamma = std::nan("");
     double centre_edge_jump = std::nan("");
     bool adaptive_grid = false;
+    bool no_image_window = false;
     std::string exr_path;
     std::string png_path;
     double exposure_stops = 0.0;
@@ -93,6 +94,7 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
         return 1;
     }
     options.adaptive_grid = s.adaptive_grid;
+    options.image_window = !s.no_image_window;
     render::SceneStats stats;
     const auto start = std::chrono::steady_clock::now();
     auto image = render::renderScene(*lens, lights, options, &stats);
@@ -119,7 +121,8 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
     out << "simulate: " << lens->name() << ", " << lights.size() << " light(s)"
         << (stats.lights_behind ? " (" + std::to_string(stats.lights_behind) + " behind)" : "")
         << ", " << stats.ghosts_drawn << " ghost grids (" << stats.ghosts_culled << " culled, "
-        << stats.ghosts_off_image << " off the image), " << stats.quads << " quads, "
+        << stats.ghosts_off_image << " off the image, " << stats.grids_windowed
+        << " windowed to it), " << stats.quads << " quads, "
         << (s.reference ? "reference" : "tiled") << ": trace " << stats.trace_ms << " ms, draw "
         << stats.draw_ms << " ms, total " << seconds << " s -> " << s.exr_path
         << (s.png_path.empty() ? "" : ", " + s.png_path) << "\n";
@@ -158,6 +161,9 @@ void addSimulateCommand(CLI::App& app, std::ostream& out, std::ostream& err, int
                     "that is drawn by pixel centre instead of cut by area (0: every edge cut; "
                     "light and heavy merges use 0.01), overrides --merge")
         ->check(CLI::Range(0.0, 1.0));
+    cmd->add_flag("--no-image-window", state->no_image_window,
+                  "trace every ghost's whole eq. 13 grid, also where only part of it can reach "
+                  "the image");
     cmd->add_flag("--adaptive-grid", state->adaptive_grid,
                   "trace each ray grid in coarse blocks and refine only where the merge's test "
                   "fails (needs a merge)");

@@ -102,6 +102,7 @@ render::SceneOptions baseOptions(const RenderBenchOptions& o) {
 render::SceneOptions truthOptions(render::SceneOptions s) {
     s.cull_relative_l2 = 0.0;
     s.grid_tracer = optics::GridTracer::Exact;
+    s.image_window = false;
     return s;
 }
 

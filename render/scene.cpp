@@ -214,6 +214,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         int n = 0;         // the full grid's size (eq. 13)
         optics::EntrySquare square;
         int aimed_again = 0;    // 1: the shared square did not hold this channel's beam
+        int windowed = 0;       // 1: the grid shrank to the image's window
         double power = 0.0;     // on the image, in image units summed over pixels
         double area_px = 0.0;   // of the footprint on the image
         double l2_share = 0.0;  // power^2 / area
@@ -229,6 +230,55 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     // The probe of one task: green's own, traced over the square aimed at green for its light and
     // path, or the channel's over that square. Where the channel's outer ring has valid rays and
     // green's had none, dispersion has pushed the beam past the square: it is aimed on its own.
+    // SceneOptions::image_window: the full grid shrinks to the square of probe cells that can put
+    // light in the image, grown by one probe cell, at the same ray spacing. A probe cell counts
+    // when the pixel box of its corners that have a position, grown by the probe's largest step
+    // between neighbouring rays (`spacing`), touches the image.
+    const auto imageWindow = [&](Task& task, const optics::RayGrid& probe, double spacing) {
+        const int np = probe.n;
+        if (np < 2 || task.n < 3) return;
+        int lo_x = np, hi_x = -1, lo_y = np, hi_y = -1;
+        for (int iy = 0; iy + 1 < np; ++iy) {
+            for (int ix = 0; ix + 1 < np; ++ix) {
+                double bx0 = 1e300, bx1 = -1e300, by0 = 1e300, by1 = -1e300;
+                for (const auto& [dx, dy] :
+                     {std::pair{0, 0}, std::pair{1, 0}, std::pair{0, 1}, std::pair{1, 1}}) {
+                    const optics::GridSample& s = probe.at(ix + dx, iy + dy);
+                    if (!s.has_position) continue;
+                    const Eigen::Vector2d p = mapping.toPixels(s.sensor_x_mm, s.sensor_y_mm);
+                    bx0 = std::min(bx0, p.x());
+                    bx1 = std::max(bx1, p.x());
+                    by0 = std::min(by0, p.y());
+                    by1 = std::max(by1, p.y());
+                }
+                if (!(bx1 + spacing >= 0.0 && bx0 - spacing <= width_px && by1 + spacing >= 0.0 &&
+                      by0 - spacing <= height_px))
+                    continue;  // no corner with a position, or all of them far off the image
+                lo_x = std::min(lo_x, ix);
+                hi_x = std::max(hi_x, ix + 1);
+                lo_y = std::min(lo_y, iy);
+                hi_y = std::max(hi_y, iy + 1);
+            }
+        }
+        if (hi_x < 0) return;
+        lo_x = std::max(0, lo_x - 1);
+        lo_y = std::max(0, lo_y - 1);
+        hi_x = std::min(np - 1, hi_x + 1);
+        hi_y = std::min(np - 1, hi_y + 1);
+        const int span = std::max(hi_x - lo_x, hi_y - lo_y);  // probe cells
+        if (span >= np - 1) return;
+        const double probe_cell = 2.0 * probe.entry_half_width_mm / (np - 1);
+        const double cell = 2.0 * probe.entry_half_width_mm / (task.n - 1);
+        const int cells = static_cast<int>(std::ceil(span * probe_cell / cell - 1e-9));
+        if (cells + 1 >= task.n) return;
+        task.square.centre_mm =
+            probe.entry_centre_mm +
+            Eigen::Vector2d(-probe.entry_half_width_mm + 0.5 * probe_cell * (lo_x + hi_x),
+                            -probe.entry_half_width_mm + 0.5 * probe_cell * (lo_y + hi_y));
+        task.square.half_width_mm = 0.5 * cells * cell;
+        task.n = cells + 1;
+        ++task.windowed;
+    };
     const auto probeTask = [&](Task& task, const optics::RayGrid& green) -> Status {
         const optics::RayGrid* probe = &green;
         std::optional<optics::RayGrid> own;
@@ -293,6 +343,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         task.power = power * task.light->rgb[task.channel];
         task.area_px = std::max(1.0, in_x * in_y);
         task.l2_share = task.power * task.power / task.area_px;
+        if (options.image_window) imageWindow(task, *probe, spacing);
         return Ok{};
     };
     // Merged quads stay clear of this lens's stop outline (MergeOptions::clear_stop_radius).
@@ -371,6 +422,7 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     for (const Status& status : probe_status)
         if (!status) return status.error();
     for (const Task& t : probed) st.channels_aimed_again += t.aimed_again;
+    for (const Task& t : probed) st.grids_windowed += t.windowed;
     // Culling: the faintest first, while their shares together stay within the budget.
     double total_share = 0.0;
     for (const Task& t : probed) total_share += t.lit ? t.l2_share : 0.0;

@@ -76,6 +76,11 @@ struct SceneOptions {
     // refine only those the merge's test fails, instead of the whole grid. Not with the Exact
     // tracer (which always traces the whole grid).
     bool adaptive_grid = false;
+    // Where only part of a ghost's beam can reach the image (a ghost larger than the image, or
+    // one partly off it), trace only that part of its entry square, found from the probe, at the
+    // eq. 13 grid's ray spacing: the rays whose quads would all fall off the image are not
+    // traced. false traces the whole eq. 13 grid (the benchmark's truth).
+    bool image_window = true;
     // When not empty, only these of the enumerated ghost paths are drawn (one ghost alone: the
     // fit's oracle harness, bench/oracle_bench.h); a path the enumeration does not hold is
     // refused. Culling still applies, relative to the paths drawn.
@@ -88,6 +93,7 @@ struct SceneStats {
     int64_t ghosts_culled = 0;         // dropped by cull_relative_l2 or cull_mean_below
     double culled_relative_l2 = 0.0;   // the dropped ghosts' estimated share of the L2 norm
     int64_t channels_aimed_again = 0;  // red or blue beams that did not fit green's square
+    int64_t grids_windowed = 0;        // grids shrunk to the image's window (image_window)
     int64_t quads = 0;
     int64_t rays = 0;
     int lights_behind = 0;  // lights at 90 degrees or more, skipped

@@ -65,5 +65,25 @@ TEST(Simulate, AdaptiveGridNeedsAMergeAndDrawsWithOne) {
     std::filesystem::remove_all(dir);
 }
 
+TEST(Simulate, TracesOnlyTheImagesWindowUnlessToldNot) {
+    const std::string lens = flarelab::testing::lensPath("heliar-tronnier.csv");
+    const auto dir = std::filesystem::temp_directory_path() / "flarelab_simulate_window_test";
+    std::filesystem::create_directories(dir);
+    const std::string exr = (dir / "flare.exr").string();
+    const std::vector<std::string> args = {"--lens",  lens, "--angle",  "5",  "--no-starburst",
+                                           "--width", "48", "--height", "32", "--grid",
+                                           "48",      "-o", exr};
+    CommandRun run = simulate(args);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_EQ(run.out.find(" 0 windowed to it"), std::string::npos) << run.out;
+    EXPECT_NE(run.out.find(" windowed to it"), std::string::npos) << run.out;
+    std::vector<std::string> whole = args;
+    whole.push_back("--no-image-window");
+    run = simulate(whole);
+    ASSERT_EQ(run.code, 0) << run.err;
+    EXPECT_NE(run.out.find(" 0 windowed to it"), std::string::npos) << run.out;
+    std::filesystem::remove_all(dir);
+}
+
 }  // namespace
 }  // namespace flarelab::apps
