@@ -56,7 +56,11 @@ struct SceneOptions {
     // true: collect every ghost's primitives and draw them with the tiled renderer (tiles.h);
     // false: draw ghost after ghost with the reference rasterizer. Both give the same image.
     bool tiled = true;
-    TileOptions tiles;
+    // Dense tiles of 16 px (TileOptions' own default, 8, is the model renderer's): tile building
+    // and traversal 1.01x to 1.37x as fast on all nine shipped lenses at 1920x1080 and on the
+    // Heliar, Canon 200 and Itoh at 640x427, with the same bits (`flarelab bench render`'s
+    // Table 4; chosen on the Heliar and the Canon 200, scored on the others, 2026-12-06).
+    TileOptions tiles{128, 16, true};
     MergeOptions merge;  // primitive merge (ghost_quads.h); the reference draws merged quads too
     // The tiled renderer draws whenever this many primitives are waiting (sizeof(Primitive),
     // about 420 bytes each), so memory stays bounded for any lens, grid and number of lights.

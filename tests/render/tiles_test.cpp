@@ -54,8 +54,8 @@ TEST(RenderTiled, MatchesTheReferenceRasterizerBitForBit) {
     const Scene scene = makeScene("heliar-tronnier.csv", 6.0, 200, 150, 33);
     ASSERT_GT(scene.primitives.size(), 10000u);
     for (const TileOptions options :
-         {TileOptions{}, TileOptions{128, 8, false}, TileOptions{32, 16, true},
-          TileOptions{1, 1, true}, TileOptions{4096, 256, true}}) {
+         {TileOptions{}, TileOptions{128, 8, false}, TileOptions{128, 16, true},
+          TileOptions{32, 16, true}, TileOptions{1, 1, true}, TileOptions{4096, 256, true}}) {
         ImageRGB tiled(200, 150);
         TileStats stats;
         ASSERT_TRUE(renderTiled(tiled, scene.primitives, optics::ApertureShape{}, options, &stats));
