@@ -227,9 +227,6 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     };
     const double width_px = static_cast<double>(options.width);
     const double height_px = static_cast<double>(options.height);
-    // The probe of one task: green's own, traced over the square aimed at green for its light and
-    // path, or the channel's over that square. Where the channel's outer ring has valid rays and
-    // green's had none, dispersion has pushed the beam past the square: it is aimed on its own.
     // SceneOptions::image_window: the full grid shrinks to the square of probe cells that can put
     // light in the image, grown by one probe cell, at the same ray spacing. A probe cell counts
     // when the pixel box of its corners that have a position, grown by the probe's largest step
@@ -279,6 +276,9 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         task.n = cells + 1;
         ++task.windowed;
     };
+    // The probe of one task: green's own, traced over the square aimed at green for its light and
+    // path, or the channel's over that square. Where the channel's outer ring has valid rays and
+    // green's had none, dispersion has pushed the beam past the square: it is aimed on its own.
     const auto probeTask = [&](Task& task, const optics::RayGrid& green) -> Status {
         const optics::RayGrid* probe = &green;
         std::optional<optics::RayGrid> own;
