@@ -12,7 +12,7 @@ namespace {
 
 using testing::CommandRun;
 
-CommandRun bench(std::vector<std::string> args) {
+CommandRun benchMerge(std::vector<std::string> args) {
     args.insert(args.begin(), "bench");
     return testing::runCommand(addBenchCommands, args);
 }
@@ -21,8 +21,8 @@ TEST(BenchMerge, QuickRunWritesTheTablesAndEveryJsonKey) {
     const auto json_path =
         (std::filesystem::temp_directory_path() / "flarelab_bench_merge_test.json").string();
     std::filesystem::remove(json_path);
-    const CommandRun run = bench({"merge", "--quick", "--width", "96", "--height", "64", "--repeat",
-                                  "1", "--json", json_path});
+    const CommandRun run = benchMerge({"merge", "--quick", "--width", "96", "--height", "64",
+                                       "--repeat", "1", "--json", json_path});
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_NE(run.out.find("## HDR bracket merge: speed"), std::string::npos) << run.out;
     EXPECT_NE(run.out.find("## HDR bracket merge: accuracy"), std::string::npos) << run.out;
@@ -44,7 +44,7 @@ TEST(BenchMerge, QuickRunWritesTheTablesAndEveryJsonKey) {
 }
 
 TEST(BenchMerge, RejectsAnImageTooSmall) {
-    const CommandRun run = bench({"merge", "--quick", "--width", "4"});
+    const CommandRun run = benchMerge({"merge", "--quick", "--width", "4"});
     EXPECT_NE(run.code, 0);
     EXPECT_NE(run.err.find("--width"), std::string::npos) << run.err;
 }

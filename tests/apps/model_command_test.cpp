@@ -16,9 +16,12 @@
 #include "fit/sweep_fit.h"
 #include "hdr/exr.h"
 #include "tests/apps/command_runner.h"
+#include "tests/test_files.h"
 
 namespace flarelab::apps {
 namespace {
+
+using flarelab::testing::contains;
 
 namespace fs = std::filesystem;
 using testing::CommandRun;
@@ -26,10 +29,6 @@ using testing::CommandRun;
 CommandRun model(std::vector<std::string> args) {
     args.insert(args.begin(), "model");
     return testing::runCommand(addModelCommands, args);
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
 }
 
 fit::FlareModel smallModel() {
@@ -97,8 +96,8 @@ TEST(ModelShow, PrintsLensCaptureRangeAndGhosts) {
          {"format 4", "written by flarelab test", "created 2026-11-29T07:04:02Z",
           "lens: heliar 50mm, 50 mm, f/4.5, sensor 36 x 24 mm", "prescription: heliar-50.csv",
           "capture: -4 to 4 deg in steps of 0.5 deg", "64x48 pixels",
-          "camera mono test camera, raw format mono", "light power: not measured", "2 exposures of 0.001 0.1 s",
-          "valid range: -4 to 4 deg", "ghosts: 1",
+          "camera mono test camera, raw format mono", "light power: not measured",
+          "2 exposures of 0.001 0.1 s", "valid range: -4 to 4 deg", "ghosts: 1",
           "ghost 3 (surfaces 2-5): -3 to 3 deg, 13 frames fitted", "2 parameters",
           "segment[0].p0.x_mm [mm], bounds -18..18: 2 pieces, degrees 2 1, residual rms <= 0.03, "
           "max 0.05",

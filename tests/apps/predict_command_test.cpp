@@ -15,9 +15,13 @@
 #include "predict/utc_time.h"
 #include "tests/apps/command_runner.h"
 #include "tests/predict/moving_disc_model.h"
+#include "tests/test_files.h"
 
 namespace flarelab::apps {
 namespace {
+
+using flarelab::testing::contains;
+using flarelab::testing::readText;
 
 namespace fs = std::filesystem;
 using testing::CommandRun;
@@ -26,17 +30,6 @@ CommandRun predict(const std::vector<std::string>& args) {
     std::vector<std::string> all{"predict"};
     all.insert(all.end(), args.begin(), args.end());
     return testing::runCommand(addPredictCommand, all);
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
-}
-
-std::string readText(const fs::path& path) {
-    std::ifstream in(path);
-    std::stringstream s;
-    s << in.rdbuf();
-    return s.str();
 }
 
 class PredictCommand : public ::testing::Test {
@@ -199,7 +192,7 @@ TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
     EXPECT_GT(with["veiling_glare_index"].get<double>(), 0.0);
     EXPECT_GE(with["veiling_glare_index"].get<double>(), with["image_flare"].get<double>());
     EXPECT_FALSE(with["image_flare_complete"].get<bool>());  // 10 deg of a 23 deg field
-    ASSERT_EQ(with["off_axis"].size(), 2u);  // image heights 0.5 and 0.7
+    ASSERT_EQ(with["off_axis"].size(), 2u);                  // image heights 0.5 and 0.7
     EXPECT_EQ(with["off_axis"][1]["image_height"], 0.7);
     // Other heights; a height outside (0, 1] is refused.
     const CommandRun one = predict({writeScene(scene), "-o", (dir_ / "one").string(),
@@ -208,9 +201,9 @@ TEST_F(PredictCommand, LabFiguresAndTheGlareIndicatorReachTheReport) {
     const auto one_report = nlohmann::json::parse(one.out);
     ASSERT_EQ(one_report["models"][0]["off_axis"].size(), 1u);
     EXPECT_EQ(one_report["models"][0]["off_axis"][0]["image_height"], 0.9);
-    EXPECT_NE(predict({writeScene(scene), "-o", (dir_ / "bad").string(), "--lab-heights", "1.5"})
-                  .code,
-              0);
+    EXPECT_NE(
+        predict({writeScene(scene), "-o", (dir_ / "bad").string(), "--lab-heights", "1.5"}).code,
+        0);
     EXPECT_GT(with["off_axis"][1]["field_deg"].get<double>(), 0.0);
     const auto& without = report["models"][1];
     EXPECT_FALSE(without["scaled"].get<bool>());

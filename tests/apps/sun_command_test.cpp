@@ -7,19 +7,18 @@
 #include <vector>
 
 #include "tests/apps/command_runner.h"
+#include "tests/test_files.h"
 
 namespace flarelab::apps {
 namespace {
+
+using flarelab::testing::contains;
 
 using testing::CommandRun;
 
 CommandRun sun(std::vector<std::string> args) {
     args.insert(args.begin(), "sun");
     return testing::runCommand(addSunCommand, args);
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
 }
 
 // The worked example of Reda & Andreas (2004), in its appendix.

@@ -16,9 +16,12 @@
 
 #include "hdr/sweep.h"
 #include "tests/apps/command_runner.h"
+#include "tests/test_files.h"
 
 namespace flarelab::apps {
 namespace {
+
+using flarelab::testing::contains;
 
 namespace fs = std::filesystem;
 using testing::CommandRun;
@@ -26,10 +29,6 @@ using testing::CommandRun;
 CommandRun sweep(std::vector<std::string> args) {
     args.insert(args.begin(), "sweep");
     return testing::runCommand(addSweepCommands, args);
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
 }
 
 // A three-frame sweep of 8x6 images in a fresh directory, removed afterwards.

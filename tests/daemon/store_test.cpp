@@ -26,17 +26,16 @@
 #include "daemon/sweep_config.h"
 #include "hdr/sweep.h"
 #include "tests/daemon/daemon_fixture.h"
+#include "tests/test_files.h"
 
 extern char** environ;
 
 namespace flarelab::daemon {
 namespace {
 
-using namespace testing;
+using flarelab::testing::contains;
 
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
-}
+using namespace testing;
 
 // The job `id` as the manager lists it, once `done(job)` or after `deadline_s`.
 template <typename Pred>

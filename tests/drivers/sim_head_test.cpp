@@ -24,7 +24,7 @@ std::unique_ptr<SimHead> head(const SimHeadOptions& o) {
     return std::move(*h);
 }
 
-DeviceFault faultOf(const Error& e) {
+DeviceFault headFaultOf(const Error& e) {
     const auto fault = deviceFaultOf(e);
     EXPECT_TRUE(fault) << e.message;
     return fault.value_or(DeviceFault::Busy);
@@ -59,8 +59,8 @@ TEST(SimHead, MustBeHomedBeforeItMoves) {
     o.homed = false;
     o.start_deg = 12.0;
     auto h = head(o);
-    EXPECT_EQ(faultOf(h->position().error()), DeviceFault::NotHomed);
-    EXPECT_EQ(faultOf(h->moveTo(1.0, 10.0).error()), DeviceFault::NotHomed);
+    EXPECT_EQ(headFaultOf(h->position().error()), DeviceFault::NotHomed);
+    EXPECT_EQ(headFaultOf(h->moveTo(1.0, 10.0).error()), DeviceFault::NotHomed);
     EXPECT_DOUBLE_EQ(h->trueAngle_deg(), 12.0);
     const int64_t before = h->clock()->now_ns();
     ASSERT_TRUE(h->home(10.0));
@@ -92,7 +92,7 @@ TEST(SimHead, RejectsTargetsSpeedsAndTimeoutsOutOfRangeNamingTheField) {
     for (double bad : {-91.0, 90.5, std::nan("")}) {
         const auto r = h->moveTo(bad, 10.0);
         ASSERT_FALSE(r) << bad;
-        EXPECT_EQ(faultOf(r.error()), DeviceFault::OutOfRange);
+        EXPECT_EQ(headFaultOf(r.error()), DeviceFault::OutOfRange);
         EXPECT_NE(r.error().message.find("angle_deg"), std::string::npos);
     }
     const auto t = h->moveTo(1.0, 0.0);
@@ -169,10 +169,10 @@ TEST(SimHead, StallStopsAtTheObstacleAndStaysHomed) {
     auto h = head(o);
     const auto r = h->moveTo(20.0, 10.0);
     ASSERT_FALSE(r);
-    EXPECT_EQ(faultOf(r.error()), DeviceFault::Stalled);
+    EXPECT_EQ(headFaultOf(r.error()), DeviceFault::Stalled);
     EXPECT_NEAR(*h->position(), 7.0, 0.01);
-    EXPECT_EQ(faultOf(h->moveTo(8.0, 10.0).error()), DeviceFault::Stalled);  // still blocked
-    EXPECT_TRUE(h->moveTo(2.0, 10.0));                                       // away is free
+    EXPECT_EQ(headFaultOf(h->moveTo(8.0, 10.0).error()), DeviceFault::Stalled);  // still blocked
+    EXPECT_TRUE(h->moveTo(2.0, 10.0));                                           // away is free
     h->setFaults({});
     EXPECT_TRUE(h->moveTo(20.0, 10.0));
 }
@@ -184,7 +184,7 @@ TEST(SimHead, HangingMoveWaitsOutItsTimeout) {
     const int64_t before = h->clock()->now_ns();
     const auto r = h->moveTo(5.0, 2.5);
     ASSERT_FALSE(r);
-    EXPECT_EQ(faultOf(r.error()), DeviceFault::Timeout);
+    EXPECT_EQ(headFaultOf(r.error()), DeviceFault::Timeout);
     EXPECT_NEAR((h->clock()->now_ns() - before) * 1e-9, 2.5, 1e-6);
     EXPECT_EQ(*h->position(), 0.0);
     EXPECT_TRUE(h->moveTo(5.0, 10.0));  // only one move hangs
@@ -194,7 +194,7 @@ TEST(SimHead, MoveLongerThanItsTimeoutStopsPartway) {
     auto h = head(quick());
     const auto r = h->moveTo(30.0, 1.0);  // needs 3.7 s
     ASSERT_FALSE(r);
-    EXPECT_EQ(faultOf(r.error()), DeviceFault::Timeout);
+    EXPECT_EQ(headFaultOf(r.error()), DeviceFault::Timeout);
     // One second in: 2.5 deg of ramp plus 5 deg of cruise.
     EXPECT_NEAR(*h->position(), 7.5, 1e-9);
 }
@@ -206,10 +206,10 @@ TEST(SimHead, LostPositionNeedsRehoming) {
     ASSERT_TRUE(h->moveTo(5.0, 10.0));
     const auto r = h->moveTo(15.0, 10.0);
     ASSERT_FALSE(r);
-    EXPECT_EQ(faultOf(r.error()), DeviceFault::LostPosition);
+    EXPECT_EQ(headFaultOf(r.error()), DeviceFault::LostPosition);
     EXPECT_NEAR(h->trueAngle_deg(), 12.0, 1e-9);  // 30 % short
-    EXPECT_EQ(faultOf(h->position().error()), DeviceFault::NotHomed);
-    EXPECT_EQ(faultOf(h->moveTo(15.0, 10.0).error()), DeviceFault::NotHomed);
+    EXPECT_EQ(headFaultOf(h->position().error()), DeviceFault::NotHomed);
+    EXPECT_EQ(headFaultOf(h->moveTo(15.0, 10.0).error()), DeviceFault::NotHomed);
     ASSERT_TRUE(h->home(10.0));
     EXPECT_TRUE(h->moveTo(15.0, 10.0));
 }
@@ -219,11 +219,11 @@ TEST(SimHead, DisconnectedHeadAnswersEveryCall) {
     SimHeadFaults gone;
     gone.disconnected = true;
     h->setFaults(gone);
-    EXPECT_EQ(faultOf(h->moveTo(1.0, 10.0).error()), DeviceFault::Disconnected);
-    EXPECT_EQ(faultOf(h->position().error()), DeviceFault::Disconnected);
-    EXPECT_EQ(faultOf(h->home(10.0).error()), DeviceFault::Disconnected);
-    EXPECT_EQ(faultOf(h->setSpeed(1.0).error()), DeviceFault::Disconnected);
-    EXPECT_EQ(faultOf(h->stop().error()), DeviceFault::Disconnected);
+    EXPECT_EQ(headFaultOf(h->moveTo(1.0, 10.0).error()), DeviceFault::Disconnected);
+    EXPECT_EQ(headFaultOf(h->position().error()), DeviceFault::Disconnected);
+    EXPECT_EQ(headFaultOf(h->home(10.0).error()), DeviceFault::Disconnected);
+    EXPECT_EQ(headFaultOf(h->setSpeed(1.0).error()), DeviceFault::Disconnected);
+    EXPECT_EQ(headFaultOf(h->stop().error()), DeviceFault::Disconnected);
 }
 
 TEST(SimHead, RealTimeModeSleepsAndStopInterrupts) {
@@ -245,12 +245,12 @@ TEST(SimHead, RealTimeModeSleepsAndStopInterrupts) {
     ASSERT_TRUE(midway);
     EXPECT_GT(*midway, 1.5);
     EXPECT_LT(*midway, 41.0);
-    EXPECT_EQ(faultOf(h->moveTo(3.0, 5.0).error()), DeviceFault::Busy);
+    EXPECT_EQ(headFaultOf(h->moveTo(3.0, 5.0).error()), DeviceFault::Busy);
     ASSERT_TRUE(h->stop());
     mover.join();
     EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - wall).count(), 1.5);
     ASSERT_FALSE(result);
-    EXPECT_EQ(faultOf(result.error()), DeviceFault::Stopped);
+    EXPECT_EQ(headFaultOf(result.error()), DeviceFault::Stopped);
     EXPECT_LT(*h->position(), 41.0);
     EXPECT_EQ(*h->position(), h->trueAngle_deg());
 }

@@ -14,8 +14,12 @@
 #include <string>
 #include <vector>
 
+#include "tests/test_files.h"
+
 namespace flarelab::fit {
 namespace {
+
+using flarelab::testing::contains;
 
 namespace fs = std::filesystem;
 
@@ -102,10 +106,6 @@ std::string readBytes(const std::string& path) {
 
 void writeBytes(const std::string& path, const std::string& bytes) {
     std::ofstream(path, std::ios::binary) << bytes;
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
 }
 
 std::string replaced(std::string text, const std::string& from, const std::string& to) {

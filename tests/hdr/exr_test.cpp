@@ -21,45 +21,17 @@
 #include <string>
 #include <vector>
 
+#include "tests/test_files.h"
 #include "tests/test_paths.h"
 
 namespace flarelab::hdr {
 namespace {
 
+using flarelab::testing::contains;
+using flarelab::testing::readText;
+using flarelab::testing::TempDir;
+
 namespace fs = std::filesystem;
-
-// A fresh directory per test, removed afterwards.
-class TempDir {
-public:
-    TempDir() {
-        static int counter = 0;
-        path_ = fs::temp_directory_path() / ("flarelab-exr-test-" + std::to_string(::getpid()) +
-                                             "-" + std::to_string(counter++));
-        fs::remove_all(path_);
-        fs::create_directories(path_);
-    }
-    ~TempDir() {
-        std::error_code ec;
-        fs::remove_all(path_, ec);
-    }
-    std::string file(const std::string& name) const { return (path_ / name).string(); }
-    // Names of everything in the directory, sorted.
-    std::vector<std::string> entries() const {
-        std::vector<std::string> names;
-        for (const auto& entry : fs::directory_iterator(path_))
-            names.push_back(entry.path().filename().string());
-        std::sort(names.begin(), names.end());
-        return names;
-    }
-
-private:
-    fs::path path_;
-};
-
-std::string readBytes(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
 
 void writeBytes(const std::string& path, const std::string& bytes) {
     std::ofstream out(path, std::ios::binary);
@@ -69,10 +41,6 @@ void writeBytes(const std::string& path, const std::string& bytes) {
 Result<ExrImage> readBytesAsExr(const std::string& bytes, const std::string& name = "test") {
     return readExrFromMemory(
         std::span(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size()), name);
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
 }
 
 // A smooth image with a little seeded noise: compresses like a real frame.
@@ -472,7 +440,7 @@ TEST(WriteExr, RefusesNonFinitePixelsAndKeepsTheOldFile) {
     TempDir dir;
     const std::string path = dir.file("frame.exr");
     ASSERT_TRUE(writeExr(path, smoothImage(6, 5, 9), {}));
-    const std::string before = readBytes(path);
+    const std::string before = readText(path);
     for (const float bad :
          {std::numeric_limits<float>::quiet_NaN(), std::numeric_limits<float>::infinity(),
           -std::numeric_limits<float>::infinity()}) {
@@ -485,7 +453,7 @@ TEST(WriteExr, RefusesNonFinitePixelsAndKeepsTheOldFile) {
         EXPECT_TRUE(contains(report.error().message, path)) << report.error().message;
         EXPECT_TRUE(contains(report.error().message, "pixel (4, 3) channel B"))
             << report.error().message;
-        EXPECT_EQ(readBytes(path), before);
+        EXPECT_EQ(readText(path), before);
         EXPECT_EQ(dir.entries(), std::vector<std::string>{"frame.exr"});
     }
 }
@@ -533,14 +501,14 @@ TEST(WriteExr, FailedRenameLeavesNoTemporaryFile) {
     EXPECT_EQ(report.error().code, ErrorCode::IoError);
     EXPECT_TRUE(contains(report.error().message, "rename")) << report.error().message;
     EXPECT_EQ(dir.entries(), std::vector<std::string>{"taken"});
-    EXPECT_EQ(readBytes(dir.file("taken/inside")), "keep");
+    EXPECT_EQ(readText(dir.file("taken/inside")), "keep");
 }
 
 TEST(WriteExr, WriteFailingMidwayKeepsTheOldFile) {
     TempDir dir;
     const std::string path = dir.file("frame.exr");
     ASSERT_TRUE(writeExr(path, smoothImage(4, 4, 13), fullMetadata()));
-    const std::string before = readBytes(path);
+    const std::string before = readText(path);
 
     // A file size limit makes the disk "full" after 16 KiB of a 48 KiB file. The signal it
     // raises is ignored, so write() reports EFBIG as a full disk reports ENOSPC.
@@ -563,7 +531,7 @@ TEST(WriteExr, WriteFailingMidwayKeepsTheOldFile) {
     ASSERT_FALSE(report);
     EXPECT_EQ(report.error().code, ErrorCode::IoError);
     EXPECT_TRUE(contains(report.error().message, path)) << report.error().message;
-    EXPECT_EQ(readBytes(path), before);
+    EXPECT_EQ(readText(path), before);
     EXPECT_EQ(dir.entries(), std::vector<std::string>{"frame.exr"});
     const auto read = readExr(path);
     ASSERT_TRUE(read) << read.error().message;
@@ -586,7 +554,7 @@ TEST(ReadExr, MemoryAndFileReadersAgree) {
     const std::string path = dir.file("frame.exr");
     ASSERT_TRUE(writeExr(path, smoothImage(9, 7, 16), fullMetadata()));
     const auto from_file = readExr(path);
-    const auto from_memory = readBytesAsExr(readBytes(path));
+    const auto from_memory = readBytesAsExr(readText(path));
     ASSERT_TRUE(from_file) << from_file.error().message;
     ASSERT_TRUE(from_memory) << from_memory.error().message;
     EXPECT_TRUE(bitwiseEqual(from_file->image, from_memory->image));
@@ -860,7 +828,7 @@ TEST(ReadExr, EveryTruncationIsAnError) {
         ExrWriteOptions options;
         options.compression = compression;
         ASSERT_TRUE(writeExr(dir.file("t.exr"), smoothImage(7, 40, 18), fullMetadata(), options));
-        const std::string bytes = readBytes(dir.file("t.exr"));
+        const std::string bytes = readText(dir.file("t.exr"));
         for (size_t length = 0; length < bytes.size(); ++length) {
             const auto read = readBytesAsExr(bytes.substr(0, length), "cut.exr");
             ASSERT_FALSE(read) << "length " << length;

@@ -23,45 +23,18 @@
 #include "common/durable_io.h"
 #include "hdr/exr.h"
 #include "hdr/sweep.h"
+#include "tests/test_files.h"
 #include "tests/test_paths.h"
 
 namespace flarelab::hdr {
 namespace {
 
+using flarelab::testing::contains;
+using flarelab::testing::readText;
+using flarelab::testing::TempDir;
+using flarelab::testing::writeText;
+
 namespace fs = std::filesystem;
-
-class TempDir {
-public:
-    explicit TempDir(const fs::path& base = fs::temp_directory_path()) {
-        static int counter = 0;
-        path_ = base / ("flarelab-store-test-" + std::to_string(::getpid()) + "-" +
-                        std::to_string(counter++));
-        fs::remove_all(path_);
-        fs::create_directories(path_);
-    }
-    ~TempDir() {
-        std::error_code ec;
-        fs::remove_all(path_, ec);
-    }
-    std::string path() const { return path_.string(); }
-    std::string file(const std::string& name) const { return (path_ / name).string(); }
-
-private:
-    fs::path path_;
-};
-
-std::string readText(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
-
-void writeText(const std::string& path, const std::string& text) {
-    std::ofstream(path, std::ios::binary | std::ios::trunc) << text;
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
-}
 
 SweepHeader header(double to_deg = 100.0) {
     SweepHeader h;

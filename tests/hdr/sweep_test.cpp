@@ -15,45 +15,17 @@
 #include <string>
 #include <vector>
 
+#include "tests/test_files.h"
+
 namespace flarelab::hdr {
 namespace {
 
+using flarelab::testing::contains;
+using flarelab::testing::readText;
+using flarelab::testing::TempDir;
+using flarelab::testing::writeText;
+
 namespace fs = std::filesystem;
-
-// A fresh directory per test, removed afterwards.
-class SweepDir {
-public:
-    SweepDir() {
-        static int counter = 0;
-        path_ = fs::temp_directory_path() / ("flarelab-sweep-test-" + std::to_string(::getpid()) +
-                                             "-" + std::to_string(counter++));
-        fs::remove_all(path_);
-        fs::create_directories(path_);
-    }
-    ~SweepDir() {
-        std::error_code ec;
-        fs::remove_all(path_, ec);
-    }
-    std::string path() const { return path_.string(); }
-    std::string file(const std::string& name) const { return (path_ / name).string(); }
-
-private:
-    fs::path path_;
-};
-
-std::string readText(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
-
-void writeText(const std::string& path, const std::string& text) {
-    std::ofstream out(path, std::ios::binary | std::ios::trunc);
-    out << text;
-}
-
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
-}
 
 constexpr int64_t kWidth = 8;
 constexpr int64_t kHeight = 6;
@@ -135,7 +107,7 @@ std::string replaced(std::string text, const std::string& from, const std::strin
 // ---------------------------------------------------------------------------------------------
 
 TEST(SweepWriter, RoundTripsASmallSweepWithRawBrackets) {
-    SweepDir dir;
+    TempDir dir;
     const SweepHeader header = smallHeader();
     auto writer = SweepWriter::create(dir.path(), header);
     ASSERT_TRUE(writer) << writer.error().message;
@@ -177,7 +149,7 @@ TEST(SweepWriter, RoundTripsASmallSweepWithRawBrackets) {
 }
 
 TEST(SweepWriter, FramesCarryOpenExrStandardAttributes) {
-    SweepDir dir;
+    TempDir dir;
     const SweepHeader header = smallHeader();  // f/2
     auto writer = SweepWriter::create(dir.path(), header);
     ASSERT_TRUE(writer) << writer.error().message;
@@ -203,7 +175,7 @@ TEST(SweepWriter, FramesCarryOpenExrStandardAttributes) {
 }
 
 TEST(SweepWriter, WritesAnEmptyButValidSweepOnCreate) {
-    SweepDir dir;
+    TempDir dir;
     auto writer = SweepWriter::create(dir.file("new/sweep"), smallHeader());
     ASSERT_TRUE(writer) << writer.error().message;
     auto sweep = readSweep(dir.file("new/sweep"));
@@ -221,7 +193,7 @@ std::vector<SweepFrame> listedFrames(const std::string& directory) {
 TEST(SweepWriter, CrashBetweenFrameAndItsRecordLeavesThePreviousFrames) {
     // Forked, so that the child writes into this test's directory.
     GTEST_FLAG_SET(death_test_style, "fast");
-    SweepDir dir;
+    TempDir dir;
     writeSweep(dir.path(), 2);
     const std::vector<SweepFrame> before = listedFrames(dir.path());
     ASSERT_EQ(before.size(), 2u);
@@ -260,7 +232,7 @@ TEST(SweepWriter, CrashBetweenFrameAndItsRecordLeavesThePreviousFrames) {
     ASSERT_FALSE(again);
     EXPECT_TRUE(contains(again.error().message, "already exists")) << again.error().message;
     EXPECT_EQ(listedFrames(dir.path()), before);
-    SweepDir aside;
+    TempDir aside;
     auto moved = writer->setAsideUnlisted(aside.file("recovered"));
     ASSERT_TRUE(moved) << moved.error().message;
     EXPECT_EQ(*moved, std::vector<std::string>{orphan});
@@ -275,7 +247,7 @@ TEST(SweepWriter, CrashBetweenFrameAndItsRecordLeavesThePreviousFrames) {
 TEST(SweepWriter, CrashWhileCompactingKeepsTheOldManifestAndTheLog) {
     // Forked, so that the child writes into this test's directory.
     GTEST_FLAG_SET(death_test_style, "fast");
-    SweepDir dir;
+    TempDir dir;
     writeSweep(dir.path(), 1);  // the manifest lists none, the log one frame
     const std::string before = readText(dir.file(kSweepManifestFile));
     EXPECT_EXIT(
@@ -298,7 +270,7 @@ TEST(SweepWriter, CrashWhileCompactingKeepsTheOldManifestAndTheLog) {
 }
 
 TEST(SweepWriter, RefusesToOverwriteAnotherSweep) {
-    SweepDir dir;
+    TempDir dir;
     writeSweep(dir.path(), 1);
     auto second = SweepWriter::create(dir.path(), smallHeader());
     ASSERT_FALSE(second);
@@ -314,7 +286,7 @@ TEST(SweepWriter, RefusesToOverwriteAnotherSweep) {
     EXPECT_TRUE(contains(second.error().message, "capture")) << second.error().message;
 
     // A directory of loose EXR files is not a place for a new sweep either.
-    SweepDir loose;
+    TempDir loose;
     ASSERT_TRUE(writeExr(loose.file("old.exr"), testImage(0), {}));
     second = SweepWriter::create(loose.path(), smallHeader());
     ASSERT_FALSE(second);
@@ -322,7 +294,7 @@ TEST(SweepWriter, RefusesToOverwriteAnotherSweep) {
 }
 
 TEST(SweepWriter, OneWriterPerDirectory) {
-    SweepDir dir;
+    TempDir dir;
     SweepWriter first = writeSweep(dir.path(), 1);
     SweepWriteOptions resume;
     resume.resume = true;
@@ -332,7 +304,7 @@ TEST(SweepWriter, OneWriterPerDirectory) {
 }
 
 TEST(SweepWriter, RefusesBadFramesWithoutTouchingTheSweep) {
-    SweepDir dir;
+    TempDir dir;
     SweepWriter writer = writeSweep(dir.path(), 2);
     const std::string before = readText(dir.file(kSweepManifestFile));
     const SweepHeader header = smallHeader();
@@ -351,7 +323,7 @@ TEST(SweepWriter, RefusesBadFramesWithoutTouchingTheSweep) {
     ASSERT_FALSE(escaped);
     EXPECT_TRUE(contains(escaped.error().message, "frames[2].exr_file"));
 
-    SweepDir elsewhere;
+    TempDir elsewhere;
     fs::create_directory_symlink(elsewhere.path(), dir.file("linked"));
     SweepFrame through_link = frameAt(header, 2);
     through_link.exr_file = "linked/x.exr";
@@ -380,7 +352,7 @@ TEST(SweepWriter, RefusesBadFramesWithoutTouchingTheSweep) {
 }
 
 TEST(SweepWriter, RefusesABadHeader) {
-    SweepDir dir;
+    TempDir dir;
     SweepHeader header = smallHeader();
     header.capture.width_px = 0;
     auto writer = SweepWriter::create(dir.path(), header);
@@ -398,7 +370,7 @@ TEST(SweepWriter, RefusesABadHeader) {
 // ---------------------------------------------------------------------------------------------
 
 TEST(ReadSweep, MissingFrameIsNotFoundNamingFileAndField) {
-    SweepDir dir;
+    TempDir dir;
     const Sweep written = writeSweep(dir.path(), 3).sweep();
     fs::remove(dir.file(written.frames[1].exr_file));
     auto sweep = readSweep(dir.path());
@@ -411,7 +383,7 @@ TEST(ReadSweep, MissingFrameIsNotFoundNamingFileAndField) {
 }
 
 TEST(ReadSweep, ExtraFrameIsAWarningOrAnErrorWhenAsked) {
-    SweepDir dir;
+    TempDir dir;
     writeSweep(dir.path(), 2);
     ASSERT_TRUE(writeExr(dir.file("stray.exr"), testImage(5), {}));
     writeText(dir.file("notes.txt"), "lab notes");
@@ -428,7 +400,7 @@ TEST(ReadSweep, ExtraFrameIsAWarningOrAnErrorWhenAsked) {
 }
 
 TEST(ReadSweep, FrameOfAnotherSizeIsRefused) {
-    SweepDir dir;
+    TempDir dir;
     const Sweep written = writeSweep(dir.path(), 2).sweep();
     const std::string path = dir.file(written.frames[1].exr_file);
     auto original = readExr(path);
@@ -443,7 +415,7 @@ TEST(ReadSweep, FrameOfAnotherSizeIsRefused) {
 }
 
 TEST(ReadSweep, NanPixelOnDiskIsRefused) {
-    SweepDir dir;
+    TempDir dir;
     const SweepHeader header = smallHeader();
     SweepWriteOptions options;
     options.exr.compression = ExrCompression::None;  // pixels stored as plain float32
@@ -496,7 +468,7 @@ TEST(ReadSweep, AttributesThatDisagreeWithTheManifestAreRefused) {
         {"flarelab.merge_method", [](ExrMetadata& m) { m.merge_method = "max"; }},
     };
     for (const Case& c : cases) {
-        SweepDir dir;
+        TempDir dir;
         const Sweep written = writeSweep(dir.path(), 2).sweep();
         const std::string path = dir.file(written.frames[0].exr_file);
         auto frame = readExr(path);
@@ -511,7 +483,7 @@ TEST(ReadSweep, AttributesThatDisagreeWithTheManifestAreRefused) {
 }
 
 TEST(ReadSweep, LinkOutOfTheDirectoryIsRefused) {
-    SweepDir dir, elsewhere;
+    TempDir dir, elsewhere;
     const Sweep written = writeSweep(dir.path(), 1).sweep();
     const std::string frame = dir.file(written.frames[0].exr_file);
     fs::rename(frame, elsewhere.file("moved.exr"));
@@ -522,7 +494,7 @@ TEST(ReadSweep, LinkOutOfTheDirectoryIsRefused) {
 }
 
 TEST(ReadSweep, MissingManifestIsNotFound) {
-    SweepDir dir;
+    TempDir dir;
     auto sweep = readSweep(dir.path());
     ASSERT_FALSE(sweep);
     EXPECT_EQ(sweep.error().code, ErrorCode::NotFound);
@@ -567,7 +539,7 @@ TEST(ParseSweepManifest, UnknownVersionIsUnsupported) {
 }
 
 // The camera settings of a simulated capture, as drivers::describeLens records them.
-SweepHeader withLensSettings(SweepHeader header) {
+SweepHeader withSimulatedLens(SweepHeader header) {
     header.lens.aperture_blades = 6;
     header.lens.blade_rotation_deg = 15.0;
     header.lens.stop_semi_aperture_mm = 4.3759765625;
@@ -581,7 +553,7 @@ SweepHeader withLensSettings(SweepHeader header) {
 
 TEST(ParseSweepManifest, Version3LensSettingsRoundTrip) {
     Sweep sweep;
-    sweep.header = withLensSettings(smallHeader());
+    sweep.header = withSimulatedLens(smallHeader());
     sweep.frames = {frameAt(sweep.header, 0)};
     sweep.frames[0].exr_file = "a.exr";
     auto json = formatSweepManifest(sweep);
@@ -684,10 +656,9 @@ TEST(ParseSweepManifest, TheLightsPowerRoundTripsAndIsVersion5s) {
     EXPECT_FALSE(contains(validManifest(), "light_power"));
     EXPECT_FALSE(parseSweepManifest(validManifest())->header.camera.light_power_dn_s);
     for (const char* bad : {"0", "-1"}) {
-        auto refused = parseSweepManifest(
-            replaced(*json, "\"light_power_dn_s\": 3250000000",
-                     std::string("\"light_power_dn_s\": ") + bad),
-            "m.json");
+        auto refused = parseSweepManifest(replaced(*json, "\"light_power_dn_s\": 3250000000",
+                                                   std::string("\"light_power_dn_s\": ") + bad),
+                                          "m.json");
         ASSERT_FALSE(refused) << bad;
         EXPECT_TRUE(contains(refused.error().message, "m.json: camera.light_power_dn_s: "))
             << refused.error().message;
@@ -703,7 +674,7 @@ TEST(ParseSweepManifest, TheLightsPowerRoundTripsAndIsVersion5s) {
 
 TEST(ParseSweepManifest, BrokenLensSettingsAreRefusedByField) {
     Sweep sweep;
-    sweep.header = withLensSettings(smallHeader());
+    sweep.header = withSimulatedLens(smallHeader());
     auto json = formatSweepManifest(sweep);
     ASSERT_TRUE(json) << json.error().message;
     const std::pair<std::pair<const char*, const char*>, const char*> cases[] = {

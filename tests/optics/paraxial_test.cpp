@@ -13,8 +13,8 @@
 namespace flarelab::optics {
 namespace {
 
-using testing::kShippedLenses;
-using testing::lensPath;
+using flarelab::testing::kShippedLenses;
+using flarelab::testing::lensPath;
 
 // The independent paraxial check each shipped file carries in its header:
 // "# paraxial check (...): EFL 99.24 mm, back focal distance 81.32 mm, ..."

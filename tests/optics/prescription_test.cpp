@@ -18,9 +18,9 @@
 namespace flarelab::optics {
 namespace {
 
-using testing::kShippedLenses;
-using testing::lensPath;
-using testing::sourcePath;
+using flarelab::testing::kShippedLenses;
+using flarelab::testing::lensPath;
+using flarelab::testing::sourcePath;
 
 // A small valid lens without its header: a biconvex singlet and a stop behind it.
 constexpr char kRows[] = "surface,50,5,1.5,50,10,550\nsurface,-50,10,1,,10,550\nstop,0,40,1,,5,\n";

@@ -6,10 +6,12 @@
 #include <numbers>
 #include <random>
 
+#include "tests/predict/test_times.h"
+
 namespace flarelab::predict {
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using test_times::kDeg;
 
 double dot(const Vec3& a, const Vec3& b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 

@@ -10,11 +10,12 @@
 #include "fit/sweep_fit.h"
 #include "render/ghost_shape.h"
 #include "tests/predict/moving_disc_model.h"
+#include "tests/predict/test_times.h"
 
 namespace flarelab::predict {
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using test_times::kDeg;
 
 // One ghost, a disc of radius 200 mm on the axis with the same value v inside at every angle
 // from 0 to `to_deg`: the frame is evenly lit by v DN/s per pixel whatever the light's angle, so
@@ -246,12 +247,12 @@ TEST(LabFigures, ACentreFlareFromElsewhereIsCheckedFirst) {
     const fit::FlareModel model = evenVeilModel(1.0, 10.0, 1.0e6);
     const double nan = std::nan("");
     const std::pair<std::vector<double>, std::vector<double>> bad[] = {
-        {{0.0}, {1.0}},                  // one angle
-        {{0.0, 1.0}, {1.0}},             // a value short
-        {{-1.0, 1.0}, {1.0, 1.0}},       // below 0
-        {{0.0, 2.0, 2.0}, {1, 1, 1}},    // not increasing
-        {{0.0, 1.0}, {1.0, nan}},        // not finite
-        {{0.0, 1.0}, {1.0, -1.0}}};      // negative
+        {{0.0}, {1.0}},                // one angle
+        {{0.0, 1.0}, {1.0}},           // a value short
+        {{-1.0, 1.0}, {1.0, 1.0}},     // below 0
+        {{0.0, 2.0, 2.0}, {1, 1, 1}},  // not increasing
+        {{0.0, 1.0}, {1.0, nan}},      // not finite
+        {{0.0, 1.0}, {1.0, -1.0}}};    // negative
     for (const auto& [theta, centre] : bad)
         EXPECT_FALSE(labFiguresOfCentre(model, theta, centre)) << theta.size();
     // The same values as the table's give the same index.

@@ -8,14 +8,15 @@
 #include "fit/model_eval.h"
 #include "predict/figures.h"
 #include "tests/predict/moving_disc_model.h"
+#include "tests/predict/test_times.h"
 
 namespace flarelab::predict {
 namespace {
 
-constexpr double kDeg = std::numbers::pi / 180.0;
+using test_times::kDeg;
 
 // A light at (theta, phi) for a camera looking north, level.
-Vec3 lightAt(double theta_deg, double phi_deg) {
+Vec3 lightInFrame(double theta_deg, double phi_deg) {
     const CameraFrame f = cameraFrame(CameraPose{});
     const double st = std::sin(theta_deg * kDeg), ct = std::cos(theta_deg * kDeg);
     const double x = st * std::cos(phi_deg * kDeg), y = st * std::sin(phi_deg * kDeg);
@@ -42,7 +43,7 @@ TEST(Playback, DrawsTheModelAtTheLightsAngleAndRoll) {
     const CameraFrame frame = cameraFrame(CameraPose{});
     // At 4 deg the disc sits 6 mm (12 px) on the far side of the light: left of the centre for a
     // light on the right, above it for a light below (phi 90, y down).
-    const PlaybackLight right{"right", lightAt(4.0, 0.0), {1, 1, 1}};
+    const PlaybackLight right{"right", lightInFrame(4.0, 0.0), {1, 1, 1}};
     auto image = playback(model, frame, std::span(&right, 1));
     ASSERT_TRUE(image) << image.error().message;
     ASSERT_EQ(image->lights.size(), 1u);
@@ -50,7 +51,7 @@ TEST(Playback, DrawsTheModelAtTheLightsAngleAndRoll) {
     auto c = centroid(image->image);
     EXPECT_NEAR(c[0], -12.0, 0.2);
     EXPECT_NEAR(c[1], 0.0, 0.2);
-    const PlaybackLight below{"below", lightAt(4.0, 90.0), {1, 1, 1}};
+    const PlaybackLight below{"below", lightInFrame(4.0, 90.0), {1, 1, 1}};
     image = playback(model, frame, std::span(&below, 1));
     ASSERT_TRUE(image);
     c = centroid(image->image);
@@ -65,8 +66,8 @@ TEST(Playback, DrawsTheModelAtTheLightsAngleAndRoll) {
 TEST(Playback, LightsAddAndScaleByChannel) {
     const fit::FlareModel model = testing::movingDiscModel();
     const CameraFrame frame = cameraFrame(CameraPose{});
-    const PlaybackLight a{"a", lightAt(2.0, 30.0), {1.0, 0.0, 0.5}};
-    const PlaybackLight b{"b", lightAt(6.0, -120.0), {3.0, 3.0, 3.0}};
+    const PlaybackLight a{"a", lightInFrame(2.0, 30.0), {1.0, 0.0, 0.5}};
+    const PlaybackLight b{"b", lightInFrame(6.0, -120.0), {3.0, 3.0, 3.0}};
     const PlaybackLight both[] = {a, b};
     auto ia = playback(model, frame, std::span(&a, 1));
     auto ib = playback(model, frame, std::span(&b, 1));
@@ -85,7 +86,7 @@ TEST(Playback, LightsAddAndScaleByChannel) {
 TEST(Playback, LightsOutsideTheModelAreRefusedOrClampedNeverExtrapolated) {
     const fit::FlareModel model = testing::movingDiscModel();
     const CameraFrame frame = cameraFrame(CameraPose{});
-    const PlaybackLight far{"far", lightAt(25.0, 0.0), {1, 1, 1}};
+    const PlaybackLight far{"far", lightInFrame(25.0, 0.0), {1, 1, 1}};
     auto refused = playback(model, frame, std::span(&far, 1));
     ASSERT_TRUE(refused);
     EXPECT_EQ(refused->lights[0].state, LightState::OutsideRange);
@@ -102,7 +103,7 @@ TEST(Playback, LightsOutsideTheModelAreRefusedOrClampedNeverExtrapolated) {
     ASSERT_TRUE(edge);
     EXPECT_EQ(edge->pixels, clamped->image.pixels);
     // Exactly at the edge of the range: drawn, not clamped.
-    const PlaybackLight at_edge{"edge", lightAt(10.0, 0.0), {1, 1, 1}};
+    const PlaybackLight at_edge{"edge", lightInFrame(10.0, 0.0), {1, 1, 1}};
     auto drawn = playback(model, frame, std::span(&at_edge, 1));
     ASSERT_TRUE(drawn);
     EXPECT_EQ(drawn->lights[0].state, LightState::Drawn);
@@ -120,7 +121,7 @@ TEST(Playback, LightsOutsideTheModelAreRefusedOrClampedNeverExtrapolated) {
 TEST(Playback, ALightOnTheLeftPutsTheGhostOnTheRight) {
     const fit::FlareModel model = testing::movingDiscModel();
     const CameraFrame frame = cameraFrame(CameraPose{});
-    const PlaybackLight light{"l", lightAt(4.0, 180.0), {1, 1, 1}};
+    const PlaybackLight light{"l", lightInFrame(4.0, 180.0), {1, 1, 1}};
     auto drawn = playback(model, frame, std::span(&light, 1));
     ASSERT_TRUE(drawn);
     const auto c = centroid(drawn->image);
@@ -131,7 +132,7 @@ TEST(Playback, ALightOnTheLeftPutsTheGhostOnTheRight) {
 TEST(Playback, SizesAndScalesAreChecked) {
     const fit::FlareModel model = testing::movingDiscModel();
     const CameraFrame frame = cameraFrame(CameraPose{});
-    const PlaybackLight light{"l", lightAt(2.0, 0.0), {1, 1, 1}};
+    const PlaybackLight light{"l", lightInFrame(2.0, 0.0), {1, 1, 1}};
     PlaybackOptions o;
     o.width = 1920;
     o.height = 1080;  // 16:9 against the model's 3:2
@@ -148,7 +149,7 @@ TEST(Playback, SizesAndScalesAreChecked) {
     EXPECT_EQ(big->image.width, 1620);
     o.width = 40000;
     EXPECT_FALSE(playback(model, frame, std::span(&light, 1), o));
-    const PlaybackLight bad{"bad", lightAt(2.0, 0.0), {1, std::nan(""), 1}};
+    const PlaybackLight bad{"bad", lightInFrame(2.0, 0.0), {1, std::nan(""), 1}};
     auto refused = playback(model, frame, std::span(&bad, 1));
     ASSERT_FALSE(refused);
     EXPECT_NE(refused.error().message.find("'bad'"), std::string::npos);
@@ -156,7 +157,7 @@ TEST(Playback, SizesAndScalesAreChecked) {
 
 TEST(Playback, AModelWithNoGhostDrawsBlackAndStillPlacesItsLights) {
     const fit::FlareModel empty = testing::movingDiscModel(0);
-    const PlaybackLight light{"l", lightAt(3.0, 0.0), {1, 1, 1}};
+    const PlaybackLight light{"l", lightInFrame(3.0, 0.0), {1, 1, 1}};
     auto image = playback(empty, cameraFrame(CameraPose{}), std::span(&light, 1));
     ASSERT_TRUE(image) << image.error().message;
     EXPECT_EQ(image->lights[0].state, LightState::Drawn);

@@ -18,9 +18,12 @@
 #include <vector>
 
 #include "common/durable_io.h"
+#include "tests/test_files.h"
 
 namespace flarelab::predict {
 namespace {
+
+using flarelab::testing::TempDir;
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -523,22 +526,6 @@ TEST(ReportHtml, ImagesOutsideTheFolderAreLeftOut) {
         EXPECT_EQ(html.find(banned), std::string::npos) << banned;
 }
 
-class ScratchDirectory {
-public:
-    ScratchDirectory() {
-        std::string pattern = (std::filesystem::temp_directory_path() / "report_test.XXXXXX");
-        path_ = ::mkdtemp(pattern.data()) ? pattern : "";
-    }
-    ~ScratchDirectory() {
-        std::error_code ignored;
-        if (!path_.empty()) std::filesystem::remove_all(path_, ignored);
-    }
-    const std::string& path() const { return path_; }
-
-private:
-    std::string path_;
-};
-
 std::string readFile(const std::string& path) {
     std::ifstream in(path, std::ios::binary);
     std::ostringstream text;
@@ -547,7 +534,7 @@ std::string readFile(const std::string& path) {
 }
 
 TEST(WriteTextFileAtomically, WritesAndReplaces) {
-    ScratchDirectory scratch;
+    TempDir scratch;
     ASSERT_FALSE(scratch.path().empty());
     const std::string path = scratch.path() + "/report.html";
     const Status first = writeTextFileAtomically(path, "first");
@@ -564,7 +551,7 @@ TEST(WriteTextFileAtomically, WritesAndReplaces) {
 }
 
 TEST(WriteTextFileAtomically, WritesIntoTheWorkingDirectoryForABareName) {
-    ScratchDirectory scratch;
+    TempDir scratch;
     ASSERT_FALSE(scratch.path().empty());
     const std::filesystem::path before = std::filesystem::current_path();
     std::filesystem::current_path(scratch.path());
@@ -575,7 +562,7 @@ TEST(WriteTextFileAtomically, WritesIntoTheWorkingDirectoryForABareName) {
 }
 
 TEST(WriteTextFileAtomically, FailsWithIoErrorNamingThePath) {
-    ScratchDirectory scratch;
+    TempDir scratch;
     ASSERT_FALSE(scratch.path().empty());
     const std::string path = scratch.path() + "/missing/report.html";
     const Status missing = writeTextFileAtomically(path, "x");
@@ -589,7 +576,7 @@ TEST(WriteTextFileAtomically, FailsWithIoErrorNamingThePath) {
 }
 
 TEST(WriteTextFileAtomically, KeepsTheOldContentsWhenTheWriteFails) {
-    ScratchDirectory scratch;
+    TempDir scratch;
     ASSERT_FALSE(scratch.path().empty());
     const std::string path = scratch.path() + "/report.html";
     ASSERT_TRUE(writeTextFileAtomically(path, "old"));

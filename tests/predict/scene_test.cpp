@@ -14,15 +14,18 @@
 #include <string>
 #include <vector>
 
+#include "tests/predict/test_times.h"
+#include "tests/test_files.h"
+
 namespace flarelab::predict {
 namespace {
 
+using test_times::at;
+
+using flarelab::testing::TempDir;
+
 using nlohmann::json;
 using namespace std::chrono;
-
-UtcInstant at(int y, unsigned m, unsigned d, int hh, int mm, int ss) {
-    return sys_days{year{y} / month{m} / day{d}} + hours{hh} + minutes{mm} + seconds{ss};
-}
 
 // Every field of the format, each with a value other than its default.
 constexpr const char* kFullScene = R"({
@@ -748,25 +751,8 @@ TEST(ParseScene, NeverFailsSilentlyOnATruncatedScene) {
     }
 }
 
-// A folder of its own under the system's temporary folder, removed with everything in it.
-class ScratchDirectory {
-public:
-    ScratchDirectory() {
-        std::string pattern = std::filesystem::temp_directory_path() / "scene_test.XXXXXX";
-        path_ = ::mkdtemp(pattern.data()) ? pattern : "";
-    }
-    ~ScratchDirectory() {
-        std::error_code ignored;
-        if (!path_.empty()) std::filesystem::remove_all(path_, ignored);
-    }
-    const std::string& path() const { return path_; }
-
-private:
-    std::string path_;
-};
-
 TEST(LoadScene, JoinsModelPathsToTheScenesFolder) {
-    ScratchDirectory dir;
+    TempDir dir;
     ASSERT_FALSE(dir.path().empty());
     const std::string path = dir.path() + "/night.json";
     std::ofstream(path) << minimalScene().dump(2);
@@ -784,7 +770,7 @@ TEST(LoadScene, JoinsModelPathsToTheScenesFolder) {
 }
 
 TEST(LoadScene, ReadsAFileInTheWorkingFolderWithItAsBase) {
-    ScratchDirectory dir;
+    TempDir dir;
     ASSERT_FALSE(dir.path().empty());
     std::ofstream(dir.path() + "/here.json") << minimalScene().dump();
     const auto previous = std::filesystem::current_path();
@@ -796,7 +782,7 @@ TEST(LoadScene, ReadsAFileInTheWorkingFolderWithItAsBase) {
 }
 
 TEST(LoadScene, RefusesMissingFilesFoldersAndHugeFiles) {
-    ScratchDirectory dir;
+    TempDir dir;
     ASSERT_FALSE(dir.path().empty());
     auto scene = loadScene(dir.path() + "/absent.json");
     ASSERT_FALSE(scene);
@@ -901,7 +887,7 @@ const char* kVenue = R"({
 })";
 
 TEST(LoadScene, TakesCamerasAndLightsFromAGltfVenue) {
-    ScratchDirectory dir;
+    TempDir dir;
     ASSERT_FALSE(dir.path().empty());
     std::ofstream(dir.path() + "/venue.gltf") << kVenue;
     json scene = minimalScene();
@@ -943,7 +929,7 @@ TEST(LoadScene, TakesCamerasAndLightsFromAGltfVenue) {
 }
 
 TEST(LoadScene, NamesAMissingGltfCameraAndWhatAVenueNeeds) {
-    ScratchDirectory dir;
+    TempDir dir;
     ASSERT_FALSE(dir.path().empty());
     std::ofstream(dir.path() + "/venue.gltf") << kVenue;
     json scene = minimalScene();

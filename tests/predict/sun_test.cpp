@@ -8,14 +8,14 @@
 #include <limits>
 #include <string>
 
+#include "tests/predict/test_times.h"
+
 namespace flarelab::predict {
 namespace {
 
-using namespace std::chrono;
+using test_times::at;
 
-UtcInstant at(int y, unsigned m, unsigned d, int hh, int mm, int ss) {
-    return sys_days{year{y} / month{m} / day{d}} + hours{hh} + minutes{mm} + seconds{ss};
-}
+using namespace std::chrono;
 
 SunPosition sunAt(const SunSite& site, UtcInstant t, const SunTimeScale& scale = {}) {
     auto p = sunPosition(site, t, scale);

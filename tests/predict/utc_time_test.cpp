@@ -5,15 +5,14 @@
 #include <chrono>
 #include <string>
 
+#include "tests/predict/test_times.h"
+
 namespace flarelab::predict {
 namespace {
 
-using namespace std::chrono;
+using test_times::at;
 
-UtcInstant at(int y, unsigned m, unsigned d, int hh, int mm, int ss, int64_t us = 0) {
-    return sys_days{year{y} / month{m} / day{d}} + hours{hh} + minutes{mm} + seconds{ss} +
-           microseconds{us};
-}
+using namespace std::chrono;
 
 UtcInstant parsed(const std::string& text) {
     auto r = parseIso8601(text);
