@@ -16,9 +16,12 @@
 #include "apps/simulate_command.h"
 #include "apps/sun_command.h"
 #include "apps/sweep_command.h"
+#include "hdr/exr.h"
 
 int main(int argc, char** argv) {
     try {
+        // EXR files are compressed and decompressed on every core; nothing here forks.
+        flarelab::hdr::useExrThreads();
         CLI::App app{"flarelab: measure and predict camera lens flare"};
         app.require_subcommand(1);
         int exit_code = 0;

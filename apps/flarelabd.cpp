@@ -51,6 +51,7 @@
 #include "daemon/sweep_runner.h"
 #include "drivers/calibration.h"
 #include "drivers/device.h"
+#include "hdr/exr.h"
 #include "hdr/sweep.h"
 
 namespace {
@@ -406,6 +407,8 @@ int run(int argc, char** argv) {
 
 int main(int argc, char** argv) {
     try {
+        // Frames are compressed and read on every core; the daemon never forks.
+        flarelab::hdr::useExrThreads();
         return run(argc, argv);
     } catch (const std::exception& e) {
         std::cerr << "flarelabd: " << e.what() << "\n";

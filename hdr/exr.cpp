@@ -13,6 +13,7 @@
 #include <ImfIntAttribute.h>
 #include <ImfOutputFile.h>
 #include <ImfStringAttribute.h>
+#include <ImfThreading.h>
 #include <fcntl.h>
 #include <half.h>
 #include <sys/stat.h>
@@ -31,6 +32,7 @@
 #include <sstream>
 #include <string_view>
 #include <system_error>
+#include <thread>
 #include <tuple>
 #include <utility>
 
@@ -737,7 +739,7 @@ Result<ExrImage> decode(SizedIStream& in, const std::string& name, const ExrRead
         const auto facts = checkHeader(in, name, options);
         if (!facts) return facts.error();
         in.seekg(0);
-        Imf::InputFile file(in);
+        Imf::InputFile file(in, Imf::globalThreadCount());
         const Imf::Header& header = file.header();
         if (header.dataWindow() != facts->data_window)
             return makeError(ErrorCode::Internal,
@@ -885,7 +887,7 @@ Status writeFile(const std::string& temporary,
     FileOStream out(temporary, fd.get());
     try {
         {
-            Imf::OutputFile file(out, header);
+            Imf::OutputFile file(out, header, Imf::globalThreadCount());
             // OpenEXR converts pixel types when reading but not when writing, so half channels
             // get a half copy (rounded to nearest, ties to even).
             const bool half = header.channels().findChannel("R")->type == Imf::HALF;
@@ -1050,6 +1052,13 @@ Result<ExrImage> readExrFromMemory(std::span<const uint8_t> bytes,
                                    const ExrReadOptions& options) {
     MemoryIStream in(name, bytes);
     return decode(in, name, options);
+}
+
+int useExrThreads(int threads) {
+    const int count =
+        threads > 0 ? threads : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+    Imf::setGlobalThreadCount(count);
+    return Imf::globalThreadCount();
 }
 
 }  // namespace flarelab::hdr

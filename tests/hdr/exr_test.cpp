@@ -3,6 +3,7 @@
 #include <ImfHeader.h>
 #include <ImfInputFile.h>
 #include <ImfStandardAttributes.h>
+#include <ImfThreading.h>
 #include <gtest/gtest.h>
 #include <sys/resource.h>
 #include <unistd.h>
@@ -434,6 +435,37 @@ TEST(WriteExr, LargeImageRoundTrips) {
     const auto read = readExr(dir.file("large.exr"));
     ASSERT_TRUE(read) << read.error().message;
     EXPECT_TRUE(bitwiseEqual(read->image, image));
+}
+
+// With useExrThreads OpenEXR compresses line blocks on its thread pool: the file's bytes and what
+// is read back may not depend on how many threads there are, or whether there are any. The pool
+// is given back afterwards: the death tests of this binary fork, and a child cannot use it.
+TEST(WriteExr, AnyNumberOfThreadsWritesAndReadsTheSameBytes) {
+    TempDir dir;
+    const ImageRGB image = smoothImage(640, 300, 9);
+    const int before = Imf::globalThreadCount();
+    const int pool = useExrThreads();
+    EXPECT_GE(pool, 1);
+    EXPECT_EQ(useExrThreads(3), 3);
+    for (const ExrCompression compression : {ExrCompression::Zip, ExrCompression::Piz}) {
+        SCOPED_TRACE(static_cast<int>(compression));
+        ExrWriteOptions options;
+        options.compression = compression;
+        std::vector<std::string> bytes;
+        for (const int threads : {pool, 0, 3}) {
+            Imf::setGlobalThreadCount(threads);
+            const std::string path = dir.file("t" + std::to_string(threads) + ".exr");
+            ASSERT_TRUE(writeExr(path, image, fullMetadata(), options));
+            bytes.push_back(readText(path));
+            const auto read = readExr(path);
+            ASSERT_TRUE(read) << read.error().message;
+            EXPECT_TRUE(bitwiseEqual(read->image, image)) << threads << " threads";
+        }
+        EXPECT_GT(bytes[0].size(), 1000u);
+        EXPECT_EQ(bytes[1], bytes[0]) << "no threads";
+        EXPECT_EQ(bytes[2], bytes[0]) << "3 threads";
+    }
+    Imf::setGlobalThreadCount(before);
 }
 
 TEST(WriteExr, RefusesNonFinitePixelsAndKeepsTheOldFile) {
