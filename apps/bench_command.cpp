@@ -54,7 +54,19 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     render->add_option("--width", options->width, "image width")->check(CLI::Range(1, 16384));
     render->add_option("--height", options->height, "image height")->check(CLI::Range(1, 16384));
     render->add_option("--grid", options->base_grid, "base ray-grid size")
-        ->check(CLI::Range(2, 2048));
+        ->check(CLI::Range(2, 2048))
+        ->capture_default_str();
+    render
+        ->add_option("--max-grid", options->max_grid,
+                     "the most rays a side of a smooth ghost's grid (0: eq. 13's size, no cap)")
+        ->check(CLI::Range(0, 2048))
+        ->capture_default_str();
+    render
+        ->add_option("--truth-grid", options->truth_grid,
+                     "base ray-grid size of the truth the PSNR columns measure against (0: "
+                     "--grid's)")
+        ->check(CLI::Range(0, 2048))
+        ->capture_default_str();
     render->add_flag("!--no-lenses", options->lenses, "skip the per-lens tables (Tables 2-7)");
     render->add_flag("!--no-trade", options->trade, "skip the grid-size x merge trade table");
     render->add_flag("!--no-scaling", options->scaling, "skip the lights and image-size tables");

@@ -24,7 +24,9 @@ struct SimulateState {
     std::vector<std::string> lights;
     int64_t width = 1920;
     int64_t height = 1080;
-    int grid = 256;
+    int grid = render::SceneOptions{}.base_grid;
+    int max_grid = render::SceneOptions{}.max_grid;
+    double grid_bend_px = render::SceneOptions{}.grid_bend_px;
     bool no_starburst = false;
     bool all_paths = false;
     bool reference = false;
@@ -79,6 +81,8 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
     options.width = s.width;
     options.height = s.height;
     options.base_grid = s.grid;
+    options.max_grid = s.max_grid;
+    options.grid_bend_px = s.grid_bend_px;
     options.starburst = !s.no_starburst;
     options.ghosts.skip_double_stop_crossing = !s.all_paths;
     options.tiled = !s.reference;
@@ -141,6 +145,15 @@ void addSimulateCommand(CLI::App& app, std::ostream& out, std::ostream& err, int
     cmd->add_option("--width", state->width, "image width in pixels")->capture_default_str();
     cmd->add_option("--height", state->height, "image height in pixels")->capture_default_str();
     cmd->add_option("--grid", state->grid, "base ray-grid size (eq. 13)")->capture_default_str();
+    cmd->add_option("--max-grid", state->max_grid,
+                    "the most rays a side of a smooth ghost's grid (0: eq. 13's size, no cap)")
+        ->check(CLI::Range(0, 2048))
+        ->capture_default_str();
+    cmd->add_option("--grid-bend", state->grid_bend_px,
+                    "pixels: a grid keeps more than --max-grid rays a side where its sensor "
+                    "positions, interpolated across a cell, would be off by more")
+        ->check(CLI::PositiveNumber)
+        ->capture_default_str();
     cmd->add_flag("--no-starburst", state->no_starburst, "ghosts only");
     cmd->add_flag("--all", state->all_paths, "also paths that cross the stop three times");
     cmd->add_flag("--reference", state->reference,

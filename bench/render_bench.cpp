@@ -93,16 +93,25 @@ render::SceneOptions baseOptions(const RenderBenchOptions& o) {
     s.width = o.width;
     s.height = o.height;
     s.base_grid = o.base_grid;
+    s.max_grid = o.max_grid;
     s.starburst = false;
     return s;
 }
 
 // The image every figure is measured against: every ghost (no culling), traced ray by ray in
-// double, on the full eq. 13 grids.
+// double, on the full eq. 13 grids (no cap).
 render::SceneOptions truthOptions(render::SceneOptions s) {
     s.cull_relative_l2 = 0.0;
+    s.max_grid = 0;
     s.grid_tracer = optics::GridTracer::Exact;
     s.image_window = false;
+    return s;
+}
+
+// The lens, culling and interior-edge tables' truth: at the truth's own base grid.
+render::SceneOptions truthAt(const RenderBenchOptions& o) {
+    render::SceneOptions s = truthOptions(baseOptions(o));
+    s.base_grid = o.truth_grid > 0 ? o.truth_grid : o.base_grid;
     return s;
 }
 
@@ -116,6 +125,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
         o.width = std::min<int64_t>(o.width, 640);
         o.height = std::min<int64_t>(o.height, 360);
         o.base_grid = std::min(o.base_grid, 64);
+        if (o.truth_grid > 0) o.truth_grid = std::min(o.truth_grid, 64);
         o.repeat = 1;
         o.trade = false;
         o.scaling = false;
@@ -134,6 +144,12 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
         return makeError(ErrorCode::InvalidArgument, "bench: --repeat must lie in 1..100");
     if (o.truth_samples < 0 || o.truth_samples > 64)
         return makeError(ErrorCode::InvalidArgument, "bench: --truth-samples must lie in 0..64");
+    if (o.max_grid != 0 && (o.max_grid < 2 || o.max_grid > 2048))
+        return makeError(ErrorCode::InvalidArgument,
+                         "bench: --max-grid must be 0 (no cap) or lie in 2..2048");
+    if (o.truth_grid != 0 && (o.truth_grid < 2 || o.truth_grid > 2048))
+        return makeError(ErrorCode::InvalidArgument,
+                         "bench: --truth-grid must be 0 (--grid's) or lie in 2..2048");
 
     std::vector<optics::Lens> lenses;
     for (const std::string& file : o.lens_files) {
@@ -148,6 +164,8 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
     doc["settings"] = {{"width", o.width},
                        {"height", o.height},
                        {"base_grid", o.base_grid},
+                       {"max_grid", o.max_grid},
+                       {"truth_grid", o.truth_grid},
                        {"repeat", o.repeat},
                        {"threads", tbb::global_control::active_value(
                                        tbb::global_control::max_allowed_parallelism)},
@@ -161,7 +179,9 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
     // Tables 2 and 3: the tiled pipeline (light merge) against the reference.
     if (o.lenses)
         out << "## Tiled renderer against the reference rasterizer (" << o.width << "x" << o.height
-            << ", base grid " << o.base_grid << ", best of " << o.repeat << ")\n\n"
+            << ", base grid " << o.base_grid << ", smooth grids at most " << o.max_grid
+            << " a side, truth's base " << (o.truth_grid > 0 ? o.truth_grid : o.base_grid)
+            << ", best of " << o.repeat << ")\n\n"
             << "Tiled: light merge, tracing and drawing on every core. Reference: no merge, one "
                "ghost "
                "after another on one thread. PSNR of the tiled image against the reference.\n\n"
@@ -181,7 +201,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
         for (const int count : o.light_counts) {
             const auto lights = lightsFor(count);
             log << "bench render: " << name << ", " << count << " light(s): reference\n";
-            render::SceneOptions ref_options = truthOptions(baseOptions(o));
+            render::SceneOptions ref_options = truthAt(o);
             ref_options.tiled = false;
             auto reference = timed(lens, lights, ref_options, o.repeat);
             if (!reference) return reference.error();
@@ -312,7 +332,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
         for (size_t li = 0; li < lenses.size(); ++li) {
             const std::string name = std::filesystem::path(o.lens_files[li]).stem().string();
             const auto lights = lightsFor(1);
-            render::SceneOptions truth_options = truthOptions(baseOptions(o));
+            render::SceneOptions truth_options = truthAt(o);
             log << "bench render: cull: " << name << ", the truth\n";
             auto truth = timed(lenses[li], lights, truth_options, 1);
             if (!truth) return truth.error();
@@ -353,7 +373,7 @@ Result<nlohmann::json> runRenderBench(const RenderBenchOptions& input,
             const std::string name = std::filesystem::path(o.lens_files[li]).stem().string();
             const auto lights = lightsFor(1);
             log << "bench render: centre edges: " << name << ", the truth\n";
-            auto truth = timed(lenses[li], lights, truthOptions(baseOptions(o)), 1);
+            auto truth = timed(lenses[li], lights, truthAt(o), 1);
             if (!truth) return truth.error();
             for (const double jump : {0.0, 0.003, 0.01, 0.03, 0.1}) {
                 log << "bench render: centre edges: " << name << ", " << jump << "\n";

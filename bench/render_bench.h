@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "common/result.h"
+#include "render/scene.h"
 
 namespace flarelab::bench {
 
@@ -31,11 +32,16 @@ struct RenderBenchOptions {
     int repeat = 2;
     int64_t width = 1920;
     int64_t height = 1080;
-    int base_grid = 256;
-    bool lenses = true;   // the per-lens tables (Tables 2-7)
-    bool trade = true;    // grid size x merge against a dense-grid reference
-    bool scaling = true;  // lights 1..8, image 480p..4K
-    bool cull = true;     // ghost culling: cull_relative_l2 from 0 to 1e-2, per lens
+    int base_grid = render::SceneOptions{}.base_grid;  // the default pipeline's
+    int max_grid = render::SceneOptions{}.max_grid;    // the default pipeline's (0: no cap)
+    // The eq. 13 base of the truth the lens, culling and interior-edge tables measure against
+    // (every ghost traced exactly on its whole eq. 13 grid, no cap, no merge); 0: base_grid. The
+    // truth never takes max_grid's cap, so the default pipeline is scored against whole grids.
+    int truth_grid = 0;
+    bool lenses = true;        // the per-lens tables (Tables 2-7)
+    bool trade = true;         // grid size x merge against a dense-grid reference
+    bool scaling = true;       // lights 1..8, image 480p..4K
+    bool cull = true;          // ghost culling: cull_relative_l2 from 0 to 1e-2, per lens
     bool centre_edges = true;  // interior edges by pixel centre: centre_edge_jump 0 to 0.1
     // N > 0: also draw the main configuration with N x N point samples per pixel (the same
     // primitives; RasterOptions::supersample) and report the default image's PSNR against it

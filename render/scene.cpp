@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <sstream>
 
 #include "common/units.h"
@@ -107,6 +108,45 @@ void addLightImage(ImageRGB& image,
     addStarburst(image, pattern, centre_px.x(), centre_px.y(), power, scale);
 }
 
+// The rays a side a grid over the probe's square needs so that what its quads interpolate
+// linearly across one cell is off by at most `bend_px` pixels: linear interpolation over a step h
+// misses by about |f''| h^2 / 8, and the probe's second difference between neighbours along a
+// row or column is |f''| times its own step squared. Two things are interpolated and both count:
+// the sensor position (in pixels), and the stop coordinates, whose error moves the stop's outline
+// by about that error times half the footprint's extent (the coordinates run from -1 to 1 across
+// an uncut beam). Every sample with a position counts, cut ones too: the outline lies among them.
+// A probe with no three such neighbours in a line asks for nothing.
+int gridForBend(const optics::RayGrid& probe, const SensorToImage& mapping, double bend_px) {
+    const auto px = [&](const optics::GridSample& s) {
+        return mapping.toPixels(s.sensor_x_mm, s.sensor_y_mm);
+    };
+    const auto uv = [](const optics::GridSample& s) { return Eigen::Vector2d(s.stop_u, s.stop_v); };
+    Eigen::Vector2d lo(1e300, 1e300), hi(-1e300, -1e300);
+    for (const optics::GridSample& s : probe.samples)
+        if (s.has_position) {
+            lo = lo.cwiseMin(px(s));
+            hi = hi.cwiseMax(px(s));
+        }
+    const double half_extent = 0.5 * (hi - lo).maxCoeff();
+    double second = 0.0;
+    for (int iy = 0; iy < probe.n; ++iy)
+        for (int ix = 0; ix < probe.n; ++ix)
+            for (const auto& [dx, dy] : {std::pair{1, 0}, std::pair{0, 1}}) {
+                if (ix - dx < 0 || iy - dy < 0 || ix + dx >= probe.n || iy + dy >= probe.n)
+                    continue;
+                const optics::GridSample& a = probe.at(ix - dx, iy - dy);
+                const optics::GridSample& b = probe.at(ix, iy);
+                const optics::GridSample& c = probe.at(ix + dx, iy + dy);
+                if (!a.has_position || !b.has_position || !c.has_position) continue;
+                second = std::max(second, (px(a) - 2.0 * px(b) + px(c)).lpNorm<Eigen::Infinity>());
+                second = std::max(
+                    second, half_extent * (uv(a) - 2.0 * uv(b) + uv(c)).lpNorm<Eigen::Infinity>());
+            }
+    const double cells = (probe.n - 1) * std::sqrt(second / (8.0 * bend_px));
+    if (!std::isfinite(cells)) return std::numeric_limits<int>::max();
+    return static_cast<int>(std::min(std::ceil(cells), 4096.0)) + 1;
+}
+
 }  // namespace
 
 Result<ImageRGB> renderScene(const optics::Lens& lens,
@@ -117,6 +157,10 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
         return invalid("width and height must lie in 1..32768 pixels");
     if (options.base_grid < 2 || options.base_grid > 2048)
         return invalid("base_grid must lie in 2..2048");
+    if (options.max_grid != 0 && (options.max_grid < 2 || options.max_grid > 2048))
+        return invalid("max_grid must be 0 (no cap) or lie in 2..2048");
+    if (!(options.grid_bend_px > 0.0) || !std::isfinite(options.grid_bend_px))
+        return invalid("grid_bend_px must be positive and finite");
     if (options.max_pending_primitives < 1)
         return invalid("max_pending_primitives must be at least 1");
     if (options.merge.steps < 0 || options.merge.steps > 7)
@@ -331,6 +375,9 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                 }
             }
         }
+        if (options.max_grid > 0 && task.n > options.max_grid)
+            task.n = std::min(task.n, std::max(options.max_grid,
+                                               gridForBend(*probe, mapping, options.grid_bend_px)));
         // Grown by one probe cell: the full grid's quads reach that far past the probe's rays.
         lo_x -= spacing;
         hi_x += spacing;

@@ -45,8 +45,20 @@ struct Light {
 struct SceneOptions {
     int64_t width = 1920;
     int64_t height = 1080;
-    int base_grid = 256;      // eq. 13's base size, 2..2048
-    double grid_sigma = 1.0;  // eq. 13's sigma and phi
+    int base_grid = 256;  // eq. 13's base size, 2..2048
+    // Grids of smooth ghosts are traced at no more than max_grid rays a side (0: always eq. 13's
+    // size; else 2..2048). Eq. 13 gives a ghost as large as the sensor base_grid rays a side, and
+    // where its map to the sensor hardly bends the light merge then draws it as blocks of up to
+    // 16 x 16 cells anyway. "Smooth" is measured on the probe: a grid stays larger, up to its
+    // eq. 13 size, where its sensor positions interpolated across one cell would be off by more
+    // than grid_bend_px pixels (from the probe's largest second difference). On the Canon 200 at
+    // 5 deg this halves the frame with the image unchanged (77.8 dB against the whole grids
+    // without merge either way); a fixed cap without the bend test cost the double Gauss, the
+    // toy lens and the Nikon 28-75 11 to 26 dB. Chosen on the Heliar and the Canon 200, scored
+    // on the others: docs/renderer-issue19.md, "Seventh round".
+    int max_grid = 64;
+    double grid_bend_px = 0.03;  // > 0
+    double grid_sigma = 1.0;     // eq. 13's sigma and phi
     double grid_phi = 0.5;
     int probe_grid = 16;  // the coarse trace that measures a ghost for eq. 13
     optics::EnumerationOptions ghosts;

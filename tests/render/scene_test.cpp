@@ -209,6 +209,106 @@ TEST(RenderScene, RejectsBadLightsAndOptionsNamingThem) {
     EXPECT_FALSE(renderScene(heliar(), {}, o));
 }
 
+TEST(RenderScene, MaxGridCapsTheSmoothGridsAndLeavesTheImage) {
+    // The Heliar at 5 deg: its large ghosts get eq. 13 grids of up to base_grid a side, the
+    // small ones a few tens.
+    const Light light{5.0, 30.0, {1.0f, 1.0f, 1.0f}};
+    SceneOptions o;
+    o.width = 240;
+    o.height = 135;
+    o.base_grid = 128;
+    o.starburst = false;
+    o.cull_relative_l2 = 0.0;
+    o.merge = kLightMerge;
+    o.max_grid = 0;
+    SceneStats whole_stats;
+    const auto whole = renderScene(heliar(), std::span(&light, 1), o, &whole_stats);
+    ASSERT_TRUE(whole);
+    o.max_grid = 128;  // no grid is larger than the base: nothing changes
+    const auto same = renderScene(heliar(), std::span(&light, 1), o);
+    ASSERT_TRUE(same);
+    EXPECT_EQ(same->pixels, whole->pixels);
+    // Against the uncapped grids without merge.
+    o.max_grid = 0;
+    o.merge = kNoMerge;
+    const auto truth = renderScene(heliar(), std::span(&light, 1), o);
+    ASSERT_TRUE(truth);
+    o.merge = kLightMerge;
+    const double merged = *psnr(*whole, *truth);
+    // A cap whatever the grid's bend: every grid at most 32 a side.
+    o.max_grid = 32;
+    o.grid_bend_px = 1e9;
+    SceneStats blunt_stats;
+    const auto blunt = renderScene(heliar(), std::span(&light, 1), o, &blunt_stats);
+    ASSERT_TRUE(blunt);
+    EXPECT_EQ(blunt_stats.ghosts_drawn, whole_stats.ghosts_drawn);
+    EXPECT_LE(blunt_stats.rays, blunt_stats.ghosts_drawn * 32 * 32);
+    EXPECT_LT(blunt_stats.rays, whole_stats.rays / 4);
+    // With the bend test (the default tolerance) grids that bend keep more rays, and the image
+    // may not move farther from the uncapped grids than the merge already is, less 1 dB.
+    o.grid_bend_px = SceneOptions{}.grid_bend_px;
+    SceneStats stats;
+    const auto capped = renderScene(heliar(), std::span(&light, 1), o, &stats);
+    ASSERT_TRUE(capped);
+    EXPECT_GE(stats.rays, blunt_stats.rays);
+    EXPECT_LT(stats.rays, whole_stats.rays);
+    const double cut = *psnr(*capped, *truth);
+    EXPECT_GT(cut, merged - 1.0) << "merged " << merged << " dB, capped " << cut << " dB";
+    EXPECT_NEAR(imageSum(*capped), imageSum(*truth), 0.01 * imageSum(*truth));
+    // The double Gauss's ghosts bend (caustics, near-focused ghosts): the same blunt cap moves
+    // its image well away from the uncapped grids, and the bend test keeps what they draw.
+    {
+        const auto gauss = optics::Lens::make(*optics::loadPrescription(flarelab::testing::lensPath(
+                                                  "double-gauss-tronnier-50mm.csv")),
+                                              optics::CameraDescription{});
+        ASSERT_TRUE(gauss);
+        SceneOptions g = o;
+        g.max_grid = 0;
+        g.merge = kNoMerge;
+        const auto g_truth = renderScene(*gauss, std::span(&light, 1), g);
+        ASSERT_TRUE(g_truth);
+        g.merge = kLightMerge;
+        const auto g_whole = renderScene(*gauss, std::span(&light, 1), g);
+        ASSERT_TRUE(g_whole);
+        g.max_grid = 32;
+        g.grid_bend_px = 1e9;
+        const auto g_blunt = renderScene(*gauss, std::span(&light, 1), g);
+        ASSERT_TRUE(g_blunt);
+        g.grid_bend_px = SceneOptions{}.grid_bend_px;
+        const auto g_bend = renderScene(*gauss, std::span(&light, 1), g);
+        ASSERT_TRUE(g_bend);
+        const double g_merged = *psnr(*g_whole, *g_truth);
+        const double g_blunt_db = *psnr(*g_blunt, *g_truth);
+        const double g_bend_db = *psnr(*g_bend, *g_truth);
+        EXPECT_LT(g_blunt_db, g_merged - 10.0) << "blunt cap " << g_blunt_db << " dB";
+        EXPECT_GT(g_bend_db, g_merged - 3.0)
+            << "merged " << g_merged << " dB, capped with the bend test " << g_bend_db << " dB";
+    }
+    // A cap of 2 (one quad a ghost) still draws finite light; bad caps and tolerances are
+    // refused by name.
+    o.max_grid = 2;
+    o.grid_bend_px = 1e9;
+    const auto tiny = renderScene(heliar(), std::span(&light, 1), o);
+    ASSERT_TRUE(tiny);
+    EXPECT_TRUE(std::isfinite(imageSum(*tiny)));
+    o.grid_bend_px = SceneOptions{}.grid_bend_px;
+    for (const int bad : {1, -1, 4096}) {
+        o.max_grid = bad;
+        const auto refused = renderScene(heliar(), std::span(&light, 1), o);
+        ASSERT_FALSE(refused) << bad;
+        EXPECT_NE(refused.error().message.find("max_grid"), std::string::npos)
+            << refused.error().message;
+    }
+    o.max_grid = 64;
+    for (const double bad : {0.0, -1.0, std::nan(""), std::numeric_limits<double>::infinity()}) {
+        o.grid_bend_px = bad;
+        const auto refused = renderScene(heliar(), std::span(&light, 1), o);
+        ASSERT_FALSE(refused) << bad;
+        EXPECT_NE(refused.error().message.find("grid_bend_px"), std::string::npos)
+            << refused.error().message;
+    }
+}
+
 double relativeL2(const ImageRGB& test, const ImageRGB& truth) {
     double diff = 0.0, norm = 0.0;
     for (size_t i = 0; i < truth.pixels.size(); ++i) {
