@@ -50,12 +50,13 @@ struct SceneOptions {
     // size; else 2..2048). Eq. 13 gives a ghost as large as the sensor base_grid rays a side, and
     // where its map to the sensor hardly bends the light merge then draws it as blocks of up to
     // 16 x 16 cells anyway. "Smooth" is measured on the probe: a grid stays larger, up to its
-    // eq. 13 size, where its sensor positions interpolated across one cell would be off by more
-    // than grid_bend_px pixels (from the probe's largest second difference). On the Canon 200 at
-    // 5 deg this halves the frame with the image unchanged (77.8 dB against the whole grids
-    // without merge either way); a fixed cap without the bend test cost the double Gauss, the
-    // toy lens and the Nikon 28-75 11 to 26 dB. Chosen on the Heliar and the Canon 200, scored
-    // on the others: docs/renderer-issue19.md, "Seventh round".
+    // eq. 13 size, where its sensor positions or its stop's outline, interpolated across one
+    // cell, would be off by more than grid_bend_px pixels (from the probe's largest second
+    // differences; gridForBend in scene.cpp). On the Canon 200 at 5 deg this takes 40 % off the
+    // frame with the image unchanged (77.8 dB against the whole grids without merge either way);
+    // a fixed cap without the bend test cost the double Gauss, the toy lens and the Nikon 28-75
+    // 11 to 26 dB. Chosen on the Heliar and the Canon 200, scored on the others:
+    // docs/renderer-issue19.md, "Seventh round".
     int max_grid = 64;
     double grid_bend_px = 0.03;  // > 0
     double grid_sigma = 1.0;     // eq. 13's sigma and phi
