@@ -166,6 +166,7 @@ int main(int argc, char** argv) {
             base.starburst = false;
             render::SceneOptions truth_options = base;
             truth_options.merge = render::kNoMerge;
+            truth_options.max_grid = 0;  // the truth: every grid at its eq. 13 size
             auto truth = timed(*lens, light, truth_options, 1);
             if (!truth) {
                 std::cerr << "adaptive_grid_bench: " << name << ": " << truth.error().message
