@@ -739,7 +739,7 @@ Result<ExrImage> decode(SizedIStream& in, const std::string& name, const ExrRead
         const auto facts = checkHeader(in, name, options);
         if (!facts) return facts.error();
         in.seekg(0);
-        Imf::InputFile file(in, Imf::globalThreadCount());
+        Imf::InputFile file(in);
         const Imf::Header& header = file.header();
         if (header.dataWindow() != facts->data_window)
             return makeError(ErrorCode::Internal,
@@ -887,7 +887,7 @@ Status writeFile(const std::string& temporary,
     FileOStream out(temporary, fd.get());
     try {
         {
-            Imf::OutputFile file(out, header, Imf::globalThreadCount());
+            Imf::OutputFile file(out, header);
             // OpenEXR converts pixel types when reading but not when writing, so half channels
             // get a half copy (rounded to nearest, ties to even).
             const bool half = header.channels().findChannel("R")->type == Imf::HALF;

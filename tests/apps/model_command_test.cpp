@@ -22,6 +22,7 @@ namespace flarelab::apps {
 namespace {
 
 using flarelab::testing::contains;
+using flarelab::testing::TempDir;
 
 namespace fs = std::filesystem;
 using testing::CommandRun;
@@ -64,29 +65,8 @@ fit::FlareModel smallModel() {
     return m;
 }
 
-// A model file in a fresh directory, removed afterwards.
-class ModelDir {
-public:
-    ModelDir() {
-        static int counter = 0;
-        dir_ = fs::temp_directory_path() /
-               ("flarelab-model-command-test-" + std::to_string(::getpid()) + "-" +
-                std::to_string(counter++));
-        fs::remove_all(dir_);
-        fs::create_directories(dir_);
-    }
-    ~ModelDir() {
-        std::error_code ec;
-        fs::remove_all(dir_, ec);
-    }
-    std::string file(const std::string& name) const { return (dir_ / name).string(); }
-
-private:
-    fs::path dir_;
-};
-
 TEST(ModelShow, PrintsLensCaptureRangeAndGhosts) {
-    ModelDir dir;
+    TempDir dir;
     const std::string path = dir.file("heliar.flaremodel");
     ASSERT_TRUE(fit::writeModel(path, smallModel()));
     const CommandRun run = model({"show", path});
@@ -106,7 +86,7 @@ TEST(ModelShow, PrintsLensCaptureRangeAndGhosts) {
 }
 
 TEST(ModelShow, JsonIsTheModelsJsonMapping) {
-    ModelDir dir;
+    TempDir dir;
     const std::string path = dir.file("heliar.flaremodel");
     const fit::FlareModel written = smallModel();
     ASSERT_TRUE(fit::writeModel(path, written));
@@ -119,7 +99,7 @@ TEST(ModelShow, JsonIsTheModelsJsonMapping) {
 }
 
 TEST(ModelShow, MissingFileIsAnErrorNamingIt) {
-    ModelDir dir;
+    TempDir dir;
     const CommandRun run = model({"show", dir.file("none.flaremodel")});
     EXPECT_EQ(run.code, 1);
     EXPECT_TRUE(run.out.empty());
@@ -127,7 +107,7 @@ TEST(ModelShow, MissingFileIsAnErrorNamingIt) {
 }
 
 TEST(ModelShow, BrokenFileIsAnErrorNamingIt) {
-    ModelDir dir;
+    TempDir dir;
     const std::string path = dir.file("broken.flaremodel");
     ASSERT_TRUE(fit::writeModel(path, smallModel()));
     // Cut the file short.

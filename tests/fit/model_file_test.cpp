@@ -20,6 +20,9 @@ namespace flarelab::fit {
 namespace {
 
 using flarelab::testing::contains;
+using flarelab::testing::readText;
+using flarelab::testing::TempDir;
+using flarelab::testing::writeText;
 
 namespace fs = std::filesystem;
 
@@ -76,38 +79,6 @@ FlareModel sampleModel() {
     return m;
 }
 
-// A fresh directory, removed afterwards.
-class TempDir {
-public:
-    TempDir() {
-        static int counter = 0;
-        path_ =
-            fs::temp_directory_path() / ("flarelab-model-file-test-" + std::to_string(::getpid()) +
-                                         "-" + std::to_string(counter++));
-        fs::remove_all(path_);
-        fs::create_directories(path_);
-    }
-    ~TempDir() {
-        std::error_code ec;
-        fs::permissions(path_, fs::perms::owner_all, ec);
-        fs::remove_all(path_, ec);
-    }
-    std::string file(const std::string& name) const { return (path_ / name).string(); }
-    const fs::path& path() const { return path_; }
-
-private:
-    fs::path path_;
-};
-
-std::string readBytes(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    return std::string(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
-}
-
-void writeBytes(const std::string& path, const std::string& bytes) {
-    std::ofstream(path, std::ios::binary) << bytes;
-}
-
 std::string replaced(std::string text, const std::string& from, const std::string& to) {
     const size_t at = text.find(from);
     EXPECT_NE(at, std::string::npos) << from;
@@ -119,7 +90,7 @@ std::string replaced(std::string text, const std::string& from, const std::strin
 std::string modelBytes(const FlareModel& model) {
     TempDir dir;
     EXPECT_TRUE(writeModel(dir.file("m.flaremodel"), model));
-    return readBytes(dir.file("m.flaremodel"));
+    return readText(dir.file("m.flaremodel"));
 }
 
 TEST(ModelFile, SampleModelIsValid) {
@@ -574,11 +545,11 @@ TEST(ReadModel, MissingAndNonModelFiles) {
     ASSERT_FALSE(missing);
     EXPECT_EQ(missing.error().code, ErrorCode::NotFound);
     EXPECT_TRUE(contains(missing.error().message, "none.flaremodel"));
-    const Result<FlareModel> directory = readModel(dir.path().string());
+    const Result<FlareModel> directory = readModel(dir.path());
     ASSERT_FALSE(directory);
     EXPECT_EQ(directory.error().code, ErrorCode::IoError);
     // A JSON model handed to the binary reader.
-    writeBytes(dir.file("text.flaremodel"), *modelToJson(sampleModel()));
+    writeText(dir.file("text.flaremodel"), *modelToJson(sampleModel()));
     const Result<FlareModel> text = readModel(dir.file("text.flaremodel"));
     ASSERT_FALSE(text);
     EXPECT_TRUE(contains(text.error().message, "text.flaremodel: ")) << text.error().message;
@@ -603,7 +574,7 @@ TEST(WriteModel, KeepsTheOldFileWhenWritingFails) {
     const std::string path = dir.file("m.flaremodel");
     const FlareModel model = sampleModel();
     ASSERT_TRUE(writeModel(path, model));
-    const std::string before = readBytes(path);
+    const std::string before = readText(path);
     // A directory that refuses the temporary file.
     fs::permissions(dir.path(), fs::perms::owner_read | fs::perms::owner_exec);
     FlareModel changed = model;
@@ -613,7 +584,7 @@ TEST(WriteModel, KeepsTheOldFileWhenWritingFails) {
     ASSERT_FALSE(written);
     EXPECT_EQ(written.error().code, ErrorCode::IoError);
     EXPECT_TRUE(contains(written.error().message, path)) << written.error().message;
-    EXPECT_EQ(readBytes(path), before);
+    EXPECT_EQ(readText(path), before);
     EXPECT_EQ(std::distance(fs::directory_iterator(dir.path()), fs::directory_iterator()), 1);
 }
 
@@ -624,7 +595,7 @@ TEST(WriteModel, KeepsTheOldFileWhenTheTemporaryFileCannotBeCreated) {
     const std::string path = dir.file("m.flaremodel");
     const FlareModel model = sampleModel();
     ASSERT_TRUE(writeModel(path, model));
-    const std::string before = readBytes(path);
+    const std::string before = readText(path);
     const std::string temporary = path + ".tmp-" + std::to_string(::getpid());
     fs::create_directories(temporary);
     FlareModel changed = model;
@@ -634,7 +605,7 @@ TEST(WriteModel, KeepsTheOldFileWhenTheTemporaryFileCannotBeCreated) {
     EXPECT_EQ(written.error().code, ErrorCode::IoError);
     EXPECT_TRUE(contains(written.error().message, path + ": cannot create"))
         << written.error().message;
-    EXPECT_EQ(readBytes(path), before);
+    EXPECT_EQ(readText(path), before);
     EXPECT_TRUE(fs::is_directory(temporary));  // someone else's; left alone
     const Result<FlareModel> read = readModel(path);
     ASSERT_TRUE(read);

@@ -31,13 +31,9 @@ namespace {
 using flarelab::testing::contains;
 using flarelab::testing::readText;
 using flarelab::testing::TempDir;
+using flarelab::testing::writeText;
 
 namespace fs = std::filesystem;
-
-void writeBytes(const std::string& path, const std::string& bytes) {
-    std::ofstream out(path, std::ios::binary);
-    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-}
 
 Result<ExrImage> readBytesAsExr(const std::string& bytes, const std::string& name = "test") {
     return readExrFromMemory(
@@ -527,7 +523,7 @@ TEST(WriteExr, FailedRenameLeavesNoTemporaryFile) {
     // A directory where the file should go: everything is written, and the rename fails.
     const std::string path = dir.file("taken");
     fs::create_directory(path);
-    writeBytes(dir.file("taken/inside"), "keep");
+    writeText(dir.file("taken/inside"), "keep");
     const auto report = writeExr(path, smoothImage(8, 8, 12), {});
     ASSERT_FALSE(report);
     EXPECT_EQ(report.error().code, ErrorCode::IoError);
@@ -835,7 +831,7 @@ TEST(ReadExr, GarbageIsNotAnExr) {
     std::string garbage(1000, '\0');
     for (char& c : garbage) c = static_cast<char>(rng());
     for (const std::string& bytes : {std::string(), std::string("P6\n1 1\n255\n\1\2\3"), garbage}) {
-        writeBytes(dir.file("garbage.exr"), bytes);
+        writeText(dir.file("garbage.exr"), bytes);
         const auto read = readExr(dir.file("garbage.exr"));
         ASSERT_FALSE(read);
         EXPECT_EQ(read.error().code, ErrorCode::ParseError);
@@ -868,7 +864,7 @@ TEST(ReadExr, EveryTruncationIsAnError) {
         }
         // The same through the file reader, at a few lengths.
         for (const size_t length : {size_t{5}, size_t{100}, bytes.size() / 2, bytes.size() - 1}) {
-            writeBytes(dir.file("cut.exr"), bytes.substr(0, length));
+            writeText(dir.file("cut.exr"), bytes.substr(0, length));
             const auto read = readExr(dir.file("cut.exr"));
             ASSERT_FALSE(read) << "length " << length;
             EXPECT_EQ(read.error().code, ErrorCode::ParseError);

@@ -6,8 +6,12 @@
 #include <fstream>
 #include <string>
 
+#include "tests/test_files.h"
+
 namespace flarelab::hdr {
 namespace {
+
+using flarelab::testing::readText;
 
 RawFrame sample() {
     RawFrame f;
@@ -37,11 +41,6 @@ std::string tempPath(const std::string& name) {
     return (dir / name).string();
 }
 
-std::string slurp(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    return {std::istreambuf_iterator<char>(in), {}};
-}
-
 Result<RawFrame> parse(const std::string& text) {
     return readRawFromMemory(std::span(reinterpret_cast<const uint8_t*>(text.data()), text.size()),
                              "t.pgm");
@@ -55,7 +54,7 @@ TEST(RawIo, RoundTripsEveryFieldExactly) {
     ASSERT_TRUE(back) << back.error().message;
     EXPECT_EQ(*back, f);
     // A plain PGM: magic, then a 16-bit MAXVAL of 4095 for 12 bits.
-    const std::string text = slurp(path);
+    const std::string text = readText(path);
     EXPECT_EQ(text.substr(0, 3), "P5\n");
     EXPECT_NE(text.find("\n5 3\n4095\n"), std::string::npos);
 }
@@ -64,7 +63,7 @@ TEST(RawIo, RefusesBrokenHeadersNamingTheKey) {
     const std::string good = [] {
         const std::string path = tempPath("good.pgm");
         EXPECT_TRUE(writeRaw(path, sample()));
-        return slurp(path);
+        return readText(path);
     }();
     ASSERT_TRUE(parse(good));
     const auto replaced = [&](const std::string& from, const std::string& to) {
@@ -111,7 +110,7 @@ TEST(RawIo, RefusesBrokenHeadersNamingTheKey) {
 TEST(RawIo, ReadsVersion1FilesWithoutTheTimestampKeys) {
     const std::string path = tempPath("v2.pgm");
     ASSERT_TRUE(writeRaw(path, sample()));
-    std::string text = slurp(path);
+    std::string text = readText(path);
     for (const std::string line :
          {"# timestamp_marks exposure-end\n", "# host_timestamp_ns 1764625473123456789\n"})
         text.erase(text.find(line), line.size());

@@ -6,12 +6,10 @@
 #include <numbers>
 #include <random>
 
-#include "tests/predict/test_times.h"
+#include "common/units.h"
 
 namespace flarelab::predict {
 namespace {
-
-using test_times::kDeg;
 
 double dot(const Vec3& a, const Vec3& b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
 
@@ -65,8 +63,8 @@ TEST(Constellation, RecoversEveryAngleItWasBuiltFromAnyPose) {
                             f.right[0] * f.forward[1] - f.right[1] * f.forward[0]};
         EXPECT_NEAR(dot(cross, f.up), 1.0, 1e-12);
         const double theta = 179.0 * u(rng) + 0.5, phi = 359.0 * u(rng) - 179.0;
-        const double st = std::sin(theta * kDeg), ct = std::cos(theta * kDeg);
-        const double x = st * std::cos(phi * kDeg), y = st * std::sin(phi * kDeg);
+        const double st = std::sin(degToRad(theta)), ct = std::cos(degToRad(theta));
+        const double x = st * std::cos(degToRad(phi)), y = st * std::sin(degToRad(phi));
         Vec3 d;
         for (int k = 0; k < 3; ++k) d[k] = ct * f.forward[k] + x * f.right[k] - y * f.up[k];
         const double scale = 1e-3 + 1e6 * u(rng);  // any distance
@@ -80,9 +78,9 @@ TEST(Constellation, RecoversEveryAngleItWasBuiltFromAnyPose) {
 TEST(Constellation, GrazingAndOnAxisLightsKeepTheirPrecision) {
     CameraPose pose;
     // 1e-7 degrees off the axis: acos would lose it in rounding; atan2 does not.
-    const double tiny = 1e-7 * kDeg;
+    const double tiny = degToRad(1e-7);
     EXPECT_NEAR(of(pose, {std::sin(tiny), std::cos(tiny), 0.0}).theta_deg, 1e-7, 1e-15);
-    const double grazing = (90.0 - 1e-9) * kDeg;
+    const double grazing = degToRad(90.0 - 1e-9);
     EXPECT_LT(of(pose, {std::sin(grazing), std::cos(grazing), 0.0}).theta_deg, 90.0);
     EXPECT_NEAR(of(pose, {1.0, 0.0, 0.0}).theta_deg, 90.0, 1e-12);
 }
@@ -125,7 +123,7 @@ TEST(SunDirection, PointsAtTheZenithAndAlongTheCompass) {
     EXPECT_NEAR(east[0], 1.0, 1e-12);
     EXPECT_NEAR(east[1], 0.0, 1e-12);
     const Vec3 south = sunDirection(60.0, 180.0);  // 30 deg up, due south
-    EXPECT_NEAR(south[1], -std::cos(30.0 * kDeg), 1e-12);
+    EXPECT_NEAR(south[1], -std::cos(degToRad(30.0)), 1e-12);
     EXPECT_NEAR(south[2], 0.5, 1e-12);
 }
 

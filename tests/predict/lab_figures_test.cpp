@@ -6,16 +6,14 @@
 #include <numbers>
 #include <vector>
 
+#include "common/units.h"
 #include "fit/model_eval.h"
 #include "fit/sweep_fit.h"
 #include "render/ghost_shape.h"
 #include "tests/predict/moving_disc_model.h"
-#include "tests/predict/test_times.h"
 
 namespace flarelab::predict {
 namespace {
-
-using test_times::kDeg;
 
 // One ghost, a disc of radius 200 mm on the axis with the same value v inside at every angle
 // from 0 to `to_deg`: the frame is evenly lit by v DN/s per pixel whatever the light's angle, so
@@ -79,12 +77,13 @@ TEST(LabFigures, AnEvenVeilHasTheClosedForms) {
     const double scale = f * f / (pixel_area * power);
     EXPECT_EQ(lab->vgi_from_deg, 1.0);
     EXPECT_EQ(lab->vgi_to_deg, to);
-    const double vgi = scale * v * 2.0 * std::numbers::pi * (std::cos(kDeg) - std::cos(to * kDeg));
+    const double vgi =
+        scale * v * 2.0 * std::numbers::pi * (std::cos(degToRad(1.0)) - std::cos(degToRad(to)));
     EXPECT_NEAR(lab->vgi, vgi, 1e-3 * vgi);
 
     // Image flare: the same veil from the directions inside the 36 x 24 frame (field 23.4 deg),
     // summed here by counting the frame's points in a fine grid of directions.
-    EXPECT_NEAR(lab->frame_field_deg, std::atan(std::hypot(18.0, 12.0) / f) / kDeg, 1e-12);
+    EXPECT_NEAR(lab->frame_field_deg, radToDeg(std::atan(std::hypot(18.0, 12.0) / f)), 1e-12);
     EXPECT_TRUE(lab->image_flare_complete);
     double solid = 0.0;
     const int n = 2000;
@@ -92,7 +91,7 @@ TEST(LabFigures, AnEvenVeilHasTheClosedForms) {
         for (int j = 0; j < n; ++j) {
             const double x = -18.0 + 36.0 * (i + 0.5) / n, y = -12.0 + 24.0 * (j + 0.5) / n;
             const double r = std::hypot(x, y);
-            if (std::atan(r / f) < kDeg) continue;  // the black patch
+            if (std::atan(r / f) < degToRad(1.0)) continue;  // the black patch
             // dOmega of a sensor cell seen from the lens: dA cos^3 / f^2.
             const double c = f / std::sqrt(f * f + r * r);
             solid += (36.0 / n) * (24.0 / n) * c * c * c / (f * f);
@@ -117,8 +116,8 @@ TEST(LabFigures, OffAxisAnEvenVeilIsTheFieldsSolidAngleOverCos4) {
     for (const LabFieldPoint& p : lab->field) {
         const double x = p.height * 18.0, y = p.height * 12.0;
         const double cos_p = f / std::sqrt(x * x + y * y + f * f);
-        EXPECT_NEAR(p.field_deg, std::acos(cos_p) / kDeg, 1e-9);
-        const double whole = 2.0 * std::numbers::pi * (1.0 - std::cos(to * kDeg));
+        EXPECT_NEAR(p.field_deg, radToDeg(std::acos(cos_p)), 1e-9);
+        const double whole = 2.0 * std::numbers::pi * (1.0 - std::cos(degToRad(to)));
         const double white = std::pow(cos_p, 4.0);
         EXPECT_NEAR(p.vgi, scale * v * whole / white, 5e-3 * p.vgi) << p.height;
         // The chart: the frame's solid angle (the spot's is a thousandth of it).

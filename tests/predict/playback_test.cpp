@@ -5,21 +5,19 @@
 #include <cmath>
 #include <numbers>
 
+#include "common/units.h"
 #include "fit/model_eval.h"
 #include "predict/figures.h"
 #include "tests/predict/moving_disc_model.h"
-#include "tests/predict/test_times.h"
 
 namespace flarelab::predict {
 namespace {
 
-using test_times::kDeg;
-
 // A light at (theta, phi) for a camera looking north, level.
 Vec3 lightInFrame(double theta_deg, double phi_deg) {
     const CameraFrame f = cameraFrame(CameraPose{});
-    const double st = std::sin(theta_deg * kDeg), ct = std::cos(theta_deg * kDeg);
-    const double x = st * std::cos(phi_deg * kDeg), y = st * std::sin(phi_deg * kDeg);
+    const double st = std::sin(degToRad(theta_deg)), ct = std::cos(degToRad(theta_deg));
+    const double x = st * std::cos(degToRad(phi_deg)), y = st * std::sin(degToRad(phi_deg));
     Vec3 d;
     for (int k = 0; k < 3; ++k) d[k] = ct * f.forward[k] + x * f.right[k] - y * f.up[k];
     return d;

@@ -23,6 +23,7 @@
 namespace flarelab::predict {
 namespace {
 
+using flarelab::testing::readText;
 using flarelab::testing::TempDir;
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
@@ -526,23 +527,16 @@ TEST(ReportHtml, ImagesOutsideTheFolderAreLeftOut) {
         EXPECT_EQ(html.find(banned), std::string::npos) << banned;
 }
 
-std::string readFile(const std::string& path) {
-    std::ifstream in(path, std::ios::binary);
-    std::ostringstream text;
-    text << in.rdbuf();
-    return text.str();
-}
-
 TEST(WriteTextFileAtomically, WritesAndReplaces) {
     TempDir scratch;
     ASSERT_FALSE(scratch.path().empty());
     const std::string path = scratch.path() + "/report.html";
     const Status first = writeTextFileAtomically(path, "first");
     ASSERT_TRUE(first) << first.error().message;
-    EXPECT_EQ(readFile(path), "first");
+    EXPECT_EQ(readText(path), "first");
     const Status second = writeTextFileAtomically(path, reportHtml(everything()));
     ASSERT_TRUE(second) << second.error().message;
-    EXPECT_EQ(readFile(path), reportHtml(everything()));
+    EXPECT_EQ(readText(path), reportHtml(everything()));
     // No temporary file left beside it.
     size_t files = 0;
     for ([[maybe_unused]] const auto& entry : std::filesystem::directory_iterator(scratch.path()))
@@ -558,7 +552,7 @@ TEST(WriteTextFileAtomically, WritesIntoTheWorkingDirectoryForABareName) {
     const Status written = writeTextFileAtomically("bare.html", "bare");
     std::filesystem::current_path(before);
     ASSERT_TRUE(written) << written.error().message;
-    EXPECT_EQ(readFile(scratch.path() + "/bare.html"), "bare");
+    EXPECT_EQ(readText(scratch.path() + "/bare.html"), "bare");
 }
 
 TEST(WriteTextFileAtomically, FailsWithIoErrorNamingThePath) {
@@ -587,7 +581,7 @@ TEST(WriteTextFileAtomically, KeepsTheOldContentsWhenTheWriteFails) {
         EXPECT_EQ(failed.error().code, ErrorCode::IoError);
         EXPECT_NE(failed.error().message.find("report.html"), std::string::npos);
     }
-    EXPECT_EQ(readFile(path), "old");
+    EXPECT_EQ(readText(path), "old");
 }
 
 }  // namespace

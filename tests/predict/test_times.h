@@ -1,15 +1,12 @@
-// Angles and instants written the way the predict tests write them.
+// Instants written the way the predict tests write them.
 #pragma once
 
 #include <chrono>
 #include <cstdint>
-#include <numbers>
 
 #include "predict/utc_time.h"
 
 namespace flarelab::predict::test_times {
-
-inline constexpr double kDeg = std::numbers::pi / 180.0;
 
 // The instant y-m-d hh:mm:ss.us UTC.
 inline UtcInstant at(int y, unsigned m, unsigned d, int hh, int mm, int ss, int64_t us = 0) {

@@ -9,28 +9,14 @@
 #include <fstream>
 #include <limits>
 
+#include "tests/test_files.h"
+
 namespace flarelab::render {
 namespace {
 
 namespace fs = std::filesystem;
 
-// A fresh directory per test, removed afterwards.
-class TempDir {
-public:
-    TempDir() {
-        std::string pattern = (fs::temp_directory_path() / "flarelab_preview_XXXXXX").string();
-        FLARELAB_CHECK(::mkdtemp(pattern.data()) != nullptr);
-        path_ = pattern;
-    }
-    ~TempDir() { fs::remove_all(path_); }
-    const fs::path& path() const { return path_; }
-    size_t entries() const {
-        return static_cast<size_t>(std::distance(fs::directory_iterator(path_), {}));
-    }
-
-private:
-    fs::path path_;
-};
+using flarelab::testing::TempDir;
 
 ImageRGB gradient(int64_t w, int64_t h) {
     ImageRGB image(w, h);
@@ -47,7 +33,7 @@ ImageRGB gradient(int64_t w, int64_t h) {
 
 TEST(WritePng, RoundTripsThroughOpenCv) {
     TempDir dir;
-    const std::string path = (dir.path() / "gradient.png").string();
+    const std::string path = dir.file("gradient.png");
     const ImageRGB image = gradient(16, 8);
     const ToneMapOptions options;
     ASSERT_TRUE(writePng(image, path, options));
@@ -72,42 +58,42 @@ TEST(WritePng, RoundTripsThroughOpenCv) {
     }
     // Left to right the red ramp never gets darker.
     for (int x = 1; x < 16; ++x) EXPECT_GE(read->pixels[x * 3], read->pixels[(x - 1) * 3]);
-    EXPECT_EQ(dir.entries(), 1u);  // no temporary left beside it
+    EXPECT_EQ(dir.entries().size(), 1u);  // no temporary left beside it
 }
 
 TEST(WritePng, ReplacesAnExistingFileWhole) {
     TempDir dir;
-    const std::string path = (dir.path() / "out.png").string();
+    const std::string path = dir.file("out.png");
     ASSERT_TRUE(writePng(gradient(4, 4), path, {}));
     ASSERT_TRUE(writePng(gradient(9, 3), path, {}));
     const Result<PreviewImage> read = readPng(path);
     ASSERT_TRUE(read);
     EXPECT_EQ(read->width, 9);
     EXPECT_EQ(read->height, 3);
-    EXPECT_EQ(dir.entries(), 1u);
+    EXPECT_EQ(dir.entries().size(), 1u);
 }
 
 TEST(WritePng, UnwritablePathIsAnErrorNamingIt) {
     TempDir dir;
-    const std::string missing = (dir.path() / "no" / "such" / "dir" / "x.png").string();
+    const std::string missing = dir.file("no/such/dir/x.png");
     const Status s = writePng(gradient(4, 4), missing, {});
     ASSERT_FALSE(s);
     EXPECT_EQ(s.error().code, ErrorCode::IoError);
     EXPECT_NE(s.error().message.find(missing), std::string::npos) << s.error().message;
     // A directory where the file should go: the rename fails, the temporary is cleaned up.
-    const fs::path occupied = dir.path() / "occupied.png";
+    const fs::path occupied = dir.file("occupied.png");
     fs::create_directory(occupied);
     fs::create_directory(occupied / "child");
     const Status t = writePng(gradient(4, 4), occupied.string(), {});
     ASSERT_FALSE(t);
     EXPECT_NE(t.error().message.find(occupied.string()), std::string::npos);
-    EXPECT_EQ(dir.entries(), 1u);
+    EXPECT_EQ(dir.entries().size(), 1u);
     EXPECT_FALSE(writePng(gradient(4, 4), "", {}));
 }
 
 TEST(WritePng, RejectsNonFinitePixelsWithACount) {
     TempDir dir;
-    const std::string path = (dir.path() / "bad.png").string();
+    const std::string path = dir.file("bad.png");
     ImageRGB image = gradient(8, 8);
     image.at(3, 5)[1] = std::numeric_limits<float>::quiet_NaN();
     image.at(7, 7)[2] = std::numeric_limits<float>::infinity();
@@ -118,12 +104,12 @@ TEST(WritePng, RejectsNonFinitePixelsWithACount) {
     EXPECT_NE(s.error().message.find("x=3 y=5 channel 1"), std::string::npos);
     EXPECT_NE(s.error().message.find(path), std::string::npos);
     EXPECT_FALSE(fs::exists(path));
-    EXPECT_EQ(dir.entries(), 0u);
+    EXPECT_EQ(dir.entries().size(), 0u);
 }
 
 TEST(WritePng, RejectsEmptyImagesAndBadOptions) {
     TempDir dir;
-    const std::string path = (dir.path() / "x.png").string();
+    const std::string path = dir.file("x.png");
     EXPECT_FALSE(writePng(ImageRGB(), path, {}));
     EXPECT_FALSE(writePng(ImageRGB(0, 5), path, {}));
     ToneMapOptions bad;
@@ -134,12 +120,12 @@ TEST(WritePng, RejectsEmptyImagesAndBadOptions) {
     bad = {};
     bad.log_range_stops = 0.0;
     EXPECT_FALSE(validateToneMapOptions(bad));
-    EXPECT_EQ(dir.entries(), 0u);
+    EXPECT_EQ(dir.entries().size(), 0u);
 }
 
 TEST(WritePng, WritesAOneByOneImage) {
     TempDir dir;
-    const std::string path = (dir.path() / "one.png").string();
+    const std::string path = dir.file("one.png");
     ImageRGB one(1, 1);
     one.at(0, 0)[0] = 1.0f;
     ASSERT_TRUE(writePng(one, path, {}));
@@ -152,11 +138,11 @@ TEST(WritePng, WritesAOneByOneImage) {
 
 TEST(ReadPng, ReportsMissingAndBrokenFiles) {
     TempDir dir;
-    const std::string missing = (dir.path() / "missing.png").string();
+    const std::string missing = dir.file("missing.png");
     const Result<PreviewImage> a = readPng(missing);
     ASSERT_FALSE(a);
     EXPECT_EQ(a.error().code, ErrorCode::NotFound);
-    const std::string broken = (dir.path() / "broken.png").string();
+    const std::string broken = dir.file("broken.png");
     std::ofstream(broken) << "not a png";
     const Result<PreviewImage> b = readPng(broken);
     ASSERT_FALSE(b);
