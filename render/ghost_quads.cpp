@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <optional>
 
 #include "common/check.h"
 #include "common/units.h"
@@ -20,6 +21,44 @@ double quadArea(const Quad& q) {
         twice += a.x() * b.y() - a.y() * b.x();
     }
     return 0.5 * std::abs(twice);
+}
+
+// The Wachspress sums of a convex primitive at pixel centres as polynomials of u = x - x0 and
+// v = y - y0 (the form of Primitive::inside_total): with a_i = alpha_i + g_i u + h_i v edge i's
+// function, corner i's weight C_i a_j a_k (j = i + 1, k = i + 2) expands into six coefficients.
+// Besides the weights' total and the throughput-weighted sum, when asked, the sums weighted by
+// the stop coordinates and the aperture ratio.
+using Polynomial = std::array<double, 6>;
+struct CentrePolynomials {
+    Polynomial total{}, throughput{}, stop_u{}, stop_v{}, ratio{};
+};
+CentrePolynomials centrePolynomials(const Primitive& p, bool stop_and_ratio) {
+    CentrePolynomials out;
+    const double cx = static_cast<double>(p.x0) + 0.5, cy = static_cast<double>(p.y0) + 0.5;
+    for (size_t i = 0; i < 4; ++i) {
+        const size_t j = (i + 1) % 4, k = (i + 2) % 4;
+        const EdgeFunction& ej = p.edge[j];
+        const EdgeFunction& ek = p.edge[k];
+        const double aj = ej.at(cx, cy), ak = ek.at(cx, cy);
+        const double area = p.corner_area[i];
+        const double terms[6] = {area * (aj * ak),
+                                 area * (aj * ek.gy + ak * ej.gy),
+                                 area * (ej.gy * ek.gy),
+                                 area * (aj * ek.gx + ak * ej.gx),
+                                 area * (ej.gy * ek.gx + ek.gy * ej.gx),
+                                 area * (ej.gx * ek.gx)};
+        const QuadCorner& corner = p.quad.corners[i];
+        for (size_t m = 0; m < 6; ++m) {
+            out.total[m] += terms[m];
+            out.throughput[m] += terms[m] * corner.throughput;
+            if (stop_and_ratio) {
+                out.stop_u[m] += terms[m] * corner.stop_u;
+                out.stop_v[m] += terms[m] * corner.stop_v;
+                out.ratio[m] += terms[m] * corner.aperture_ratio;
+            }
+        }
+    }
+    return out;
 }
 
 // The set-up of a strictly convex quad (see Primitive).
@@ -52,6 +91,12 @@ void setUpConvex(Primitive& p) {
         const Eigen::Vector2d v = c[(i + 1) % 4].position_px - c[i].position_px;
         p.corner_area[i] = std::abs(u.x() * v.y() - u.y() * v.x());
     }
+    const CentrePolynomials sums = centrePolynomials(p, /*stop_and_ratio=*/false);
+    p.inside_total = sums.total;
+    p.inside_sum = sums.throughput;
+    p.throughput_low = std::min({c[0].throughput, c[1].throughput, c[2].throughput, c[3].throughput});
+    p.throughput_high =
+        std::max({c[0].throughput, c[1].throughput, c[2].throughput, c[3].throughput});
     p.convex = true;
 }
 
@@ -670,10 +715,118 @@ bool interpolateConvex(const Primitive& p, double px, double py, bool gradient, 
     return true;
 }
 
+// std::max(0.0, x) as a value: 0 for NaN.
+[[gnu::always_inline]] inline double positive(double x) { return x > 0.0 ? x : 0.0; }
+constexpr double kLargestValue = std::numeric_limits<double>::max();
+
+// An unmasked convex primitive along pixel row y: the Wachspress sums as quadratics in
+// u = x - p.x0 (Primitive::inside_total and inside_sum at v = y - p.y0).
+struct RowQuadratics {
+    double d0 = 0.0, d1 = 0.0, d2 = 0.0;
+    double n0 = 0.0, n1 = 0.0, n2 = 0.0;
+};
+[[gnu::always_inline]] inline RowQuadratics rowQuadratics(const Primitive& p, int64_t y) {
+    const double v = static_cast<double>(y - p.y0);
+    const auto& d = p.inside_total;
+    const auto& n = p.inside_sum;
+    return RowQuadratics{d[0] + v * (d[1] + v * d[2]), d[3] + v * d[4], d[5],
+                         n[0] + v * (n[1] + v * n[2]), n[3] + v * n[4], n[5]};
+}
+
+// The light of pixel x of the row, wholly inside the unmasked convex primitive: its throughput at
+// the centre, kept within the corners' range (it is a convex mixture of them; rounding of the
+// expanded quadratics near a corner must not carry it outside).
+double insideValue(const Primitive& p, const RowQuadratics& q, int64_t x) {
+    const double u = static_cast<double>(x - p.x0);
+    const double total = q.d0 + u * (q.d1 + u * q.d2);
+    const double sum = q.n0 + u * (q.n1 + u * q.n2);
+    double t = sum / total;
+    t = t < p.throughput_low ? p.throughput_low : t;
+    t = t > p.throughput_high ? p.throughput_high : t;
+    const double v = p.scale * positive(t);
+    return total > 0.0 && std::abs(v) <= kLargestValue ? v : 0.0;
+}
+
+// A pixel wholly inside a masked convex primitive's quad, from the primitive's centre
+// polynomials (centrePolynomials with the stop and the ratio): its light when neither the stop's
+// outline nor a clear aperture's limit comes within the pixel, 0 when one of them leaves the
+// whole pixel outside, as convexAreaValue's linearized cuts decide from the values and gradients
+// at the centre; nullopt when one of them cuts it (convexAreaValue's whole path then decides).
+std::optional<double> maskedInsideValue(const Primitive& p,
+                                        const CentrePolynomials& s,
+                                        int64_t x,
+                                        int64_t y,
+                                        const StopMask& stop) {
+    const double u = static_cast<double>(x - p.x0), v = static_cast<double>(y - p.y0);
+    const auto at = [&](const Polynomial& c) {
+        return (c[0] + v * (c[1] + v * c[2])) + u * ((c[3] + v * c[4]) + u * c[5]);
+    };
+    const auto dx = [&](const Polynomial& c) { return (c[3] + v * c[4]) + 2.0 * u * c[5]; };
+    const auto dy = [&](const Polynomial& c) { return (c[1] + 2.0 * v * c[2]) + u * c[4]; };
+    const double total = at(s.total);
+    if (!(total > 0.0)) return std::nullopt;
+    const double total_x = dx(s.total), total_y = dy(s.total);
+    struct Mixed {
+        double f, fx, fy;
+    };
+    // f = sum / total and its gradient (d sum - f d total) / total.
+    const auto mix = [&](const Polynomial& c) {
+        const double f = at(c) / total;
+        return Mixed{f, (dx(c) - f * total_x) / total, (dy(c) - f * total_y) / total};
+    };
+    // For h linear with this value and gradient at the centre: h >= 0 over the whole pixel
+    // (Clear), h <= 0 over all of it (Outside: no light, as convexAreaValue finds), or a cut.
+    enum class Side { Clear, Outside, Cut };
+    const auto side = [](double h, double gx, double gy) {
+        const double reach = 0.5 * (std::abs(gx) + std::abs(gy));
+        if (h >= reach) return Side::Clear;
+        if (!(h > -reach)) return Side::Outside;
+        return Side::Cut;
+    };
+    bool cut = false;
+    const auto keep = [&](double h, double gx, double gy) {
+        const Side where = side(h, gx, gy);
+        cut = cut || where == Side::Cut;
+        return where != Side::Outside;
+    };
+    if (!p.vignette_clear) {
+        const Mixed r = mix(s.ratio);
+        if (!keep(1.0 - r.f, -r.fx, -r.fy)) return 0.0;
+    }
+    if (!(p.stop_radius <= stop.inscribedRadius())) {
+        const Mixed su = mix(s.stop_u), sv = mix(s.stop_v);
+        if (stop.blades() == 0) {
+            const double r = std::sqrt(su.f * su.f + sv.f * sv.f);
+            if (r > 1e-9 && !keep(1.0 - r, -(su.f * su.fx + sv.f * sv.fx) / r,
+                                  -(su.f * su.fy + sv.f * sv.fy) / r))
+                return 0.0;
+        } else {
+            for (int k = 0; k < stop.blades(); ++k) {
+                const double nu = stop.normalU(k), nv = stop.normalV(k);
+                if (!keep(1.0 - (nu * su.f + nv * sv.f), -(nu * su.fx + nv * sv.fx),
+                          -(nu * su.fy + nv * sv.fy)))
+                    return 0.0;
+            }
+        }
+    }
+    if (cut) return std::nullopt;
+    double t = at(s.throughput) / total;
+    t = t < p.throughput_low ? p.throughput_low : t;
+    t = t > p.throughput_high ? p.throughput_high : t;
+    const double value = p.scale * positive(t);
+    return std::abs(value) <= kLargestValue ? value : 0.0;
+}
+
 // The light of a convex primitive integrated over pixel (x, y): the pixel square cut by the
 // quad's edges exactly, then by the stop's outline and the clear-aperture limit linearized about
 // the centroid of what is left; the throughput taken at the centroid of the final part.
-double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask& stop) {
+// masked_sums: centrePolynomials(p, true) where the caller has them (they are made here
+// otherwise), for a masked primitive.
+double convexAreaValue(const Primitive& p,
+                       int64_t x,
+                       int64_t y,
+                       const StopMask& stop,
+                       const CentrePolynomials* masked_sums = nullptr) {
     const double cx = static_cast<double>(x) + 0.5, cy = static_cast<double>(y) + 0.5;
     PixelPart poly;
     bool clipped = false;
@@ -690,11 +843,20 @@ double convexAreaValue(const Primitive& p, int64_t x, int64_t y, const StopMask&
             clipped = true;
         }
     }
+    const bool stop_clear = p.stop_radius <= stop.inscribedRadius();
+    const bool masked = !stop_clear || !p.vignette_clear;
+    if (!clipped && !masked) return insideValue(p, rowQuadratics(p, y), x);
+    if (!clipped) {
+        CentrePolynomials own;
+        if (masked_sums == nullptr) {
+            own = centrePolynomials(p, /*stop_and_ratio=*/true);
+            masked_sums = &own;
+        }
+        if (const auto value = maskedInsideValue(p, *masked_sums, x, y, stop)) return *value;
+    }
     AreaCentroid part{1.0, 0.0, 0.0};
     if (clipped) part = measure(poly.polygon());
     if (!(part.area > 0.0)) return 0.0;
-    const bool stop_clear = p.stop_radius <= stop.inscribedRadius();
-    const bool masked = !stop_clear || !p.vignette_clear;
     Attributes at;
     if (!interpolateConvex(p, cx + part.x, cy + part.y, masked, at)) return 0.0;
     double throughput = at.value[0];
@@ -779,9 +941,6 @@ double primitiveValueAt(const Primitive& primitive, int64_t x, int64_t y, const 
 
 namespace {
 
-// std::max(0.0, x) as a value: 0 for NaN.
-[[gnu::always_inline]] inline double positive(double x) { return x > 0.0 ? x : 0.0; }
-
 // Four doubles and four floats in GCC's and Clang's vector extension: the explicit lanes keep
 // the arithmetic (and so the bits) of the scalar code while the compiler does not have to prove
 // that if-converting the tests is safe, which it will not do under -ftrapping-math.
@@ -789,8 +948,7 @@ using Double4 = double __attribute__((vector_size(32)));
 using Float4 = float __attribute__((vector_size(16)));
 
 // The pixels x0..x1 of the rows y0..y1 wholly inside an unmasked convex primitive, each the
-// Wachspress-interpolated throughput at its centre (convexAreaValue's value for a pixel no edge
-// cuts, in its order of operations), four at a time.
+// Wachspress-interpolated throughput at its centre (insideValue, bit for bit), four at a time.
 [[gnu::always_inline]] inline void insideRowsBody(const Primitive& p,
                                                   int64_t x0,
                                                   int64_t y0,
@@ -798,60 +956,28 @@ using Float4 = float __attribute__((vector_size(16)));
                                                   int64_t y1,
                                                   float* out,
                                                   int64_t stride) {
-    const auto& c = p.quad.corners;
-    const double t0 = c[0].throughput, t1 = c[1].throughput, t2 = c[2].throughput,
-                 t3 = c[3].throughput;
-    const double c0 = p.corner_area[0], c1 = p.corner_area[1], c2 = p.corner_area[2],
-                 c3 = p.corner_area[3];
-    const auto& e = p.edge;
-    const double g0 = e[0].gx, g1 = e[1].gx, g2 = e[2].gx, g3 = e[3].gx;
-    const double scale = p.scale;
-    constexpr double kLargest = std::numeric_limits<double>::max();
-    const auto pixel = [&](double r0, double r1, double r2, double r3, double cx) {
-        const double a0 = positive(r0 + g0 * cx), a1 = positive(r1 + g1 * cx);
-        const double a2 = positive(r2 + g2 * cx), a3 = positive(r3 + g3 * cx);
-        const double w0 = c0 * a1 * a2, w1 = c1 * a2 * a3;
-        const double w2 = c2 * a3 * a0, w3 = c3 * a0 * a1;
-        const double total = w0 + w1 + w2 + w3;
-        double sum = 0.0;
-        sum += w0 * t0;
-        sum += w1 * t1;
-        sum += w2 * t2;
-        sum += w3 * t3;
-        const double v = scale * positive(sum / total) * 1.0;  // area 1: all
-        return static_cast<float>(total > 0.0 && std::abs(v) <= kLargest ? v : 0.0);
-    };
     const Double4 zero = {}, lane = {0.0, 1.0, 2.0, 3.0};
-    const auto positive4 = [&](Double4 x) { return x > zero ? x : zero; };
+    const double lowest = p.throughput_low, highest = p.throughput_high;
     for (int64_t y = y0; y <= y1; ++y) {
-        const double cy = static_cast<double>(y) + 0.5;
-        // EdgeFunction::at's sums in its order: the row's part first.
-        const double r0 = e[0].c + e[0].gy * cy, r1 = e[1].c + e[1].gy * cy;
-        const double r2 = e[2].c + e[2].gy * cy, r3 = e[3].c + e[3].gy * cy;
+        const RowQuadratics q = rowQuadratics(p, y);
         float* row = out + (y - y0) * stride;
-        int64_t x = x0;
-        for (; x + 3 <= x1; x += 4) {
-            // Pixel centres are whole numbers plus a half: exact, as in the scalar code.
-            const Double4 cx = (static_cast<double>(x) + 0.5) + lane;
-            const Double4 a0 = positive4(r0 + g0 * cx), a1 = positive4(r1 + g1 * cx);
-            const Double4 a2 = positive4(r2 + g2 * cx), a3 = positive4(r3 + g3 * cx);
-            const Double4 w0 = c0 * a1 * a2, w1 = c1 * a2 * a3;
-            const Double4 w2 = c2 * a3 * a0, w3 = c3 * a0 * a1;
-            const Double4 total = w0 + w1 + w2 + w3;
-            Double4 sum = zero;
-            sum += w0 * t0;
-            sum += w1 * t1;
-            sum += w2 * t2;
-            sum += w3 * t3;
-            const Double4 v = scale * positive4(sum / total) * 1.0;
+        // Four pixels at a time; the last group's lanes past x1 are computed and not added.
+        for (int64_t x = x0; x <= x1; x += 4) {
+            // Whole numbers: exact, as in insideValue.
+            const Double4 u = static_cast<double>(x - p.x0) + lane;
+            const Double4 total = q.d0 + u * (q.d1 + u * q.d2);
+            const Double4 sum = q.n0 + u * (q.n1 + u * q.n2);
+            Double4 t = sum / total;
+            t = t < lowest ? lowest : t;
+            t = t > highest ? highest : t;
+            const Double4 v = p.scale * (t > zero ? t : zero);
             const Double4 magnitude = v < zero ? -v : v;
-            const Double4 kept = (total > zero) & (magnitude <= kLargest) ? v : zero;
+            const Double4 kept = (total > zero) & (magnitude <= kLargestValue) ? v : zero;
             const Float4 value = __builtin_convertvector(kept, Float4);
             float* dst = row + (x - x0) * 3;
-            for (int j = 0; j < 4; ++j) dst[j * 3] += value[j];
+            const int64_t lanes = std::min<int64_t>(4, x1 - x + 1);
+            for (int64_t j = 0; j < lanes; ++j) dst[j * 3] += value[j];
         }
-        for (; x <= x1; ++x)
-            row[(x - x0) * 3] += pixel(r0, r1, r2, r3, static_cast<double>(x) + 0.5);
     }
 }
 
@@ -926,6 +1052,7 @@ void addConvexRow(const Primitive& p,
                   const StopMask& stop,
                   bool masked,
                   unsigned check,
+                  const CentrePolynomials* masked_sums,
                   float* out) {
     const double cy = static_cast<double>(y) + 0.5;
     int64_t lo = x0, hi = x1, in_lo = x0, in_hi = masked ? x0 - 1 : x1;
@@ -952,10 +1079,10 @@ void addConvexRow(const Primitive& p,
     in_hi = std::min(in_hi, hi);
     if (in_lo > in_hi) in_lo = hi + 1, in_hi = hi;  // no inside pixel: all are cut
     for (int64_t x = lo; x < in_lo; ++x)
-        out[(x - x0) * 3] += static_cast<float>(convexAreaValue(p, x, y, stop));
+        out[(x - x0) * 3] += static_cast<float>(convexAreaValue(p, x, y, stop, masked_sums));
     if (in_lo <= in_hi) insideRows()(p, in_lo, y, in_hi, y, out + (in_lo - x0) * 3, 0);
     for (int64_t x = in_hi + 1; x <= hi; ++x)
-        out[(x - x0) * 3] += static_cast<float>(convexAreaValue(p, x, y, stop));
+        out[(x - x0) * 3] += static_cast<float>(convexAreaValue(p, x, y, stop, masked_sums));
 }
 
 bool drawnConvex(const Primitive& p) { return p.convex && !p.splat && p.supersample == 0; }
@@ -972,7 +1099,10 @@ void addPrimitiveRow(
             out[(x - x0) * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
         return;
     }
-    addConvexRow(p, x0, x1, y, stop, isMasked(p, stop), 0xfu, out);
+    const bool masked = isMasked(p, stop);
+    CentrePolynomials sums;
+    if (masked) sums = centrePolynomials(p, /*stop_and_ratio=*/true);
+    addConvexRow(p, x0, x1, y, stop, masked, 0xfu, masked ? &sums : nullptr, out);
 }
 
 void addPrimitiveBlock(const Primitive& p,
@@ -1013,8 +1143,11 @@ void addPrimitiveBlock(const Primitive& p,
         insideRows()(p, x0, y0, x1, y1, out, stride);
         return;
     }
+    CentrePolynomials sums;
+    if (masked) sums = centrePolynomials(p, /*stop_and_ratio=*/true);
     for (int64_t y = y0; y <= y1; ++y)
-        addConvexRow(p, x0, x1, y, stop, masked, check, out + (y - y0) * stride);
+        addConvexRow(p, x0, x1, y, stop, masked, check, masked ? &sums : nullptr,
+                     out + (y - y0) * stride);
 }
 
 void rasterizeReference(ImageRGB& image,

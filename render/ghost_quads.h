@@ -231,6 +231,15 @@ struct Primitive {
     // four A it is C_i A_{i+1} A_{i+2}, free of division, and one division normalizes the four.
     std::array<EdgeFunction, 4> edge;
     std::array<double, 4> corner_area{};
+    // Convex quads: the corners' least and greatest throughput, which bound every interpolated
+    // one.
+    double throughput_low = 0.0, throughput_high = 0.0;
+    // Convex quads: the sum of the four Wachspress weights above at the pixel centre (x + 1/2,
+    // y + 1/2), and the throughput-weighted sum, as polynomials of u = x - x0 and v = y - y0:
+    // c0 + v (c1 + v c2) + u (c3 + v c4) + u^2 c5. Quadratic in each because the weights are
+    // products of two edge functions; the inside of a pixel no edge cuts costs two of them and a
+    // division (set up by preparePrimitive once x0 and y0 are known).
+    std::array<double, 6> inside_total{}, inside_sum{};
 };
 
 // The primitives of one grid, as the renderer keeps them until they are drawn.

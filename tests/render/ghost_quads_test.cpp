@@ -79,6 +79,61 @@ TEST(RasterizeReference, ConservesTheGhostsPowerOnTheImage) {
     }
 }
 
+// A pixel wholly inside a convex quad, which no stop edge or clear aperture comes near, takes
+// the throughput at its centre: primitiveValueAt evaluates it from the Wachspress sums expanded
+// into polynomials of the pixel (Primitive::inside_total), and must agree with the weights
+// evaluated directly (convexValueAt) to rounding. Masked quads (round stop, vignetting) as well:
+// there a pixel counts as clear when the direct evaluation is lit at its centre and its corners
+// and every clear aperture passes (a circle is convex, so the whole pixel is then inside it).
+TEST(PrimitiveValueAt, InsidePixelsTakeTheThroughputAtTheirCentre) {
+    const optics::Lens lens = heliar();
+    const SensorToImage mapping = sensorToImage(lens.camera(), 480, 320);
+    const StopMask stop(lens.aperture());
+    int64_t unmasked_pixels = 0, masked_pixels = 0;
+    for (const auto& [theta_deg, merge] : {std::pair{2.0, kLightMerge}, std::pair{9.0, kHeavyMerge},
+                                           std::pair{16.0, kNoMerge}}) {
+        for (const GhostPath path : {GhostPath{1, 3}, GhostPath{2, 6}, GhostPath{4, 7}}) {
+            const auto grid =
+                optics::traceRayGrid(lens, path, degToRad(theta_deg), 0.7, 550.0, 41);
+            ASSERT_TRUE(grid);
+            const GhostQuads ghost = quadsFromGrid(*grid, mapping, merge);
+            for (size_t q = 0; q < ghost.quads.size(); ++q) {
+                const auto p = preparePrimitive(ghost.quads[q], ghost.cellArea(q), 1, 1.0f, 480, 320);
+                if (!p || !p->convex || p->splat) continue;
+                const bool masked =
+                    !(p->stop_radius <= stop.inscribedRadius()) || !p->vignette_clear;
+                for (int64_t y = p->y0; y <= p->y1; ++y) {
+                    for (int64_t x = p->x0; x <= p->x1; ++x) {
+                        const double cx = static_cast<double>(x) + 0.5;
+                        const double cy = static_cast<double>(y) + 0.5;
+                        bool inside = true;
+                        for (const EdgeFunction& e : p->edge)
+                            inside = inside && (e.by_centre ? e.at(cx, cy) > 0.0
+                                                            : e.at(cx, cy) >= 1.01 * e.reach);
+                        if (!inside) continue;
+                        const double centre = convexValueAt(*p, cx, cy, stop);
+                        if (masked) {
+                            if (!p->vignette_clear || !(centre > 0.0)) continue;
+                            bool lit = true;
+                            for (const double dx : {-0.5, 0.5})
+                                for (const double dy : {-0.5, 0.5})
+                                    lit = lit && convexValueAt(*p, cx + dx, cy + dy, stop) > 0.0;
+                            if (!lit) continue;
+                        }
+                        const double value = primitiveValueAt(*p, x, y, stop);
+                        ASSERT_NEAR(value, centre, 1e-9 * std::abs(centre) + 1e-300)
+                            << "theta " << theta_deg << " quad " << q << " pixel " << x << ","
+                            << y << (masked ? " masked" : "");
+                        ++(masked ? masked_pixels : unmasked_pixels);
+                    }
+                }
+            }
+        }
+    }
+    EXPECT_GT(unmasked_pixels, 10000);
+    EXPECT_GT(masked_pixels, 300);
+}
+
 TEST(RasterizeReference, DegenerateHugeAndOutsideQuadsNeverWriteNaN) {
     GhostQuads ghost;
     ghost.cell_area_mm2 = 1.0;
