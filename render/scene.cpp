@@ -4,6 +4,7 @@
 #include <tbb/task_arena.h>
 
 #include <algorithm>
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <limits>
@@ -511,16 +512,25 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
     };
     if (options.tiled) {
         // Tasks in blocks, each block traced in parallel and its primitives appended in task
-        // order; a block is a few tasks per core, so memory stays bounded.
-        const size_t block =
-            8 * static_cast<size_t>(std::max(1, tbb::this_task_arena::max_concurrency()));
+        // order; a block is a few tasks per core, so memory stays bounded. Within a block the
+        // largest grids start first and each thread takes the next task as it finishes one
+        // (longest-first list scheduling), so a large grid does not run alone at the end.
+        const int threads = std::max(1, tbb::this_task_arena::max_concurrency());
+        const size_t block = 8 * static_cast<size_t>(threads);
         std::vector<Traced> traced;
         std::vector<PrimitiveArray> prepared;
+        std::vector<size_t> order;
         for (size_t first = 0; first < tasks.size(); first += block) {
             const size_t last = std::min(tasks.size(), first + block);
             traced.assign(last - first, Traced{});
             prepared.assign(last - first, {});
-            tbb::parallel_for(size_t{0}, last - first, [&](size_t i) {
+            order.resize(last - first);
+            for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+            std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) {
+                return tasks[first + a].n > tasks[first + b].n;
+            });
+            std::atomic<size_t> next{0};
+            const auto traceBlockTask = [&](size_t i) {
                 const Task& task = tasks[first + i];
                 traced[i] = traceTask(task);
                 const GhostQuads& quads = traced[i].quads;
@@ -535,6 +545,9 @@ Result<ImageRGB> renderScene(const optics::Lens& lens,
                 if (prepared[i].capacity() > 2 * prepared[i].size() + 1024)
                     prepared[i].shrink_to_fit();
                 traced[i].quads = GhostQuads{};  // the primitives hold what is needed now
+            };
+            tbb::parallel_for(0, threads, [&](int) {
+                for (size_t k = next++; k < order.size(); k = next++) traceBlockTask(order[k]);
             });
             for (size_t i = 0; i < traced.size(); ++i) {
                 if (!traced[i].status) return traced[i].status.error();
