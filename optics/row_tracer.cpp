@@ -16,34 +16,48 @@ namespace flarelab::optics {
 
 // ---- Fresnel polynomial --------------------------------------------------------------------
 
-double FresnelPolynomial::operator()(double cos_i) const {
-    FLARELAB_CHECK(!coefficients.empty());
-    const double x = (2.0 * cos_i - 1.0 - lo) / (1.0 - lo);
+namespace {
+
+// A Chebyshev series at x in [-1, 1] (Clenshaw); c is not empty.
+double chebyshevAt(const std::vector<double>& c, double x) {
     double b1 = 0.0, b2 = 0.0;
-    for (size_t k = coefficients.size() - 1; k >= 1; --k) {
-        const double b0 = 2.0 * x * b1 - b2 + coefficients[k];
+    for (size_t k = c.size() - 1; k >= 1; --k) {
+        const double b0 = 2.0 * x * b1 - b2 + c[k];
         b2 = b1;
         b1 = b0;
     }
-    return x * b1 - b2 + coefficients[0];
+    return x * b1 - b2 + c[0];
+}
+
+}  // namespace
+
+double FresnelPolynomial::operator()(double cos_i) const {
+    FLARELAB_CHECK(!coefficients.empty());
+    return chebyshevAt(coefficients, (2.0 * cos_i - 1.0 - lo) / (1.0 - lo));
 }
 
 namespace {
 
-// Chebyshev interpolation of f on [lo, 1] at degree d (nodes of the first kind).
+// Chebyshev interpolation of f on [lo, 1] at degree d (nodes of the first kind):
+// c_k = (2 - [k = 0]) / m sum_j f(x_j) T_k(x_j), with T_k(x_j) from the three-term recurrence
+// (m cosines instead of m^2; |T_k| <= 1, so its rounding grows only as k).
 std::vector<double> chebyshevFit(const auto& f, double lo, int degree) {
     const int m = degree + 1;
-    std::vector<double> values(m);
+    std::vector<double> c(static_cast<size_t>(m), 0.0);
     for (int j = 0; j < m; ++j) {
         const double x = std::cos(kPi * (j + 0.5) / m);
-        values[j] = f(0.5 * (1.0 + lo) + 0.5 * (1.0 - lo) * x);
+        const double value = f(0.5 * (1.0 + lo) + 0.5 * (1.0 - lo) * x);
+        double previous = 1.0, t = x;
+        c[0] += value;
+        if (m > 1) c[1] += value * x;
+        for (int k = 2; k < m; ++k) {
+            const double next = 2.0 * x * t - previous;
+            previous = t;
+            t = next;
+            c[static_cast<size_t>(k)] += value * t;
+        }
     }
-    std::vector<double> c(m);
-    for (int k = 0; k < m; ++k) {
-        double sum = 0.0;
-        for (int j = 0; j < m; ++j) sum += values[j] * std::cos(kPi * k * (j + 0.5) / m);
-        c[k] = (k == 0 ? 1.0 : 2.0) * sum / m;
-    }
+    for (int k = 0; k < m; ++k) c[static_cast<size_t>(k)] *= (k == 0 ? 1.0 : 2.0) / m;
     return c;
 }
 
@@ -65,7 +79,8 @@ FresnelPolynomial fitCoatedReflectance(double n1,
     for (const double n : {n_coat, n2})
         if (n1 > n) kink = std::max(kink, std::sqrt(std::max(0.0, 1.0 - (n / n1) * (n / n1))));
     constexpr int kCheck = 1024;
-    std::vector<double> exact_values(kCheck + 1);
+    std::vector<double> exact_values(kCheck + 1), check_x(kCheck + 1);
+    for (int i = 0; i <= kCheck; ++i) check_x[i] = 2.0 * i / kCheck - 1.0;
     for (double lo = std::max(kink, std::clamp(min_lo, 0.0, 0.99)); lo < 0.999;
          lo += 0.1 * (1.0 - lo)) {
         // A ghost's power is a product of reflectances: the error that matters is relative to
@@ -82,9 +97,10 @@ FresnelPolynomial fitCoatedReflectance(double n1,
             p.lo = lo;
             p.coefficients = chebyshevFit(exact, lo, degree);
             double worst = 0.0;
+            // The check points' x = (2 cos - 1 - lo) / (1 - lo) are 2 i / kCheck - 1.
             for (int i = 0; i <= kCheck && worst <= tolerance; ++i)
-                worst =
-                    std::max(worst, std::abs(p(lo + (1.0 - lo) * i / kCheck) - exact_values[i]));
+                worst = std::max(worst, std::abs(chebyshevAt(p.coefficients, check_x[i]) -
+                                                 exact_values[i]));
             if (worst > tolerance) return std::nullopt;
             p.max_abs_error = worst;
             p.max_rel_error = worst / std::max(smallest, 1e-300);
