@@ -949,6 +949,7 @@ using Float4 = float __attribute__((vector_size(16)));
 
 // The pixels x0..x1 of the rows y0..y1 wholly inside an unmasked convex primitive, each the
 // Wachspress-interpolated throughput at its centre (insideValue, bit for bit), four at a time.
+template <int64_t Step>
 [[gnu::always_inline]] inline void insideRowsBody(const Primitive& p,
                                                   int64_t x0,
                                                   int64_t y0,
@@ -974,13 +975,21 @@ using Float4 = float __attribute__((vector_size(16)));
             const Double4 magnitude = v < zero ? -v : v;
             const Double4 kept = (total > zero) & (magnitude <= kLargestValue) ? v : zero;
             const Float4 value = __builtin_convertvector(kept, Float4);
-            float* dst = row + (x - x0) * 3;
+            float* dst = row + (x - x0) * Step;
             const int64_t lanes = std::min<int64_t>(4, x1 - x + 1);
-            for (int64_t j = 0; j < lanes; ++j) dst[j * 3] += value[j];
+            if (Step == 1 && lanes == 4) {  // one channel's plane: four neighbours at once
+                Float4 sum;
+                __builtin_memcpy(&sum, dst, sizeof sum);
+                sum += value;
+                __builtin_memcpy(dst, &sum, sizeof sum);
+                continue;
+            }
+            for (int64_t j = 0; j < lanes; ++j) dst[j * Step] += value[j];
         }
     }
 }
 
+template <int64_t Step>
 void insideRowsBase(const Primitive& p,
                     int64_t x0,
                     int64_t y0,
@@ -988,8 +997,9 @@ void insideRowsBase(const Primitive& p,
                     int64_t y1,
                     float* out,
                     int64_t stride) {
-    insideRowsBody(p, x0, y0, x1, y1, out, stride);
+    insideRowsBody<Step>(p, x0, y0, x1, y1, out, stride);
 }
+template <int64_t Step>
 [[gnu::target("avx2")]] void insideRowsAvx2(const Primitive& p,
                                             int64_t x0,
                                             int64_t y0,
@@ -997,18 +1007,20 @@ void insideRowsBase(const Primitive& p,
                                             int64_t y1,
                                             float* out,
                                             int64_t stride) {
-    insideRowsBody(p, x0, y0, x1, y1, out, stride);
+    insideRowsBody<Step>(p, x0, y0, x1, y1, out, stride);
 }
 using InsideRowsFn =
     void (*)(const Primitive&, int64_t, int64_t, int64_t, int64_t, float*, int64_t);
 // The AVX2 build where the processor has it, chosen once (as the row tracer does); both give
-// the same bits (no contraction into fused multiply-adds).
-InsideRowsFn insideRows() {
-    static const InsideRowsFn fn = [] {
+// the same bits (no contraction into fused multiply-adds). `step`: floats from one pixel to the
+// next, 3 in an interleaved RGB row, 1 in one channel's plane.
+InsideRowsFn insideRows(int64_t step) {
+    static const bool avx2 = [] {
         __builtin_cpu_init();
-        return __builtin_cpu_supports("avx2") != 0 ? &insideRowsAvx2 : &insideRowsBase;
+        return __builtin_cpu_supports("avx2") != 0;
     }();
-    return fn;
+    if (step == 1) return avx2 ? &insideRowsAvx2<1> : &insideRowsBase<1>;
+    return avx2 ? &insideRowsAvx2<3> : &insideRowsBase<3>;
 }
 
 // Narrows [lo, hi] to the pixels x of a row where `holds(x)` is true, for a predicate on
@@ -1053,7 +1065,8 @@ void addConvexRow(const Primitive& p,
                   bool masked,
                   unsigned check,
                   const CentrePolynomials* masked_sums,
-                  float* out) {
+                  float* out,
+                  int64_t step) {
     const double cy = static_cast<double>(y) + 0.5;
     int64_t lo = x0, hi = x1, in_lo = x0, in_hi = masked ? x0 - 1 : x1;
     for (size_t i = 0; i < 4; ++i) {
@@ -1079,10 +1092,10 @@ void addConvexRow(const Primitive& p,
     in_hi = std::min(in_hi, hi);
     if (in_lo > in_hi) in_lo = hi + 1, in_hi = hi;  // no inside pixel: all are cut
     for (int64_t x = lo; x < in_lo; ++x)
-        out[(x - x0) * 3] += static_cast<float>(convexAreaValue(p, x, y, stop, masked_sums));
-    if (in_lo <= in_hi) insideRows()(p, in_lo, y, in_hi, y, out + (in_lo - x0) * 3, 0);
+        out[(x - x0) * step] += static_cast<float>(convexAreaValue(p, x, y, stop, masked_sums));
+    if (in_lo <= in_hi) insideRows(step)(p, in_lo, y, in_hi, y, out + (in_lo - x0) * step, 0);
     for (int64_t x = in_hi + 1; x <= hi; ++x)
-        out[(x - x0) * 3] += static_cast<float>(convexAreaValue(p, x, y, stop, masked_sums));
+        out[(x - x0) * step] += static_cast<float>(convexAreaValue(p, x, y, stop, masked_sums));
 }
 
 bool drawnConvex(const Primitive& p) { return p.convex && !p.splat && p.supersample == 0; }
@@ -1092,17 +1105,23 @@ bool isMasked(const Primitive& p, const StopMask& stop) {
 
 }  // namespace
 
-void addPrimitiveRow(
-    const Primitive& p, int64_t x0, int64_t x1, int64_t y, const StopMask& stop, float* out) {
+void addPrimitiveRow(const Primitive& p,
+                     int64_t x0,
+                     int64_t x1,
+                     int64_t y,
+                     const StopMask& stop,
+                     float* out,
+                     int64_t pixel_step) {
+    FLARELAB_CHECK(pixel_step == 1 || pixel_step == 3);
     if (!drawnConvex(p)) {
         for (int64_t x = x0; x <= x1; ++x)
-            out[(x - x0) * 3] += static_cast<float>(primitiveValueAt(p, x, y, stop));
+            out[(x - x0) * pixel_step] += static_cast<float>(primitiveValueAt(p, x, y, stop));
         return;
     }
     const bool masked = isMasked(p, stop);
     CentrePolynomials sums;
     if (masked) sums = centrePolynomials(p, /*stop_and_ratio=*/true);
-    addConvexRow(p, x0, x1, y, stop, masked, 0xfu, masked ? &sums : nullptr, out);
+    addConvexRow(p, x0, x1, y, stop, masked, 0xfu, masked ? &sums : nullptr, out, pixel_step);
 }
 
 void addPrimitiveBlock(const Primitive& p,
@@ -1112,10 +1131,12 @@ void addPrimitiveBlock(const Primitive& p,
                        int64_t y1,
                        const StopMask& stop,
                        float* out,
-                       int64_t stride) {
+                       int64_t stride,
+                       int64_t pixel_step) {
+    FLARELAB_CHECK(pixel_step == 1 || pixel_step == 3);
     if (!drawnConvex(p)) {
         for (int64_t y = y0; y <= y1; ++y)
-            addPrimitiveRow(p, x0, x1, y, stop, out + (y - y0) * stride);
+            addPrimitiveRow(p, x0, x1, y, stop, out + (y - y0) * stride, pixel_step);
         return;
     }
     // The edge functions are linear, so over the block's pixel centres each is least at one of
@@ -1140,14 +1161,14 @@ void addPrimitiveBlock(const Primitive& p,
     }
     const bool masked = isMasked(p, stop);
     if (check == 0 && !masked) {
-        insideRows()(p, x0, y0, x1, y1, out, stride);
+        insideRows(pixel_step)(p, x0, y0, x1, y1, out, stride);
         return;
     }
     CentrePolynomials sums;
     if (masked) sums = centrePolynomials(p, /*stop_and_ratio=*/true);
     for (int64_t y = y0; y <= y1; ++y)
         addConvexRow(p, x0, x1, y, stop, masked, check, masked ? &sums : nullptr,
-                     out + (y - y0) * stride);
+                     out + (y - y0) * stride, pixel_step);
 }
 
 void rasterizeReference(ImageRGB& image,

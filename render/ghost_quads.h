@@ -256,12 +256,17 @@ std::optional<Primitive> preparePrimitive(const Quad& quad,
                                           int64_t height,
                                           const RasterOptions& options = {});
 
-// Adds static_cast<float>(primitiveValueAt(p, x, y, stop)) to out[3 * (x - x0)] for x in x0..x1
-// (one channel of an interleaved RGB row): the same values, bit for bit, with the pixels that lie
-// wholly inside a convex primitive no stop edge or clear aperture can cut (the common pixel of a
-// ghost) evaluated a row at a time in a loop the compiler vectorizes.
-void addPrimitiveRow(
-    const Primitive& p, int64_t x0, int64_t x1, int64_t y, const StopMask& stop, float* out);
+// Adds static_cast<float>(primitiveValueAt(p, x, y, stop)) to out[pixel_step * (x - x0)] for x
+// in x0..x1 (pixel_step 3: one channel of an interleaved RGB row; 1: a row of one channel's
+// plane): the same values, bit for bit, with the pixels that lie wholly inside a convex primitive
+// (the common pixel of a ghost) evaluated a row at a time, four at once.
+void addPrimitiveRow(const Primitive& p,
+                     int64_t x0,
+                     int64_t x1,
+                     int64_t y,
+                     const StopMask& stop,
+                     float* out,
+                     int64_t pixel_step = 3);
 
 // addPrimitiveRow for the rows y0..y1 (out: pixel (x0, y0)'s channel, rows `stride` floats
 // apart), the same values bit for bit; a block wholly inside an unmasked convex primitive (the
@@ -273,7 +278,8 @@ void addPrimitiveBlock(const Primitive& p,
                        int64_t y1,
                        const StopMask& stop,
                        float* out,
-                       int64_t stride);
+                       int64_t stride,
+                       int64_t pixel_step = 3);
 
 // The light of a convex primitive at the point (px, py), per pixel area: 0 outside the quad, the
 // stop shape or a clear aperture; a point exactly on an edge shared by two quads belongs to one

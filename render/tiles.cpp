@@ -302,6 +302,34 @@ Status renderTiledAt(ImageRGB& image,
         const int64_t tx1 = std::min(image.width, tx + dense) - 1;
         const int64_t ty1 = std::min(image.height, ty + dense) - 1;
         // The tile's pixels are summed here, each in the order of the list, and written once.
+        if (!smooth && list.back() < quad_count) {
+            // Only quads (the list is in index order, model ghosts last): each channel summed in
+            // a plane of its own, where a row's neighbours are adjacent, with the same additions
+            // in the same order as in an interleaved accumulator.
+            thread_local std::vector<float> planes;
+            const int64_t plane = static_cast<int64_t>(dense) * dense;
+            planes.assign(static_cast<size_t>(3 * plane), 0.0f);
+            for (const uint32_t index : list) {
+                const Primitive& p = *primitives[index];
+                const int64_t x0 = std::max(tx, p.x0), x1 = std::min(tx1, p.x1);
+                const int64_t y0 = std::max(ty, p.y0), y1 = std::min(ty1, p.y1);
+                addPrimitiveBlock(
+                    p, x0, y0, x1, y1, stop,
+                    planes.data() + p.channel * plane + (y0 - ty) * dense + (x0 - tx), dense, 1);
+            }
+            for (int64_t y = ty; y <= ty1; ++y) {
+                float* pixel = image.at(tx, y);
+                const float* r = planes.data() + (y - ty) * dense;
+                const float* g = r + plane;
+                const float* b = g + plane;
+                for (int64_t x = 0; x <= tx1 - tx; ++x) {
+                    pixel[3 * x] += r[x];
+                    pixel[3 * x + 1] += g[x];
+                    pixel[3 * x + 2] += b[x];
+                }
+            }
+            return;
+        }
         thread_local std::vector<float> accumulator;
         accumulator.assign(static_cast<size_t>(dense) * dense * 3, 0.0f);
         if (smooth) {  // the fast ghosts' smooth parts first, biquadratic between the nodes
