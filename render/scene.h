@@ -76,7 +76,7 @@ struct SceneOptions {
     TileOptions tiles{128, 16, true};
     MergeOptions merge;  // primitive merge (ghost_quads.h); the reference draws merged quads too
     // The tiled renderer draws whenever this many primitives are waiting (sizeof(Primitive),
-    // about 420 bytes each), so memory stays bounded for any lens, grid and number of lights.
+    // 528 bytes each), so memory stays bounded for any lens, grid and number of lights.
     int64_t max_pending_primitives = 1'000'000;
     // Culling, from each ghost's probe grid (per light and channel): its power on the image P and
     // the area A it spreads over there (pixels) give its mean value P / A and its share of the
