@@ -1062,7 +1062,10 @@ template <int64_t Step>
         const Double4 total = at(total_row);
         const Double4 total_x = total_row.a1 + 2.0 * u * total_row.a2;
         const Double4 total_y = total_row.b0 + u * total_row.b1;
-        Long4 outside = {}, cut = total > zero ? Long4{} : ~Long4{};
+        // Weights that vanish send the pixel to convexAreaValue before any test (as the scalar
+        // code returns nullopt first).
+        const Long4 vanish = ~(total > zero);
+        Long4 outside = {}, cut = {};
         // maskedInsideValue's side(): h >= reach clear, !(h > -reach) outside, else cut.
         const auto test = [&](Double4 h, Double4 gx, Double4 gy, Long4 applies) {
             const Double4 reach = 0.5 * (abs4(gx) + abs4(gy));
@@ -1099,8 +1102,8 @@ template <int64_t Step>
         const int64_t lanes = std::min<int64_t>(4, x1 - x + 1);
         for (int64_t j = 0; j < lanes; ++j) {
             float* dst = out + (x + j - x0) * Step;
-            if (outside[j]) continue;  // += 0
-            if (cut[j])
+            if (!vanish[j] && outside[j]) continue;  // += 0
+            if (vanish[j] || cut[j])
                 *dst += static_cast<float>(convexAreaValue(p, x + j, y, stop, &s));
             else
                 *dst += static_cast<float>(kept[j]);
