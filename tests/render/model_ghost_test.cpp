@@ -145,6 +145,54 @@ TEST(ModelGhostPrimitive, QuadsAndGhostsShareTheTiles) {
             .has_value());
 }
 
+// Quads and model ghosts in one call: a tile that holds both sums them in one interleaved
+// accumulator, a tile of quads alone sums each channel in a plane of its own; either way the
+// image is the two drawn apart, to float rounding.
+TEST(ModelGhostPrimitive, QuadsAndGhostsTogetherAddUp) {
+    const int64_t w = 96, h = 64;
+    const SensorToImage m = mappingFor(w, h);
+    auto g = prepareGhostPrimitive(toBezierLoop(circleGhostShape(-6.0, 2.0, 4.0)),
+                                   shading(10.0, 5.0), m, w, h);
+    ASSERT_TRUE(g.has_value());
+    std::vector<Primitive> quads;
+    for (int c = 0; c < 3; ++c)
+        for (int j = 0; j < 4; ++j)
+            for (int i = 0; i < 6; ++i) {
+                // Slightly skewed 16 px cells over the image, each with its own throughputs.
+                Quad q;
+                const double x = 16.0 * i + 0.3, y = 16.0 * j + 0.7;
+                const double corner[4][2] = {{x, y}, {x + 16.0, y + 0.4}, {x + 15.6, y + 16.0},
+                                             {x - 0.2, y + 15.7}};
+                for (int k = 0; k < 4; ++k) {
+                    q.corners[k].position_px = {corner[k][0], corner[k][1]};
+                    q.corners[k].throughput = static_cast<float>(0.5 + 0.1 * k + 0.05 * (i + c));
+                }
+                if (auto p = preparePrimitive(q, 0.01, c, 1.0f, w, h)) quads.push_back(*p);
+            }
+    ASSERT_GT(quads.size(), 60u);
+    ImageRGB apart_quads(w, h), apart_ghost(w, h), together(w, h);
+    ASSERT_TRUE(renderTiled(apart_quads, quads, {}, optics::ApertureShape{}).has_value());
+    ASSERT_TRUE(renderTiled(apart_ghost, {}, std::vector<GhostPrimitive>{*g},
+                            optics::ApertureShape{})
+                    .has_value());
+    ASSERT_TRUE(renderTiled(together, quads, std::vector<GhostPrimitive>{*g},
+                            optics::ApertureShape{})
+                    .has_value());
+    int64_t shared = 0, quads_only = 0;
+    for (size_t k = 0; k < together.pixels.size(); ++k) {
+        const float q = apart_quads.pixels[k], gh = apart_ghost.pixels[k];
+        if (gh != 0.0f) {
+            ++shared;
+            EXPECT_NEAR(together.pixels[k], q + gh, 1e-6f * (q + gh)) << k;
+        } else {
+            ++quads_only;
+            EXPECT_NEAR(together.pixels[k], q, 1e-6f * q) << k;
+        }
+    }
+    EXPECT_GT(shared, 100);
+    EXPECT_GT(quads_only, 1000);
+}
+
 TEST(ModelGhostPrimitive, RangesClipAndRefuseWhatCannotBeDrawn) {
     const int64_t w = 100, h = 80;
     const SensorToImage m = mappingFor(w, h);
