@@ -8,6 +8,7 @@
 #include <type_traits>
 
 #include "common/check.h"
+#include "common/cpu.h"
 #include "common/units.h"
 #include "optics/fresnel.h"
 #include "optics/tracer.h"
@@ -400,13 +401,9 @@ template <typename T>
 }
 #endif
 
-bool processorHasAvx2() {
+bool rowTracerHasAvx2() {
 #ifdef FLARELAB_ROW_TRACER_AVX2
-    static const bool has = [] {
-        __builtin_cpu_init();
-        return __builtin_cpu_supports("avx2") != 0;
-    }();
-    return has;
+    return flarelab::processorHasAvx2();
 #else
     return false;
 #endif
@@ -559,7 +556,7 @@ void RowTracer::narrowCoatings(std::span<const double> min_cos) {
     }
 }
 
-bool RowTracer::usesAvx2() const { return options_.allow_avx2 && processorHasAvx2(); }
+bool RowTracer::usesAvx2() const { return options_.allow_avx2 && rowTracerHasAvx2(); }
 
 void RowTracer::trace(std::span<const double> x,
                       std::span<const double> y,

@@ -6,6 +6,7 @@
 #include <optional>
 
 #include "common/check.h"
+#include "common/cpu.h"
 #include "common/units.h"
 
 namespace flarelab::render {
@@ -1011,19 +1012,11 @@ template <int64_t Step>
 }
 using InsideRowsFn =
     void (*)(const Primitive&, int64_t, int64_t, int64_t, int64_t, float*, int64_t);
-// The AVX2 builds of the row loops where the processor has it, chosen once (as the row tracer
-// does); both builds give the same bits (no contraction into fused multiply-adds).
-bool drawWithAvx2() {
-    static const bool avx2 = [] {
-        __builtin_cpu_init();
-        return __builtin_cpu_supports("avx2") != 0;
-    }();
-    return avx2;
-}
-// `step`: floats from one pixel to the next, 3 in an interleaved RGB row, 1 in one channel's
-// plane.
+// The AVX2 builds of the row loops where the processor has it; both builds give the same bits
+// (no contraction into fused multiply-adds). `step`: floats from one pixel to the next, 3 in an
+// interleaved RGB row, 1 in one channel's plane.
 InsideRowsFn insideRows(int64_t step) {
-    const bool avx2 = drawWithAvx2();
+    const bool avx2 = processorHasAvx2();
     if (step == 1) return avx2 ? &insideRowsAvx2<1> : &insideRowsBase<1>;
     return avx2 ? &insideRowsAvx2<3> : &insideRowsBase<3>;
 }
@@ -1138,7 +1131,7 @@ using MaskedInsideRowFn = void (*)(const Primitive&,
                                    const StopMask&,
                                    float*);
 MaskedInsideRowFn maskedInsideRow(int64_t step) {
-    const bool avx2 = drawWithAvx2();
+    const bool avx2 = processorHasAvx2();
     if (step == 1) return avx2 ? &maskedInsideRowAvx2<1> : &maskedInsideRowBase<1>;
     return avx2 ? &maskedInsideRowAvx2<3> : &maskedInsideRowBase<3>;
 }

@@ -9,6 +9,8 @@
 #include <optional>
 #include <utility>
 
+#include "common/cpu.h"
+
 #if defined(__x86_64__)
 #include <immintrin.h>
 #endif
@@ -73,11 +75,7 @@ float chordDistancesSse2(const ChordArrays& c, size_t n, float qx, float qy, flo
 #endif
 ChordKernel chordKernel() {
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-    static const ChordKernel kernel = [] {
-        __builtin_cpu_init();
-        return __builtin_cpu_supports("avx2") != 0 ? &chordDistancesAvx2 : &chordDistancesSse2;
-    }();
-    return kernel;
+    return processorHasAvx2() ? &chordDistancesAvx2 : &chordDistancesSse2;
 #else
     return &chordDistancesSse2;
 #endif
@@ -1056,11 +1054,7 @@ void branchRowBase(const BranchTile& b,
 #endif
 BranchRow branchRow() {
 #if defined(__x86_64__) && defined(__GLIBC__)
-    static const BranchRow row = [] {
-        __builtin_cpu_init();
-        return __builtin_cpu_supports("avx2") != 0 ? &branchRowAvx2 : &branchRowBase;
-    }();
-    return row;
+    return processorHasAvx2() ? &branchRowAvx2 : &branchRowBase;
 #else
     return &branchRowBase;
 #endif
