@@ -8,10 +8,8 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
-#include <exception>
 #include <filesystem>
-#include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
+#include <png.h>
 
 namespace flarelab::render {
 namespace {
@@ -127,26 +125,25 @@ Status writePng(const ImageRGB& image, const std::string& path, const ToneMapOpt
     Result<PreviewImage> preview = toneMap(image, options);
     if (!preview) return preview.error().withContext("cannot write " + path);
 
-    // OpenCV stores BGR; encoding to memory (rather than imwrite) keeps the file writing, and
-    // its errno, in our hands.
-    std::vector<uint8_t> bytes;
-    try {
-        cv::Mat bgr(static_cast<int>(image.height), static_cast<int>(image.width), CV_8UC3);
-        for (int64_t y = 0; y < image.height; ++y) {
-            uint8_t* row = bgr.ptr<uint8_t>(static_cast<int>(y));
-            const uint8_t* src = preview->pixels.data() + y * image.width * 3;
-            for (int64_t x = 0; x < image.width; ++x) {
-                row[x * 3 + 0] = src[x * 3 + 2];
-                row[x * 3 + 1] = src[x * 3 + 1];
-                row[x * 3 + 2] = src[x * 3 + 0];
-            }
-        }
-        if (!cv::imencode(".png", bgr, bytes))
-            return makeError(ErrorCode::Internal, "cannot write " + path + ": PNG encoding failed");
-    } catch (const std::exception& e) {  // cv::Exception, or bad_alloc from the Mat
+    // libpng's simplified API encodes to memory, which keeps the file writing, and its errno,
+    // in our hands. Its errors come back in image.message, never as a longjmp through our frames.
+    png_image png;
+    std::memset(&png, 0, sizeof(png));
+    png.version = PNG_IMAGE_VERSION;
+    png.width = static_cast<png_uint_32>(image.width);
+    png.height = static_cast<png_uint_32>(image.height);
+    png.format = PNG_FORMAT_RGB;
+    const auto stride = static_cast<png_int_32>(image.width * 3);
+    png_alloc_size_t size = 0;
+    if (!png_image_write_get_memory_size(png, size, 0, preview->pixels.data(), stride, nullptr))
         return makeError(ErrorCode::Internal,
-                         "cannot write " + path + ": PNG encoding failed: " + e.what());
-    }
+                         "cannot write " + path + ": PNG encoding failed: " + png.message);
+    std::vector<uint8_t> bytes(size);
+    if (!png_image_write_to_memory(&png, bytes.data(), &size, 0, preview->pixels.data(), stride,
+                                   nullptr))
+        return makeError(ErrorCode::Internal,
+                         "cannot write " + path + ": PNG encoding failed: " + png.message);
+    bytes.resize(size);
     return writeAtomically(path, bytes);
 }
 
@@ -154,24 +151,28 @@ Result<PreviewImage> readPng(const std::string& path) {
     std::error_code ec;
     if (!std::filesystem::exists(path, ec))
         return makeError(ErrorCode::NotFound, "cannot read " + path + ": no such file");
-    try {
-        const cv::Mat bgr = cv::imread(path, cv::IMREAD_COLOR);
-        if (bgr.empty() || bgr.type() != CV_8UC3)
-            return makeError(ErrorCode::ParseError, "cannot read " + path + ": not an 8-bit image");
-        PreviewImage out{bgr.cols, bgr.rows, std::vector<uint8_t>(bgr.total() * 3)};
-        for (int y = 0; y < bgr.rows; ++y) {
-            const uint8_t* row = bgr.ptr<uint8_t>(y);
-            uint8_t* dst = out.pixels.data() + static_cast<size_t>(y) * bgr.cols * 3;
-            for (int x = 0; x < bgr.cols; ++x) {
-                dst[x * 3 + 0] = row[x * 3 + 2];
-                dst[x * 3 + 1] = row[x * 3 + 1];
-                dst[x * 3 + 2] = row[x * 3 + 0];
-            }
-        }
-        return out;
-    } catch (const std::exception& e) {
-        return makeError(ErrorCode::ParseError, "cannot read " + path + ": " + e.what());
+    png_image png;
+    std::memset(&png, 0, sizeof(png));
+    png.version = PNG_IMAGE_VERSION;
+    if (!png_image_begin_read_from_file(&png, path.c_str()))
+        return makeError(ErrorCode::ParseError, "cannot read " + path + ": " + png.message);
+    // A header claiming more than 2^28 pixels (768 MiB of RGB) is refused before anything is
+    // allocated; writePng's 16K x 16K previews are within it.
+    constexpr uint64_t kMaxPixels = uint64_t{1} << 28;
+    if (png.width == 0 || png.height == 0 ||
+        uint64_t{png.width} * uint64_t{png.height} > kMaxPixels) {
+        const std::string what = std::to_string(png.width) + " x " + std::to_string(png.height);
+        png_image_free(&png);
+        return makeError(ErrorCode::ParseError, "cannot read " + path + ": image is " + what +
+                                                    " pixels, more than 2^28 or none");
     }
+    // 8-bit sRGB; an alpha channel, if any, is composited onto black (the zeroed buffer).
+    png.format = PNG_FORMAT_RGB;
+    PreviewImage out{static_cast<int64_t>(png.width), static_cast<int64_t>(png.height),
+                     std::vector<uint8_t>(PNG_IMAGE_SIZE(png), 0)};
+    if (!png_image_finish_read(&png, nullptr, out.pixels.data(), 0, nullptr))
+        return makeError(ErrorCode::ParseError, "cannot read " + path + ": " + png.message);
+    return out;
 }
 
 }  // namespace flarelab::render

@@ -10,6 +10,7 @@ packages=(
     clang clang-format libclang-rt-14-dev libfuzzer-14-dev valgrind
     # numerics, images, optimization
     libeigen3-dev libceres-dev libopencv-dev libopenexr-dev libfftw3-dev libtbb-dev libssl-dev
+    libpng-dev
     # glTF import of venues: cameras and KHR_lights_punctual lights (predict/gltf_import.h)
     libtinygltf-dev
     # control API and model files
