@@ -144,6 +144,7 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     fit->add_flag("--quick", fit_options->quick, "fewer settings and angles (a smoke test)");
     fit->add_option("--knob", fit_options->knobs,
                     "trade rows of this knob only (repeat; the baseline always runs): iterations, "
+                    "'line search steps', "
                     "'distance iterations', 'samples per side', degree, 'shading refit frames', "
                     "'shading refit passes', 'shading refit min degree', 'shape refit passes', "
                     "'angular step'");

@@ -229,6 +229,11 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     const int fifth = std::max(2, options.fit.shading.frames_per_ghost / 5);
     const Knob knobs[] = {
         {"iterations", {5}, {3, 8, 40}, [](auto& o, int v) { o.frame.max_iterations = v; }, number},
+        {"line search steps",
+         {0},
+         {0, 2, 5},
+         [](auto& o, int v) { o.frame.line_search_steps = v; },
+         number},
         {"distance iterations",
          {1},
          {1, 2, 8},

@@ -730,6 +730,8 @@ Status checkFrameFitOptions(const FrameFitOptions& o) {
         return makeError(ErrorCode::InvalidArgument, "frame fit: " + what);
     };
     if (o.max_iterations < 1) return bad("max_iterations must be >= 1");
+    if (o.line_search_steps < 0 || o.line_search_steps > 100)
+        return bad("line_search_steps must lie in 0..100");
     if (o.passes < 1) return bad("passes must be >= 1");
     if (!(o.function_tolerance >= 0.0)) return bad("function_tolerance must be >= 0");
     if (o.cost.max_samples < 4 || o.cost.max_samples > 4096)
@@ -890,11 +892,13 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                 ceres::Solver::Options so;
                 so.linear_solver_type = ceres::DENSE_QR;
                 // With bounds, Ceres follows each trust-region step with a projected Armijo line
-                // search whose cubic interpolation evaluates the Jacobian at every trial point
-                // (GhostProblem::evaluate keeps the last one for the accepted point). Quadratic
-                // interpolation, which needs only the costs, was tried: 10-30 % faster, but the
-                // held-out error grew on three lenses of four (docs/fit-scoring.md).
+                // search (up to line_search_steps) whose cubic interpolation evaluates the
+                // Jacobian at every trial point (GhostProblem::evaluate keeps the last one for the
+                // accepted point). Quadratic interpolation, which needs only the costs, was
+                // tried: 10-30 % faster, but the held-out error grew on three lenses of four
+                // (docs/fit-scoring.md).
                 so.max_num_iterations = options.max_iterations;
+                so.max_num_line_search_step_size_iterations = options.line_search_steps;
                 so.function_tolerance = options.function_tolerance;
                 so.num_threads = 1;
                 so.logging_type = ceres::SILENT;
