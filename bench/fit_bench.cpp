@@ -69,6 +69,7 @@ Result<TradeRow> fitAndScore(const hdr::Sweep& sweep,
 
 const std::vector<std::string>& tradeKnobs() {
     static const std::vector<std::string> knobs = {"iterations",
+                                                   "line search steps",
                                                    "distance iterations",
                                                    "samples per side",
                                                    "degree",
