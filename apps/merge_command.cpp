@@ -2,6 +2,7 @@
 
 #include <memory>
 #include <ostream>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -19,7 +20,7 @@ struct MergeState {
     std::string exr_path;
     std::string png_path;
     std::string lens;
-    double exposure_stops = 0.0;
+    std::optional<double> exposure_stops;  // none: automatic (png_preview.h)
     bool half = false;
 };
 
@@ -67,7 +68,7 @@ int run(const MergeState& s, std::ostream& out, std::ostream& err) {
         return 1;
     }
     if (!written->note.empty()) err << "flarelab: " << written->note << "\n";
-    if (!writePngPreview(*image, s.png_path, s.exposure_stops, err)) return 1;
+    if (!writePngPreview(*image, s.png_path, s.exposure_stops, out, err)) return 1;
     out << "merge: " << frames.size() << " bracket(s), " << merged->width << "x" << merged->height
         << ", angle " << merged->angle_deg << " deg, " << merged->saturated_samples
         << " samples saturated in every bracket, " << merged->dark_samples
@@ -86,7 +87,8 @@ void addMergeCommand(CLI::App& app, std::ostream& out, std::ostream& err, int& e
         ->required();
     cmd->add_option("-o,--output", state->exr_path, "output OpenEXR file")->required();
     cmd->add_option("--png", state->png_path, "also a tone-mapped PNG preview");
-    cmd->add_option("--exposure-stops", state->exposure_stops, "PNG exposure in stops");
+    cmd->add_option("--exposure-stops", state->exposure_stops,
+                    "PNG exposure in stops (default: automatic, printed)");
     cmd->add_option("--lens", state->lens, "lens description for the EXR header");
     cmd->add_flag("--half", state->half, "half floats where every value fits half");
     cmd->callback([state, &out, &err, &exit_code] { exit_code = run(*state, out, err); });

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <memory>
 #include <sstream>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -31,7 +32,7 @@ struct RenderState {
     double intensity_scale = 1.0;
     std::string exr_path;
     std::string png_path;
-    double exposure_stops = 0.0;
+    std::optional<double> exposure_stops;  // none: automatic (png_preview.h)
     bool exact = false;
 };
 
@@ -94,7 +95,7 @@ int runRender(const RenderState& s, std::ostream& out, std::ostream& err) {
             return 1;
         }
     }
-    if (!writePngPreview(*image, s.png_path, s.exposure_stops, err)) return 1;
+    if (!writePngPreview(*image, s.png_path, s.exposure_stops, out, err)) return 1;
     out << "model render: " << (ghosts ? ghosts->size() : 0) << " ghosts at " << s.angle_deg
         << " deg, roll " << roll << " deg, " << width << "x" << height << ", " << ms << " ms -> "
         << (s.exr_path.empty() ? s.png_path
@@ -142,8 +143,8 @@ void addModelCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
                      "per frame) instead of the fast one");
     render->add_option("-o,--output", render_state->exr_path, "OpenEXR file");
     render->add_option("--png", render_state->png_path, "tone-mapped PNG preview");
-    render->add_option("--exposure-stops", render_state->exposure_stops, "PNG exposure in stops")
-        ->capture_default_str();
+    render->add_option("--exposure-stops", render_state->exposure_stops,
+                       "PNG exposure in stops (default: automatic, printed)");
     render->callback(
         [render_state, &out, &err, &exit_code] { exit_code = runRender(*render_state, out, err); });
 }

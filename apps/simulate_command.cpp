@@ -4,6 +4,7 @@
 #include <cmath>
 #include <memory>
 #include <sstream>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -38,7 +39,7 @@ struct SimulateState {
     bool no_image_window = false;
     std::string exr_path;
     std::string png_path;
-    double exposure_stops = 0.0;
+    std::optional<double> exposure_stops;  // none: automatic (png_preview.h)
 };
 
 // "THETA,PHI" or "THETA,PHI,R,G,B" (degrees; irradiance per channel, default 1).
@@ -121,7 +122,7 @@ int run(const SimulateState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: " << written.error().message << "\n";
         return 1;
     }
-    if (!writePngPreview(*image, s.png_path, s.exposure_stops, err)) return 1;
+    if (!writePngPreview(*image, s.png_path, s.exposure_stops, out, err)) return 1;
     out << "simulate: " << lens->name() << ", " << lights.size() << " light(s)"
         << (stats.lights_behind ? " (" + std::to_string(stats.lights_behind) + " behind)" : "")
         << ", " << stats.ghosts_drawn << " ghost grids (" << stats.ghosts_culled << " culled, "
@@ -182,7 +183,8 @@ void addSimulateCommand(CLI::App& app, std::ostream& out, std::ostream& err, int
                   "fails (needs a merge)");
     cmd->add_option("-o,--output", state->exr_path, "output OpenEXR file")->required();
     cmd->add_option("--png", state->png_path, "also a tone-mapped PNG preview");
-    cmd->add_option("--exposure-stops", state->exposure_stops, "PNG exposure in stops");
+    cmd->add_option("--exposure-stops", state->exposure_stops,
+                    "PNG exposure in stops (default: automatic, printed)");
     addCameraFlags(cmd, state->camera);
     cmd->callback([state, &out, &err, &exit_code] {
         if (std::isnan(state->angle_deg) && state->lights.empty()) {

@@ -175,4 +175,20 @@ Result<PreviewImage> readPng(const std::string& path) {
     return out;
 }
 
+double autoExposureStops(const ImageRGB& image, double percentile) {
+    std::vector<float> lit;
+    lit.reserve(image.pixels.size() / 3);
+    for (size_t i = 0; i + 2 < image.pixels.size(); i += 3) {
+        float peak = 0.0f;
+        for (size_t c = 0; c < 3; ++c)
+            if (std::isfinite(image.pixels[i + c])) peak = std::max(peak, image.pixels[i + c]);
+        if (peak > 0.0f) lit.push_back(peak);
+    }
+    if (lit.empty()) return 0.0;
+    const double p = std::clamp(std::isfinite(percentile) ? percentile : 0.99, 0.0, 1.0);
+    const auto k = static_cast<size_t>(std::llround(p * static_cast<double>(lit.size() - 1)));
+    std::nth_element(lit.begin(), lit.begin() + static_cast<std::ptrdiff_t>(k), lit.end());
+    return std::clamp(-std::log2(static_cast<double>(lit[k])), -64.0, 64.0);
+}
+
 }  // namespace flarelab::render

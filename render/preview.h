@@ -1,5 +1,5 @@
 // ============================================================================
-//  flarelab render: ToneMapOptions, toneMap, writePng, readPng
+//  flarelab render: ToneMapOptions, toneMap, writePng, readPng, autoExposureStops
 // ============================================================================
 //
 // 8-bit previews of linear HDR images, for people to look at; the data itself goes to OpenEXR.
@@ -56,8 +56,15 @@ Result<PreviewImage> toneMap(const ImageRGB& image, const ToneMapOptions& option
 // encoder failed), IoError (the directory or file cannot be written; no temporary is left).
 Status writePng(const ImageRGB& image, const std::string& path, const ToneMapOptions& options);
 
-// Reads an 8-bit PNG (or any format OpenCV decodes) back as RGB, for checking previews: NotFound
-// when the file does not exist, ParseError naming the path when it cannot be decoded.
+// Reads a PNG (libpng; any bit depth, converted to 8-bit sRGB, an alpha channel composited onto
+// black) back as RGB, for checking previews: NotFound when the file does not exist, ParseError
+// naming the path when it cannot be decoded or claims more than 2^28 pixels.
 Result<PreviewImage> readPng(const std::string& path);
+
+// The exposure, in stops, that scales the `percentile` (0..1) of the image's lit values (each
+// pixel's largest finite channel, over the pixels where it is above 0) to 1, Reinhard's
+// mid-grey (display 0.73): in a flare image, where the light's own pixels are thousands of times
+// brighter than its ghosts, the ghosts show. Clamped to -64..64; 0 when no pixel is lit.
+double autoExposureStops(const ImageRGB& image, double percentile = 0.99);
 
 }  // namespace flarelab::render

@@ -2,10 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <filesystem>
 #include <sstream>
 
 #include "hdr/exr.h"
+#include "render/preview.h"
 #include "tests/apps/command_runner.h"
 #include "tests/test_paths.h"
 
@@ -31,7 +33,18 @@ TEST(Simulate, WritesAnExrWithTheLightsAngleAndAPngPreview) {
     ASSERT_TRUE(image) << image.error().message;
     EXPECT_EQ(image->image.width, 64);
     EXPECT_EQ(image->meta.angle_deg, 4.0);
-    EXPECT_TRUE(std::filesystem::exists(png));
+    // Without --exposure-stops the preview's exposure is chosen from the image and said: the
+    // ghosts show (at 0 stops this frame's preview is black).
+    EXPECT_NE(run.out.find("PNG exposure"), std::string::npos) << run.out;
+    const auto preview = render::readPng(png);
+    ASSERT_TRUE(preview) << preview.error().message;
+    EXPECT_GT(*std::max_element(preview->pixels.begin(), preview->pixels.end()), 100);
+    const CommandRun fixed = simulate({"--lens", flarelab::testing::lensPath("heliar-tronnier.csv"),
+                                       "--angle", "4", "--roll", "10", "--width", "64", "--height",
+                                       "48", "--grid", "16", "-o", exr, "--png", png,
+                                       "--exposure-stops", "0"});
+    ASSERT_EQ(fixed.code, 0) << fixed.err;
+    EXPECT_EQ(fixed.out.find("PNG exposure"), std::string::npos) << fixed.out;
     std::filesystem::remove_all(dir);
 }
 

@@ -31,7 +31,7 @@ ImageRGB gradient(int64_t w, int64_t h) {
     return image;
 }
 
-TEST(WritePng, RoundTripsThroughOpenCv) {
+TEST(WritePng, RoundTripsThroughLibpng) {
     TempDir dir;
     const std::string path = dir.file("gradient.png");
     const ImageRGB image = gradient(16, 8);
@@ -148,6 +148,26 @@ TEST(ReadPng, ReportsMissingAndBrokenFiles) {
     ASSERT_FALSE(b);
     EXPECT_EQ(b.error().code, ErrorCode::ParseError);
     EXPECT_NE(b.error().message.find(broken), std::string::npos);
+}
+
+// The 99th percentile (or any other) of the lit pixels' largest channel goes to 1; dark,
+// negative and non-finite values do not count; an image with nothing lit keeps 0 stops.
+TEST(AutoExposure, ScalesAPercentileOfTheLitPixelsToOne) {
+    ImageRGB image(101, 2);  // row 0: 0.001 .. 0.101 in green; row 1: dark, negative, NaN, inf
+    for (int64_t x = 0; x < 101; ++x) image.at(x, 0)[1] = 0.001f * static_cast<float>(x + 1);
+    image.at(0, 1)[0] = -5.0f;
+    image.at(1, 1)[2] = std::numeric_limits<float>::quiet_NaN();
+    image.at(2, 1)[0] = std::numeric_limits<float>::infinity();
+    EXPECT_NEAR(autoExposureStops(image, 0.5), -std::log2(0.051), 1e-6);
+    EXPECT_NEAR(autoExposureStops(image, 1.0), -std::log2(0.101), 1e-6);
+    EXPECT_NEAR(autoExposureStops(image), -std::log2(0.100), 1e-6);  // the 99th of 101
+    // A light a million times brighter than its ghosts moves the percentile by one pixel only.
+    image.at(50, 1)[0] = 1e6f;
+    EXPECT_NEAR(autoExposureStops(image, 0.5), -std::log2(0.052), 1e-6);
+    EXPECT_EQ(autoExposureStops(ImageRGB(8, 8)), 0.0);
+    ImageRGB faint(1, 1);
+    faint.at(0, 0)[0] = 1e-30f;
+    EXPECT_EQ(autoExposureStops(faint), 64.0);  // clamped to what ToneMapOptions accepts
 }
 
 TEST(ToneCurve, IsMonotonicAndMapsZeroToZero) {
