@@ -357,7 +357,6 @@ public:
         if (last.valid && std::equal(params, params + np, last.params.begin())) {
             std::copy_n(last.residuals.begin(), rows, residuals);
             if (jacobian) std::copy_n(last.jacobian.begin(), rows * np, jacobian);
-            ++reused_;
             return last.ok;
         }
         last.ok = evaluateOnce(params, residuals, jacobian);
@@ -368,9 +367,8 @@ public:
         return last.ok;
     }
 
-    // Evaluations made, and those answered from the last one.
+    // Evaluations made (those answered from the last one not counted).
     int64_t evaluations() const { return evaluations_; }
-    int64_t reused() const { return reused_; }
 
 private:
     bool evaluateOnce(const double* params, double* residuals, double* jacobian) const {
@@ -639,7 +637,7 @@ private:
     std::vector<double> prior_values_, prior_tolerance_;
     mutable std::vector<double> residual_, gradient_, edge_, edge_gradient_;
     mutable std::vector<std::array<uint8_t, 2>> span_;
-    mutable int64_t evaluations_ = 0, reused_ = 0;
+    mutable int64_t evaluations_ = 0;
     struct LastEvaluation {
         bool valid = false, ok = false;
         std::vector<double> params, residuals, jacobian;

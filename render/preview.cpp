@@ -156,8 +156,8 @@ Result<PreviewImage> readPng(const std::string& path) {
     png.version = PNG_IMAGE_VERSION;
     if (!png_image_begin_read_from_file(&png, path.c_str()))
         return makeError(ErrorCode::ParseError, "cannot read " + path + ": " + png.message);
-    // A header claiming more than 2^28 pixels (768 MiB of RGB) is refused before anything is
-    // allocated; writePng's 16K x 16K previews are within it.
+    // A header claiming more than 2^28 pixels (768 MiB of RGB, a 16K x 16K image) is refused
+    // before anything is allocated.
     constexpr uint64_t kMaxPixels = uint64_t{1} << 28;
     if (png.width == 0 || png.height == 0 ||
         uint64_t{png.width} * uint64_t{png.height} > kMaxPixels) {
