@@ -3,6 +3,7 @@
 #include <fstream>
 #include <memory>
 #include <ostream>
+#include <string>
 
 #include "bench/bracket_bench.h"
 #include "bench/fit_bench.h"
@@ -142,12 +143,11 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
     fit->add_flag("!--no-trade", fit_options->trade, "skip the trade table");
     fit->add_flag("!--no-frames", fit_options->frames, "skip the per-frame table");
     fit->add_flag("--quick", fit_options->quick, "fewer settings and angles (a smoke test)");
-    fit->add_option("--knob", fit_options->knobs,
-                    "trade rows of this knob only (repeat; the baseline always runs): iterations, "
-                    "'line search steps', "
-                    "'distance iterations', 'samples per side', degree, 'shading refit frames', "
-                    "'shading refit passes', 'shading refit min degree', 'shape refit passes', "
-                    "'angular step'");
+    std::string knob_help = "trade rows of this knob only (repeat; the baseline always runs):";
+    for (const std::string& knob : bench::tradeKnobs())
+        knob_help += (knob_help.back() == ':' ? " " : ", ") +
+                     (knob.find(' ') == std::string::npos ? knob : "'" + knob + "'");
+    fit->add_option("--knob", fit_options->knobs, knob_help);
     fit->add_option("--json", *fit_json_path, "also write the results as JSON here");
     fit->callback([fit_options, fit_json_path, &out, &err, &exit_code] {
         auto report = bench::runFitBench(*fit_options, err);

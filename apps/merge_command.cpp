@@ -1,8 +1,8 @@
 #include "apps/merge_command.h"
 
 #include <memory>
-#include <ostream>
 #include <optional>
+#include <ostream>
 #include <string>
 #include <vector>
 

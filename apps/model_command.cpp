@@ -4,8 +4,8 @@
 #include <chrono>
 #include <cmath>
 #include <memory>
-#include <sstream>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <vector>
 

@@ -3,8 +3,8 @@
 #include <chrono>
 #include <cmath>
 #include <memory>
-#include <sstream>
 #include <optional>
+#include <sstream>
 #include <string>
 #include <vector>
 
