@@ -730,6 +730,8 @@ Status checkFrameFitOptions(const FrameFitOptions& o) {
     if (o.max_iterations < 1) return bad("max_iterations must be >= 1");
     if (o.line_search_steps < 0 || o.line_search_steps > 100)
         return bad("line_search_steps must lie in 0..100");
+    if (!(o.trust_region_radius >= 1e-6 && o.trust_region_radius <= 1e16))
+        return bad("trust_region_radius must lie in [1e-6, 1e16]");
     if (o.passes < 1) return bad("passes must be >= 1");
     if (!(o.function_tolerance >= 0.0)) return bad("function_tolerance must be >= 0");
     if (o.cost.max_samples < 4 || o.cost.max_samples > 4096)
@@ -897,6 +899,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                 // (docs/fit-scoring.md).
                 so.max_num_iterations = options.max_iterations;
                 so.max_num_line_search_step_size_iterations = options.line_search_steps;
+                so.initial_trust_region_radius = options.trust_region_radius;
                 so.function_tolerance = options.function_tolerance;
                 so.num_threads = 1;
                 so.logging_type = ceres::SILENT;

@@ -87,6 +87,10 @@ struct FrameFitOptions {
     // to 2.2 times faster and its held-out error moves by -8 % to +16 % by lens, +3 % on
     // average (docs/fit-scoring.md).
     int line_search_steps = 20;
+    // Ceres only: the Levenberg-Marquardt trust region's initial radius, 1 / the first step's
+    // damping on the Jacobi-scaled normal equations, in [1e-6, 1e16]. Ceres' default 1e4 makes
+    // the first step nearly Gauss-Newton's.
+    double trust_region_radius = 1e4;
     int passes = 2;                    // >= 1
     double function_tolerance = 1e-5;  // relative cost change that ends a ghost's fit
     CostOptions cost;

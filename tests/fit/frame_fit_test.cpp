@@ -235,6 +235,13 @@ TEST(FrameFit, RefusesBadInput) {
         ASSERT_FALSE(refused.has_value()) << steps;
         EXPECT_NE(refused.error().message.find("line_search_steps"), std::string::npos);
     }
+    for (const double radius : {0.0, 1e-7, 1e17, -1.0, std::nan("")}) {
+        options = FrameFitOptions{};
+        options.trust_region_radius = radius;
+        const auto refused = fitFrame(frame, detection, ghosts, options);
+        ASSERT_FALSE(refused.has_value()) << radius;
+        EXPECT_NE(refused.error().message.find("trust_region_radius"), std::string::npos);
+    }
     detection.excluded.resize(3);
     EXPECT_FALSE(fitFrame(frame, detection, ghosts, {}).has_value());
     detection = plainDetection(frame, 5.0, 2.0);
