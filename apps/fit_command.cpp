@@ -529,7 +529,8 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
         ->capture_default_str();
     fit->add_option("--line-search-steps", fs->line_search_steps,
                     "Ceres: line search steps after each trust-region step (0: none: the fit "
-                    "1.6 to 2.2 times faster, its held-out error -8 % to +16 % by lens)")
+                    "1.65 times faster, as accurate on gapless sweeps, worse across missing "
+                    "frames)")
         ->capture_default_str();
     fit->add_option("--trust-region-radius", fs->trust_region_radius,
                     "Ceres: initial trust-region radius of each ghost's fit (1 / the first "
