@@ -89,9 +89,21 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
                                            disc(1.5, -0.5, 3.0, 900.0, 600.0)};
     const FitFrame frame = makeFrame(truth, 160, 107, 5.0, 2.0, 1);
     const FrameDetection detection = plainDetection(frame, 5.0, 2.0);
-    // With Ceres' projected line search (the default) and without it (the faster setting).
-    for (const int line_search_steps : {FrameFitOptions{}.line_search_steps, 0}) {
-        SCOPED_TRACE("line_search_steps " + std::to_string(line_search_steps));
+    // With Ceres' projected line search (the default) and without it (the faster setting), and
+    // with a first trust region far smaller than Ceres' default, which takes another path (the
+    // evaluations differ) to the same ghosts.
+    struct Setting {
+        int line_search_steps;
+        double radius;
+    };
+    int64_t default_evaluations = -1;
+    for (const Setting setting :
+         {Setting{FrameFitOptions{}.line_search_steps, FrameFitOptions{}.trust_region_radius},
+          Setting{0, FrameFitOptions{}.trust_region_radius},
+          Setting{FrameFitOptions{}.line_search_steps, 1.0}}) {
+        const int line_search_steps = setting.line_search_steps;
+        SCOPED_TRACE("line_search_steps " + std::to_string(line_search_steps) + ", radius " +
+                     std::to_string(setting.radius));
         std::vector<GhostState> ghosts = {perturbed(truth[0], 0.6, 0.5, 0.7),
                                           perturbed(truth[1], -0.4, -0.3, 1.4)};
         const double start_error = relativeL2(ghosts, truth, frame);
@@ -99,10 +111,15 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
         options.passes = 3;
         options.max_iterations = 25;
         options.line_search_steps = line_search_steps;
+        options.trust_region_radius = setting.radius;
         options.cost.max_samples = 48;
         auto report = fitFrame(frame, detection, ghosts, options);
         ASSERT_TRUE(report.has_value()) << report.error().message;
         EXPECT_LT(report->final_cost, 0.5 * report->initial_cost);
+        if (default_evaluations < 0)
+            default_evaluations = report->evaluations;
+        else
+            EXPECT_NE(report->evaluations, default_evaluations);
         for (size_t g = 0; g < truth.size(); ++g) {
             EXPECT_NEAR(ghosts[g].shape.centre_x_mm, truth[g].shape.centre_x_mm, 0.1) << g;
             EXPECT_NEAR(ghosts[g].shape.centre_y_mm, truth[g].shape.centre_y_mm, 0.1) << g;
