@@ -84,8 +84,8 @@ struct FrameFitOptions {
     int max_iterations = 10;           // per ghost and pass: LM iterations or descent epochs, >= 1
     // Ceres only: the most steps of the projected line search that follows each trust-region
     // step (0..100; 0: none). Each step evaluates the Jacobian; with none the sweep fit is 1.65
-    // times faster and as accurate over 24 captures, but across a gap of missing frames a dim
-    // ghost's fit lands at its falloff bounds (docs/fit-scoring.md), so Ceres' 20 stay.
+    // times faster and as accurate over 24 captures, but the first fits after a gap of missing
+    // frames land in worse minima (docs/fit-scoring.md), so Ceres' 20 stay.
     int line_search_steps = 20;
     // Ceres only: the Levenberg-Marquardt trust region's initial radius, 1 / the first step's
     // damping on the Jacobi-scaled normal equations, in [1e-6, 1e16]. Ceres' default 1e4 makes
