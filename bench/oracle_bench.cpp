@@ -162,29 +162,34 @@ Result<OracleBenchReport> runOracleBench(const OracleBenchOptions& options, std:
                 auto frame = fit::frameFromImage(image->image, angle, camera.sensor_width_mm,
                                                  camera.sensor_height_mm);
                 if (!frame) return frame.error().withContext(name + " " + row.path);
-                auto detection = fit::detectGhosts(*frame, options.detect);
+                // The path alone has no light: its brightest blob is the ghost itself, which the
+                // detector would otherwise leave out as the light's disc (a speck a few pixels
+                // across was fitted from no samples at all).
+                fit::DetectOptions detect = options.detect;
+                detect.find_light = false;
+                auto detection = fit::detectGhosts(*frame, detect);
                 if (!detection) return detection.error();
                 // The truth has no sky: a path that fills the frame is light, not background
                 // (the sweep fit pins the sky to the sweep's lowest the same way).
                 detection->background = {0.0, 0.0, 0.0};
                 row.candidates = static_cast<int>(detection->candidates.size());
                 {
-                    // Starts: the brightest detection; with more than one (a ghost larger than the
-                    // frame, or one in pieces), also a circle over all of them and one over the
-                    // whole frame; with none (a veil over the frame, a speck under the
-                    // detector's smallest area), a circle over the pixels at 5 % of the peak or
-                    // more and one over the whole frame. The lowest cost wins: the floor is the
-                    // model's, not a start's.
+                    // Starts: a circle over the pixels at 5 % of the peak or more, and the
+                    // brightest detection when there is one; with none (a veil over the frame),
+                    // also a circle over the whole frame; with more than one (a ghost larger than
+                    // the frame, or one in pieces), also a circle over all of them and one over
+                    // the whole frame. The lowest cost wins: the floor is the model's, not a
+                    // start's.
                     std::vector<fit::GhostState> starts;
+                    const fit::GhostState lit = litStart(image->image, frame->mapping);
+                    starts.push_back(lit);
                     if (detection->candidates.empty()) {
-                        const fit::GhostState lit = litStart(image->image, frame->mapping);
-                        starts.push_back(lit);
                         fit::GhostState veil = lit;
                         veil.shape = render::circleGhostShape(
                             0.0, 0.0, std::hypot(camera.sensor_width_mm, camera.sensor_height_mm));
                         starts.push_back(veil);
                     } else {
-                        starts.push_back(detection->candidates[0].initial);
+                        starts.insert(starts.begin(), detection->candidates[0].initial);
                     }
                     if (detection->candidates.size() > 1) {
                         const auto& m = frame->mapping;

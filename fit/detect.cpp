@@ -557,7 +557,8 @@ Result<FrameDetection> detectGhosts(const FitFrame& frame, const DetectOptions& 
     const double sigma_sum = std::sqrt(sigma_sum2);
 
     // 2. The light.
-    detection.light = findLight(signal, width, height, sigma_sum, options, detection.excluded);
+    if (options.find_light)
+        detection.light = findLight(signal, width, height, sigma_sum, options, detection.excluded);
 
     // 3. Candidates: smoothed signal above the threshold, outside the excluded pixels. The
     // threshold uses the smoothed noise: white noise through the kernel k has sigma * sum(k^2)

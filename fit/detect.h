@@ -37,6 +37,9 @@ struct DetectOptions {
     // A candidate's energy (sum over its pixels of value - background) must exceed this many
     // times the noise sigma times the square root of its area (its energy's own noise), > 0.
     double min_energy_sigmas = 10.0;
+    // false: the frame holds no light of its own (a ghost path rendered alone, as `bench oracle`
+    // fits them), so its brightest blob is a ghost and is not left out as the light.
+    bool find_light = true;
     double light_margin_px = 3.0;  // added to the light's radius, >= 0
     double light_min_radius_px = 2.0;
     int max_candidates = 256;  // the brightest kept, >= 0

@@ -74,6 +74,30 @@ TEST(BenchOracle, FitsTheColourTruthWithOneShapePerGhost) {
     EXPECT_LT(lens["median_frame_rel_l2"].get<double>(), 0.3);
 }
 
+// A path alone has no light, so its brightest blob is the ghost itself. The Canon 135's path
+// 13-20 at 2 deg is a bright speck a few pixels across holding most of the frame's squared L2
+// norm: taken for the light, its pixels were left out of its own fit (0.71 of its norm off);
+// fitted as a ghost, the model's floor for it is an ellipse's (0.28).
+TEST(BenchOracle, ASmallBrightPathIsFittedNotLeftOutAsTheLight) {
+    const std::string path = (std::filesystem::temp_directory_path() /
+                              ("flarelab_oracle_speck_" + std::to_string(::getpid()) + ".json"))
+                                 .string();
+    const testing::CommandRun run = testing::runCommand(
+        addBenchCommands,
+        {"bench", "oracle", "--lens", flarelab::testing::lensPath("canon-tele-zoom-135.csv"),
+         "--angle", "2", "--width", "320", "--height", "214", "--min-share", "0.2", "--json",
+         path});
+    ASSERT_EQ(run.code, 0) << run.err;
+    std::ifstream file(path);
+    const auto json = nlohmann::json::parse(file);
+    std::filesystem::remove(path);
+    ASSERT_EQ(json["ghosts"].size(), 1u);
+    const auto& ghost = json["ghosts"][0];
+    EXPECT_EQ(ghost["path"], "13-20");
+    EXPECT_EQ(ghost["candidates"].get<int>(), 1);
+    EXPECT_LT(ghost["rel_l2"].get<double>(), 0.45);
+}
+
 TEST(BenchOracle, RefusesWhatItCannotMeasure) {
     bench::OracleBenchOptions options;
     EXPECT_FALSE(bench::runOracleBench(options, std::cerr));  // no lens

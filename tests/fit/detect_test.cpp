@@ -192,6 +192,27 @@ TEST(DetectGhosts, TinyGhost) {
     EXPECT_NEAR(d->candidates[0].left_px, 2.5, 1.5);
 }
 
+// A frame with no light of its own (one ghost path rendered alone): a small bright ghost looks
+// like a light to the default search, which leaves its disc out; with find_light off it is a
+// candidate and none of its pixels are excluded.
+TEST(DetectGhosts, WithoutALightASmallBrightGhostIsACandidate) {
+    const Disc disc{50.5, 40.5, 3.0, 3000.0, 3000.0};
+    const FitFrame frame = makeFrame(syntheticImage(120, 90, {disc}, 0.0, 0.0, 0.0));
+    auto with_light = detectGhosts(frame);
+    ASSERT_TRUE(with_light.has_value());
+    EXPECT_TRUE(with_light->light.found);
+    EXPECT_TRUE(with_light->candidates.empty());
+    DetectOptions options;
+    options.find_light = false;
+    auto d = detectGhosts(frame, options);
+    ASSERT_TRUE(d.has_value());
+    expectFinite(*d);
+    EXPECT_FALSE(d->light.found);
+    ASSERT_EQ(d->candidates.size(), 1u);
+    expectMatches(d->candidates[0], disc);
+    for (uint8_t e : d->excluded) EXPECT_EQ(e, 0);
+}
+
 // At angle 0 the light sits in the middle of a ghost that covers much of the image: the light's
 // disc stops at the ghost's plateau instead of swallowing it.
 TEST(DetectGhosts, ImageFillingGhostAroundTheLight) {
