@@ -55,10 +55,10 @@ fit::FlareModel smallModel() {
     fit::ModelGhost g;
     g.id = 3;
     g.name = "surfaces 2-5";
-    g.parameters.push_back({"segment[0].p0.x_mm", "mm", -18.0, 18.0, {}});
+    g.parameters.push_back({"segment[0].p0.x_mm", "mm", -18.0, 18.0, {}, {}, {}});
     g.parameters[0].pieces.push_back({-3.0, 0.0, {1.0, 0.5, 0.25}, 0.02, 0.05, 7});
     g.parameters[0].pieces.push_back({0.0, 3.0, {1.0, 0.5}, 0.03, 0.04, 7});
-    g.parameters.push_back({"inner_intensity.g", "1", 0.0, std::nullopt, {}});
+    g.parameters.push_back({"inner_intensity.g", "1", 0.0, std::nullopt, {}, {}, {}});
     g.parameters[1].pieces.push_back({-3.0, 3.0, {0.125}, 0.001, 0.002, 13});
     g.fit = {13, -3.0, 3.0};
     m.ghosts.push_back(g);

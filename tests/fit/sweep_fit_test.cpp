@@ -234,10 +234,11 @@ TEST(SweepFit, TracksTwoGhostsAndBuildsModel) {
             ASSERT_EQ(parameter.sample_angles_deg.size(), track.samples.size());
             for (size_t i = 0; i < track.samples.size(); ++i)
                 EXPECT_EQ(parameter.sample_angles_deg[i], track.samples[i].angle_deg);
-            if (parameter.name == "centre_x_mm")
+            if (parameter.name == "centre_x_mm") {
                 for (size_t i = 0; i < track.samples.size(); ++i)
                     EXPECT_EQ(parameter.sample_values[i],
                               track.samples[i].state.shape.centre_x_mm);
+            }
         }
     }
     auto drawn = renderModel(*model, 2.25, 0.0, 48, 32);

@@ -176,8 +176,12 @@ TEST(LabFigures, TheCentreFlareFollowsTheGhostOffTheCentre) {
     ASSERT_TRUE(lab) << lab.error().message;
     for (size_t i = 0; i < lab->theta_deg.size(); ++i) {
         const double t = lab->theta_deg[i];
-        if (t <= 1.0) EXPECT_GT(lab->centre_flare[i], 2.0) << t;
-        if (t >= 2.5) EXPECT_EQ(lab->centre_flare[i], 0.0) << t;
+        if (t <= 1.0) {
+            EXPECT_GT(lab->centre_flare[i], 2.0) << t;
+        }
+        if (t >= 2.5) {
+            EXPECT_EQ(lab->centre_flare[i], 0.0) << t;
+        }
     }
     // Drawn by itself at the capture's size: the four pixels around the centre agree.
     auto image = fit::renderModel(model, 0.0, 0.0, 72, 48);

@@ -3,8 +3,9 @@
 // kept and a light power, so that the report holds every kind of plot (fitted dots, PST). This
 // checks that the file is that model, and writes it again when asked:
 //
-//     FLARELAB_WRITE_TEST_DATA=1 build/release/tests/predict_test \
+//     FLARELAB_WRITE_TEST_DATA=1 build/release/tests/predict_test
 //         --gtest_filter='TestData.*' --gtest_also_run_disabled_tests
+// (one command line).
 #include <gtest/gtest.h>
 
 #include <cstdlib>
