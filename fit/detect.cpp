@@ -145,6 +145,8 @@ Status validateOptions(const DetectOptions& o) {
     if (o.min_area_px < 1) return bad("min_area_px must be >= 1");
     if (!(o.min_energy_sigmas > 0.0) || !std::isfinite(o.min_energy_sigmas))
         return bad("min_energy_sigmas must be finite and > 0");
+    if (!(o.min_light_peak >= 0.0) || !std::isfinite(o.min_light_peak))
+        return bad("min_light_peak must be finite and >= 0");
     if (!(o.light_margin_px >= 0.0) || !std::isfinite(o.light_margin_px))
         return bad("light_margin_px must be finite and >= 0");
     if (!(o.light_min_radius_px >= 0.0) || !std::isfinite(o.light_min_radius_px))
@@ -174,7 +176,9 @@ LightSpot findLight(const std::vector<float>& signal,
     LightSpot light;
     const auto peak_it = std::max_element(signal.begin(), signal.end());
     const double peak = *peak_it;
-    if (!(peak > kLightThresholdFactor * options.threshold_sigmas * sigma)) return light;
+    if (!(peak > kLightThresholdFactor * options.threshold_sigmas * sigma) ||
+        peak < options.min_light_peak)
+        return light;
     const int64_t peak_index = peak_it - signal.begin();
     const int64_t px = peak_index % width;
     const int64_t py = peak_index / width;
@@ -248,6 +252,7 @@ LightSpot findLight(const std::vector<float>& signal,
     light.found = true;
     light.centre_px = {cx, cy};
     light.radius_px = radius;
+    light.peak = peak;
     const double r2 = radius * radius;
     const int64_t ry = static_cast<int64_t>(std::ceil(radius)) + 1;
     for (int64_t y = std::max<int64_t>(0, static_cast<int64_t>(cy) - ry);

@@ -40,6 +40,10 @@ struct DetectOptions {
     // false: the frame holds no light of its own (a ghost path rendered alone, as `bench oracle`
     // fits them), so its brightest blob is a ghost and is not left out as the light.
     bool find_light = true;
+    // A light whose peak (channel-summed, above the background) is under this is not the light
+    // but a ghost (the light out of view, a small bright ghost the brightest blob); finite, >= 0.
+    // The sweep fit sets it from the light it finds in its probe frames (fit/sweep_fit.h).
+    double min_light_peak = 0.0;
     double light_margin_px = 3.0;  // added to the light's radius, >= 0
     double light_min_radius_px = 2.0;
     int max_candidates = 256;  // the brightest kept, >= 0
@@ -70,6 +74,7 @@ struct LightSpot {
     bool found = false;
     Eigen::Vector2d centre_px = Eigen::Vector2d::Zero();  // image space (pixel centres at +0.5)
     double radius_px = 0.0;                               // of the disc left out
+    double peak = 0.0;  // its brightest pixel, channel-summed, above the background
 };
 
 struct GhostCandidate {

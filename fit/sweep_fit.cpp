@@ -40,6 +40,15 @@ bool sameGhost(const GhostState& a, const GhostState& b, double half_pixel_mm) {
 // A ghost whose border and inner intensities are all below this many noise sigmas has faded.
 constexpr double kFadedSigmas = 2.0;
 
+// A frame's "light" whose peak is under this share of the brightest light of the probed frames
+// is a ghost: the light itself is out of view there and the brightest blob is a small bright
+// ghost, which the detection would leave out as the light's disc. On the shipped lenses'
+// simulated sweeps (planned brackets) the light peaks at 1.3e10 to 1e12 DN/s wherever it is in
+// view, and what the detection took for it elsewhere at 4e-10 to 9e-4 of the sweep's brightest
+// (docs/fit-scoring.md). Where the merge clips the light (fixed brackets), its peak is the
+// merge's ceiling, and ghosts above a hundredth of it are still taken for it, as before.
+constexpr double kLightPeakShare = 1e-2;
+
 // Whether a fitted state is a plausible outcome of a fit started at `from`: the centre moved by
 // at most `move` of from's radius, each extent changed by at most a factor `factor` (both plus
 // `slack_mm`). A fit that runs off (a diverged optimizer, a ghost pulled onto a neighbour) is not
@@ -370,6 +379,8 @@ private:
     std::array<double, 3> sky_ = {std::numeric_limits<double>::infinity(),
                                   std::numeric_limits<double>::infinity(),
                                   std::numeric_limits<double>::infinity()};
+    // options_.detect, with a floor under the light's peak once the probes have shown the light.
+    DetectOptions detect_ = options_.detect;
 };
 
 Result<int> SweepFitter::chooseStart() {
@@ -389,6 +400,7 @@ Result<int> SweepFitter::chooseStart() {
     int best = indices.front();
     size_t best_count = 0;
     bool first = true;
+    double brightest_light = 0.0;
     for (const int index : indices) {
         auto frame = load(static_cast<size_t>(index));
         if (!frame) return frame.error().withContext("frame " + std::to_string(index));
@@ -396,6 +408,8 @@ Result<int> SweepFitter::chooseStart() {
         if (!detection) return detection.error();
         for (int c = 0; c < 3; ++c)
             sky_[c] = std::min(sky_[c], detection->background[static_cast<size_t>(c)]);
+        if (detection->light.found)
+            brightest_light = std::max(brightest_light, detection->light.peak);
         const size_t count = detection->candidates.size();
         const auto off_middle = [&](int k) { return std::abs(2 * k - (n - 1)); };
         if (first || count > best_count ||
@@ -405,6 +419,8 @@ Result<int> SweepFitter::chooseStart() {
             first = false;
         }
     }
+    detect_.min_light_peak =
+        std::max(options_.detect.min_light_peak, kLightPeakShare * brightest_light);
     return best;
 }
 
@@ -412,7 +428,7 @@ Status SweepFitter::processFrame(
     size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend) {
     auto frame = load(j);
     if (!frame) return frame.error().withContext("frame " + std::to_string(j));
-    DetectOptions detect = options_.detect;
+    DetectOptions detect = detect_;
     const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));
     if (!live.empty() && !extend && from_start % options_.detect_every != 0)
         detect.circles = false;  // the predictions carry the fit; the cheap blobs still match
@@ -898,6 +914,7 @@ Result<SweepFitResult> SweepFitter::run() {
     backward.frames_total_ = frames_total_;
     backward.start_ = start_;
     backward.sky_ = sky_;
+    backward.detect_ = detect_;
     backward.share_ = share_;
     std::vector<size_t> snapshot;
     for (const Track& track : tracks_) snapshot.push_back(track.samples.size());
@@ -971,6 +988,7 @@ Result<SweepFitResult> SweepFitter::run() {
     result_.fragments_linked = linked.links;
     result_.stages.link_ms = msSince(link_start);
     result_.sky = sky_;
+    result_.detect = detect_;
     result_.time_ms = msSince(t0);
     SweepFitStages& st = result_.stages;
     st.track_ms = std::max(0.0, result_.time_ms - st.load_ms - st.detect_ms - st.fit_ms -
@@ -1300,7 +1318,7 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     if (!built) return built.error();
     fitted->stages.compress_ms = msSince(t_stage);
     t_stage = Clock::now();
-    auto refit = refitShading(*built, source, fitted->sky, options.detect, options.frame.cost,
+    auto refit = refitShading(*built, source, fitted->sky, fitted->detect, options.frame.cost,
                               options.shading);
     if (!refit) return refit.error();
     if (refit->ghosts > 0) refreshResiduals(*built, *fitted);

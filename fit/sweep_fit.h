@@ -5,7 +5,9 @@
 //
 // A whole sweep fitted with no human input (chapters 7.3 and 10.3 of the thesis, automated):
 //   1. Start: detect ghosts in a few frames spread over the sweep and start where the most are
-//      found apart (at small angles the ghosts are concentric and merge into one blob).
+//      found apart (at small angles the ghosts are concentric and merge into one blob). The
+//      brightest light those frames show sets a floor under what counts as the light (a
+//      hundredth of it): where the light is out of view, the brightest blob is a ghost.
 //   2. Forward from the start to the last frame, then backward from the start to the first (the
 //      reverse pass): in each frame, predict every live track's parameters by a low-order least
 //      squares polynomial through its last `history` fitted frames (§7.3), match the predictions
@@ -159,6 +161,11 @@ struct SweepFitResult {
     int start_frame = 0;
     // The sky every ghost sits on, per channel (the lowest background of the probed frames).
     std::array<double, 3> sky{};
+    // The detection options the frames were detected with: SweepFitOptions::detect with
+    // min_light_peak raised to a hundredth of the brightest light the probed frames show, so
+    // that where the light is out of view a small bright ghost is not taken for it (and left
+    // out). The shading refit detects with the same.
+    DetectOptions detect;
     int64_t frame_count = 0;       // frames in the sweep (caps min_track_frames in buildModel)
     int64_t frames_fitted = 0;     // fitFrame calls
     int64_t fragments_linked = 0;  // links made between track fragments (track_link.h)

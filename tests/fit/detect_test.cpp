@@ -4,6 +4,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <cstdio>
 #include <random>
 #include <string>
@@ -211,6 +212,21 @@ TEST(DetectGhosts, WithoutALightASmallBrightGhostIsACandidate) {
     ASSERT_EQ(d->candidates.size(), 1u);
     expectMatches(d->candidates[0], disc);
     for (uint8_t e : d->excluded) EXPECT_EQ(e, 0);
+    // A floor under the light's peak above the ghost's does the same where a light may be in
+    // view; a light above the floor is still the light.
+    DetectOptions floor;
+    floor.min_light_peak = 10.0 * disc.inner;
+    auto floored = detectGhosts(frame, floor);
+    ASSERT_TRUE(floored.has_value());
+    EXPECT_FALSE(floored->light.found);
+    ASSERT_EQ(floored->candidates.size(), 1u);
+    expectMatches(floored->candidates[0], disc);
+    auto lit = detectGhosts(makeFrame(syntheticImage(120, 90, {disc}, 100.5, 70.5, 1e5)), floor);
+    ASSERT_TRUE(lit.has_value());
+    ASSERT_TRUE(lit->light.found);
+    EXPECT_NEAR(lit->light.centre_px.x(), 100.5, 1.0);
+    EXPECT_GT(lit->light.peak, floor.min_light_peak);
+    ASSERT_EQ(lit->candidates.size(), 1u);
 }
 
 // At angle 0 the light sits in the middle of a ghost that covers much of the image: the light's
@@ -259,6 +275,12 @@ TEST(DetectGhosts, OptionsOutOfRangeAreInvalidArguments) {
     o = {};
     o.min_energy_sigmas = -2.0;
     check(o, "min_energy_sigmas");
+    o = {};
+    o.min_light_peak = -1.0;
+    check(o, "min_light_peak");
+    o = {};
+    o.min_light_peak = std::numeric_limits<double>::infinity();
+    check(o, "min_light_peak");
     o = {};
     o.light_margin_px = -1.0;
     check(o, "light_margin_px");
