@@ -58,9 +58,9 @@ FlareModel sampleModel() {
     ModelGhost a;
     a.id = 7;
     a.name = "surfaces 4-7";
-    ModelParameter x{"segment[0].p0.x_mm", "mm", -18.0, 18.0, {}};
+    ModelParameter x{"segment[0].p0.x_mm", "mm", -18.0, 18.0, {}, {}, {}};
     x.pieces.push_back({-5.0, 5.0, {0.5, 1.25, -0.125}, 0.01, 0.03, 51});
-    ModelParameter r{"border_intensity.r", "1", 0.0, std::nullopt, {}};
+    ModelParameter r{"border_intensity.r", "1", 0.0, std::nullopt, {}, {}, {}};
     r.pieces.push_back({-5.0, 5.0, {0.1}, 0.0, 0.0, 51});
     a.parameters = {x, r};
     a.fit = {51, -5.0, 5.0};
@@ -68,7 +68,7 @@ FlareModel sampleModel() {
     ModelGhost b;
     b.id = 9;
     b.name = "surfaces 2-3";
-    ModelParameter y{"segment[0].p0.y_mm", "mm", std::nullopt, std::nullopt, {}};
+    ModelParameter y{"segment[0].p0.y_mm", "mm", std::nullopt, std::nullopt, {}, {}, {}};
     y.pieces.push_back({-2.0, 0.5, {1.0, 2.0}, 0.5, 1.5, 13});
     y.pieces.push_back({0.5, 3.0, {-1.0, 0.0, 3.0, 1e-300}, 0.25, 0.75, 13});
     y.sample_angles_deg = {-2.0, 0.5, 3.0};  // the per-frame values kept (version 4)
