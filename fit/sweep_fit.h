@@ -85,7 +85,9 @@ struct SweepFitOptions {
     // Keep each parameter's per-frame values in the model (ModelParameter::sample_values), for a
     // report to show the series against its data; a model about 3 to 5 times larger.
     bool keep_samples = false;
-    int start_frame = -1;      // -1: chosen automatically
+    // -1: chosen automatically, by probing start_probes frames, which also set the sky and the
+    // light's floor (step 1 above); a frame given here skips the probes, and with them both.
+    int start_frame = -1;
     int start_probes = 9;      // frames detected to choose the start, >= 1
     int max_ghosts = 64;       // live tracks at most, >= 1
     // A ghost whose light in a frame is below this fraction of all the ghosts' light there ends:
