@@ -101,16 +101,15 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
          {Setting{FrameFitOptions{}.line_search_steps, FrameFitOptions{}.trust_region_radius},
           Setting{0, FrameFitOptions{}.trust_region_radius},
           Setting{FrameFitOptions{}.line_search_steps, 1.0}}) {
-        const int line_search_steps = setting.line_search_steps;
-        SCOPED_TRACE("line_search_steps " + std::to_string(line_search_steps) + ", radius " +
-                     std::to_string(setting.radius));
+        SCOPED_TRACE("line_search_steps " + std::to_string(setting.line_search_steps) +
+                     ", radius " + std::to_string(setting.radius));
         std::vector<GhostState> ghosts = {perturbed(truth[0], 0.6, 0.5, 0.7),
                                           perturbed(truth[1], -0.4, -0.3, 1.4)};
         const double start_error = relativeL2(ghosts, truth, frame);
         FrameFitOptions options;
         options.passes = 3;
         options.max_iterations = 25;
-        options.line_search_steps = line_search_steps;
+        options.line_search_steps = setting.line_search_steps;
         options.trust_region_radius = setting.radius;
         options.cost.max_samples = 48;
         auto report = fitFrame(frame, detection, ghosts, options);

@@ -95,16 +95,18 @@ ImageRGB drawFrame(const std::vector<TrueGhost>& truth,
     return image;
 }
 
+// The light is in view at the angles below light_until_deg.
 FrameSource syntheticSource(const std::vector<TrueGhost>& truth,
                             std::vector<double> angles,
-                            bool light = true,
+                            double light_until_deg = std::numeric_limits<double>::infinity(),
                             std::shared_ptr<std::atomic<int>> loads = {}) {
     FrameSource source;
     source.angles_deg = std::move(angles);
     const std::vector<double> a = source.angles_deg;
-    source.load = [truth, a, light, loads](size_t i) -> Result<FitFrame> {
+    source.load = [truth, a, light_until_deg, loads](size_t i) -> Result<FitFrame> {
         if (loads) ++*loads;
-        return frameFromImage(drawFrame(truth, a[i], 1000 + i, light), a[i], kSensorW, kSensorH);
+        return frameFromImage(drawFrame(truth, a[i], 1000 + i, a[i] < light_until_deg), a[i],
+                              kSensorW, kSensorH);
     };
     return source;
 }
@@ -180,7 +182,8 @@ const std::vector<TrueGhost> kTwoGhosts = {
 TEST(SweepFit, TracksTwoGhostsAndBuildsModel) {
     const auto angles = angleRange(0.0, 0.5, 13);
     auto loads = std::make_shared<std::atomic<int>>(0);
-    const FrameSource source = syntheticSource(kTwoGhosts, angles, true, loads);
+    const FrameSource source =
+        syntheticSource(kTwoGhosts, angles, std::numeric_limits<double>::infinity(), loads);
     const SweepFitOptions options = quickOptions();
     int64_t progress_calls = 0;
     auto result = fitSweepFrames(source, options, [&](const SweepFitProgress& p) {
@@ -574,14 +577,8 @@ TEST(SweepFit, ASmallBrightGhostIsNotTakenForTheLightOnceTheLightIsOutOfView) {
     const std::vector<TrueGhost> truth = {{4.0, 0.4, 0.45, 300.0, 0.0},
                                           {-8.0, 0.3, 3.0, 30.0, 0.0}};
     const auto angles = angleRange(0.0, 0.5, 13);  // the light in view up to 2.5 deg
-    FrameSource source;
-    source.angles_deg = angles;
-    source.load = [truth, angles](size_t i) -> Result<FitFrame> {
-        return frameFromImage(drawFrame(truth, angles[i], 1000 + i, angles[i] < 2.75),
-                              angles[i], kSensorW, kSensorH);
-    };
     const SweepFitOptions options = quickOptions();
-    auto result = fitSweepFrames(source, options);
+    auto result = fitSweepFrames(syntheticSource(truth, angles, 2.75), options);
     ASSERT_TRUE(result) << result.error().message;
     EXPECT_GT(result->detect.min_light_peak, 300.0);
     EXPECT_LT(result->detect.min_light_peak, 5e4);
@@ -846,7 +843,7 @@ struct RefitCase {
 RefitCase scrambledCase(uint64_t seed) {
     RefitCase c;
     c.angles = angleRange(0.0, 0.5, 13);
-    c.source = syntheticSource(kTwoGhosts, c.angles, true);
+    c.source = syntheticSource(kTwoGhosts, c.angles);
     std::mt19937_64 rng(seed);
     std::uniform_real_distribution<double> factor(0.25, 4.0), exponent(0.4, 2.5);
     for (size_t g = 0; g < kTwoGhosts.size(); ++g) {
