@@ -60,6 +60,7 @@ struct ScoreState {
     int fit_angles = fit::ScoreOptions{}.fit_angles;
     int left_out = fit::ScoreOptions{}.left_out_angles;
     double log_scale = fit::ScoreOptions{}.log_scale;
+    std::optional<double> light_mask_px;
     uint64_t seed = 1;
     bool json = false;
 };
@@ -382,6 +383,17 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
     options.left_out_angles = s.left_out;
     options.log_scale = s.log_scale;
     options.seed = s.seed;
+    if (s.light_mask_px) {
+        if (!(std::isfinite(*s.light_mask_px) && *s.light_mask_px >= 0.0)) {
+            err << "flarelab: score: --light-mask-px must be a finite number >= 0\n";
+            return 2;
+        }
+        options.light_mask_px = *s.light_mask_px;
+    } else if (model->capture.light_discs.empty()) {
+        err << "flarelab: score: note: " << s.model << " (model format " << model->format_version
+            << ") does not record the light's disc its fit left out; 3% of the frame's diagonal "
+               "is left out around the light instead\n";
+    }
     if (!(s.log_scale > 0.0 && s.log_scale < 1.0)) {
         err << "flarelab: score: --log-scale must lie in (0, 1)\n";
         return 2;
@@ -459,14 +471,15 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
                               {"energy_error", a.energy_error},
                               {"log_rel_l2", a.log_rel_l2},
                               {"missed_light", a.missed_light},
-                              {"masked_energy_fraction", a.masked_energy_fraction}});
+                              {"masked_energy_fraction", a.masked_energy_fraction},
+                              {"light_mask_px", a.light_mask_px}});
         j["angles"] = angles;
         out << j.dump(2) << "\n";
         return 0;
     }
     out << "score: " << s.model << " against " << s.lens_file << " (simulated, ghosts only, "
-        << "light neighbourhood masked)\n";
-    out << "  angle_deg  kind      rel_L2  energy_err  log_rel_L2  masked  PSNR_dB\n";
+        << "the light's disc left out)\n";
+    out << "  angle_deg  kind      rel_L2  energy_err  log_rel_L2  masked  disc_px  PSNR_dB\n";
     for (const auto& a : report->angles)
         out << "  " << std::setw(9) << std::fixed << std::setprecision(3) << a.angle_deg << "  "
             << std::left << std::setw(8) << fit::angleKindName(a.kind) << std::right << "  "
@@ -474,7 +487,7 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
             << std::setprecision(2) << 100.0 * a.energy_error << "%  " << std::setw(10)
             << std::setprecision(4) << a.log_rel_l2 << "  " << std::setw(5) << std::setprecision(1)
             << 100.0 * a.masked_energy_fraction << "%  " << std::setw(7) << std::setprecision(1)
-            << a.psnr_db << "\n"
+            << a.light_mask_px << "  " << std::setw(7) << a.psnr_db << "\n"
             << std::defaultfloat;
     for (const auto& [kind, summary] : report->by_kind)
         printSummary(std::string(fit::angleKindName(kind)) + " angles", summary, out);
@@ -607,6 +620,10 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
         ->capture_default_str();
     score->add_option("--images", ss->images,
                       "write truth | model | difference per angle as PNG into this directory");
+    score->add_option("--light-mask-px", ss->light_mask_px,
+                      "radius of the disc around the light left out of the score, pixels "
+                      "(default: the disc the fit left out of its frames, as the model records "
+                      "it; 3% of the frame's diagonal for a model that does not)");
     score->add_option("--seed", ss->seed, "seed of the random angles")->capture_default_str();
     score->add_flag("--json", ss->json, "print the scores as JSON");
     score->callback([ss, &out, &err, &exit_code] { exit_code = runScore(*ss, out, err); });

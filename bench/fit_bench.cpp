@@ -124,8 +124,8 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
         for (const auto& c : detection->candidates) start.push_back(c.initial);
         auto t = (*truth)(frame->angle_deg);
         if (!t) return t.error();
-        const double mask = 0.03 * std::hypot(static_cast<double>(frame->image.width),
-                                              static_cast<double>(frame->image.height));
+        // The disc the fit leaves out of this frame.
+        const double mask = detection->light.found ? detection->light.radius_px : 0.0;
         auto initial = fit::compareImages(
             fit::renderGhostStates(start, frame->mapping, frame->image.width, frame->image.height),
             t->image, t->light_px, mask);
@@ -172,11 +172,13 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
         source.load = [&sw_ref, sw, sh](size_t i) { return fit::loadFitFrame(sw_ref, i, sw, sh); };
         auto result = fit::fitSweepFrames(source, options.fit);
         if (!result) return result.error();
-        const double mask = 0.03 * std::hypot(static_cast<double>(sweep->header.capture.width_px),
-                                              static_cast<double>(sweep->header.capture.height_px));
         const size_t step = std::max<size_t>(1, n / 30);
         for (size_t i = 0; i < n; i += step) {
             const double angle = sweep->frames[i].angle_deg;
+            // The disc the fit left out of this frame, as a score of its model would.
+            double mask = 0.0;
+            for (const fit::ModelLightDisc& disc : result->light_discs)
+                if (disc.angle_deg == angle) mask = disc.radius_px;
             std::vector<fit::GhostState> states;
             for (const auto& track : result->tracks)
                 for (const auto& sample : track.samples)

@@ -200,6 +200,35 @@ Status checkHeader(const FlareModel& m, const Checker& check) {
         if (auto ok = check.positive("capture.light_power_dn_s", c.light_power_dn_s); !ok)
             return ok;
     }
+    if (!c.light_discs.empty()) {
+        if (m.format_version < 5)
+            return check.fail("capture.light_discs",
+                              "is a field of format version 5, not of version " +
+                                  std::to_string(m.format_version));
+        if (auto ok =
+                check.count("capture.light_discs", c.light_discs.size(), 0, kModelMaxSamples);
+            !ok)
+            return ok;
+        const double diagonal =
+            std::hypot(static_cast<double>(c.width_px), static_cast<double>(c.height_px));
+        for (size_t i = 0; i < c.light_discs.size(); ++i) {
+            const ModelLightDisc& d = c.light_discs[i];
+            const std::string at = indexed("capture.light_discs", i);
+            if (auto ok = check.finite(at + ".angle_deg", d.angle_deg); !ok) return ok;
+            if (d.angle_deg < c.from_deg || d.angle_deg > c.to_deg ||
+                (i > 0 && !(d.angle_deg > c.light_discs[i - 1].angle_deg)))
+                return check.fail(at + ".angle_deg",
+                                  formatDouble(d.angle_deg) +
+                                      " is not increasing inside capture.from_deg..to_deg (" +
+                                      formatDouble(c.from_deg) + ".." + formatDouble(c.to_deg) +
+                                      ")");
+            if (auto ok = check.nonNegative(at + ".radius_px", d.radius_px); !ok) return ok;
+            if (d.radius_px > diagonal)
+                return check.fail(at + ".radius_px", formatDouble(d.radius_px) +
+                                                         " px is more than the frame's diagonal " +
+                                                         formatDouble(diagonal));
+        }
+    }
 
     if (auto ok = check.finite("valid_range.from_deg", m.valid_from_deg); !ok) return ok;
     if (auto ok = check.finite("valid_range.to_deg", m.valid_to_deg); !ok) return ok;
@@ -400,6 +429,9 @@ FlareModel fromProto(const v1::FlareModel& m) {
     model.capture.camera = c.camera();
     if (c.has_raw_format()) model.capture.raw_format = c.raw_format();
     if (c.has_light_power_dn_s()) model.capture.light_power_dn_s = c.light_power_dn_s();
+    model.capture.light_discs.reserve(static_cast<size_t>(c.light_discs_size()));
+    for (const v1::ModelLightDisc& d : c.light_discs())
+        model.capture.light_discs.push_back({d.angle_deg(), d.radius_px()});
     model.valid_from_deg = m.valid_range().from_deg();
     model.valid_to_deg = m.valid_range().to_deg();
     model.ghosts.reserve(static_cast<size_t>(m.ghosts_size()));
@@ -464,6 +496,11 @@ v1::FlareModel toProto(const FlareModel& model) {
     c->set_camera(model.capture.camera);
     if (!model.capture.raw_format.empty()) c->set_raw_format(model.capture.raw_format);
     if (model.capture.light_power_dn_s) c->set_light_power_dn_s(*model.capture.light_power_dn_s);
+    for (const ModelLightDisc& d : model.capture.light_discs) {
+        v1::ModelLightDisc* disc = c->add_light_discs();
+        disc->set_angle_deg(d.angle_deg);
+        disc->set_radius_px(d.radius_px);
+    }
     m.mutable_valid_range()->set_from_deg(model.valid_from_deg);
     m.mutable_valid_range()->set_to_deg(model.valid_to_deg);
     for (const ModelGhost& ghost : model.ghosts) {
@@ -866,6 +903,22 @@ std::string describeModel(const FlareModel& m, const std::string& path) {
         << (c.light_power_dn_s ? formatDouble(*c.light_power_dn_s) + " DN/s"
                                : std::string("not measured"))
         << "\n";
+    out << "light's disc: ";
+    if (c.light_discs.empty()) {
+        out << "not recorded";
+    } else {
+        double lo = std::numeric_limits<double>::infinity(), hi = 0.0;
+        size_t lit = 0;
+        for (const ModelLightDisc& d : c.light_discs) {
+            if (!(d.radius_px > 0.0)) continue;
+            ++lit;
+            lo = std::min(lo, d.radius_px);
+            hi = std::max(hi, d.radius_px);
+        }
+        out << "left out in " << lit << " of " << c.light_discs.size() << " fitted frames";
+        if (lit > 0) out << ", radius " << formatDouble(lo) << " to " << formatDouble(hi) << " px";
+    }
+    out << "\n";
     out << "brackets: ";
     if (c.exposure_times_s.empty())
         out << "none";

@@ -16,16 +16,18 @@
 // score` simulates the capture's own lens again. Version 3, which the fit writes, adds the
 // camera's raw format (capture.raw_format, version 4 of hdr/sweep.h), so that a score simulates
 // a colour capture in colour. Version 4 adds the power of the rig light's own image
-// (capture.light_power_dn_s), which the lab figures of predict/lab_figures.h need. Every version is
-// read.
+// (capture.light_power_dn_s), which the lab figures of predict/lab_figures.h need. Version 5
+// adds the disc around the light that the fit left out of each frame it fitted
+// (capture.light_discs), which `flarelab score` leaves out too. Every version is read.
 //
 // Rules of the format (every version). A model breaking any of them is refused with an Error
 // naming the file (or stand-in) and the field path ("ghosts[2].parameters[5].pieces[0].
 // coefficients"):
-//   - format_version is 1..4 (another version: Unsupported). Fields the reader does not know
+//   - format_version is 1..5 (another version: Unsupported). Fields the reader does not know
 //     are refused (ParseError), in binary files as in JSON: a writer that adds a field raises the
 //     version, so nothing is dropped silently; so are version 2's lens fields in a version 1
-//     model and version 3's capture.raw_format or version 4's capture.light_power_dn_s in an older one. JSON field names may be written as
+//     model and version 3's capture.raw_format, version 4's capture.light_power_dn_s or version 5's
+//     capture.light_discs in an older one. JSON field names may be written as
 //     in the .proto or in lowerCamelCase.
 //   - every number is finite; strings hold no NUL, are valid UTF-8 and at most
 //     kModelMaxStringBytes long; created is RFC 3339 or empty.
@@ -34,7 +36,8 @@
 //     prescription_sha256 empty or 64 lowercase hex digits.
 //   - capture: from_deg <= to_deg, step_deg > 0, exposure times > 0, width_px and height_px
 //     1..32768; raw_format empty or one of mono, bayer-rggb, bayer-bggr, bayer-grbg, bayer-gbrg;
-//     light_power_dn_s, when present, > 0.
+//     light_power_dn_s, when present, > 0; light_discs: at most kModelMaxSamples, angles finite,
+//     strictly increasing and inside from_deg..to_deg, radii finite, 0..the frame's diagonal.
 //   - valid_range: from_deg < to_deg, inside capture.from_deg..capture.to_deg.
 //   - 0..kModelMaxGhosts ghosts with unique ids; each has 1..kModelMaxParameters parameters with
 //     unique, non-empty names; lower_bound <= upper_bound when both are present.
@@ -64,7 +67,7 @@
 
 namespace flarelab::fit {
 
-inline constexpr int kModelFormatVersion = 4;        // what the fit writes
+inline constexpr int kModelFormatVersion = 5;        // what the fit writes
 inline constexpr int kModelOldestFormatVersion = 1;  // the oldest version still read
 inline constexpr int64_t kModelMaxFileBytes = int64_t{64} << 20;
 inline constexpr size_t kModelMaxGhosts = 4096;
@@ -93,6 +96,13 @@ struct ModelLens {
     bool operator==(const ModelLens&) const = default;
 };
 
+// The light's disc in one fitted frame (version 5): radius 0 where the fit found no light.
+struct ModelLightDisc {
+    double angle_deg = 0.0;
+    double radius_px = 0.0;
+    bool operator==(const ModelLightDisc&) const = default;
+};
+
 struct ModelCapture {
     double from_deg = 0.0;
     double to_deg = 0.0;
@@ -108,6 +118,9 @@ struct ModelCapture {
     // Version 4: the rig light's own image, summed over the sensor, in DN/s at the capture's gain
     // (proto/model.proto); > 0, absent when not measured.
     std::optional<double> light_power_dn_s;
+    // Version 5: the disc around the light's own image the fit left out, per fitted frame, by
+    // increasing angle (proto/model.proto); empty when not recorded.
+    std::vector<ModelLightDisc> light_discs;
     bool operator==(const ModelCapture&) const = default;
 };
 

@@ -219,11 +219,27 @@ Result<AngleScore> compareImages(const ImageRGB& model,
     s.log_rel_l2 = log_den > 0.0 ? std::sqrt(log_num / log_den) : (num > 0.0 ? 1.0 : 0.0);
     s.masked_energy_fraction = energy + in_mask > 0.0 ? in_mask / (energy + in_mask) : 0.0;
     s.missed_light = energy > 0.0 ? under / energy : 0.0;
+    s.light_mask_px = light_px ? light_mask_px : 0.0;
     const double mse = count > 0 ? num / static_cast<double>(count) : 0.0;
     s.psnr_db = mse > 0.0 && peak > 0.0 ? 10.0 * std::log10(peak * peak / mse)
                                         : std::numeric_limits<double>::infinity();
     if (!std::isfinite(s.psnr_db)) s.psnr_db = 999.0;  // identical images: reported as 999 dB
     return s;
+}
+
+std::optional<double> lightDiscRadius(const FlareModel& model, double angle_deg) {
+    const std::vector<ModelLightDisc>& discs = model.capture.light_discs;
+    if (discs.empty()) return std::nullopt;
+    const auto after = std::lower_bound(
+        discs.begin(), discs.end(), angle_deg,
+        [](const ModelLightDisc& d, double angle) { return d.angle_deg < angle; });
+    if (after == discs.end()) return discs.back().radius_px;
+    if (after == discs.begin() || after->angle_deg == angle_deg) return after->radius_px;
+    const ModelLightDisc& a = *(after - 1);
+    const ModelLightDisc& b = *after;
+    if (!(a.radius_px > 0.0) || !(b.radius_px > 0.0)) return std::max(a.radius_px, b.radius_px);
+    const double t = (angle_deg - a.angle_deg) / (b.angle_deg - a.angle_deg);
+    return a.radius_px + t * (b.radius_px - a.radius_px);
 }
 
 Result<ScoreReport> scoreModel(const FlareModel& model,
@@ -236,9 +252,7 @@ Result<ScoreReport> scoreModel(const FlareModel& model,
     auto angles = scoreAngles(model, options);
     if (!angles) return angles.error();
     const int64_t w = model.capture.width_px, h = model.capture.height_px;
-    const double mask = options.light_mask_px >= 0.0
-                            ? options.light_mask_px
-                            : 0.03 * std::hypot(static_cast<double>(w), static_cast<double>(h));
+    const double default_mask = 0.03 * std::hypot(static_cast<double>(w), static_cast<double>(h));
     ScoreReport report;
     const int total = static_cast<int>(angles->size());
     int done = 0;
@@ -252,6 +266,9 @@ Result<ScoreReport> scoreModel(const FlareModel& model,
         auto drawn =
             renderModel(model, angle.angle_deg, model.capture.roll_deg, w, h, options.render);
         if (!drawn) return drawn.error();
+        const double mask = options.light_mask_px >= 0.0
+                                ? options.light_mask_px
+                                : lightDiscRadius(model, angle.angle_deg).value_or(default_mask);
         auto s = compareImages(*drawn, t->image, t->light_px, mask, options.log_scale);
         if (!s) return s.error();
         s->angle_deg = angle.angle_deg;

@@ -6,8 +6,9 @@
 //
 // A model scored against ground truth: the model drawn at an angle (renderModel) against what
 // the simulator shows there of the ghosts alone, noiselessly, in the same unit (TruthSource; the
-// command line re-simulates the sweep's camera). Pixels within light_mask_px of the light's own
-// image are left out of both, as the fit leaves them out.
+// command line re-simulates the sweep's camera). Pixels within the light's disc are left out of
+// both: by default the disc the fit left out of its frames (the model records it per fitted frame,
+// ModelCapture::light_discs; lightDiscRadius), so that what is scored is what was fitted.
 //   relative L2   = ||model - truth|| / ||truth||     over the remaining pixels and channels
 //   PSNR          = 10 log10(max(truth)^2 / mean((model - truth)^2))
 //   energy error  = (sum(model) - sum(truth)) / sum(truth)   (the total ghost light)
@@ -70,7 +71,9 @@ struct ScoreOptions {
     int random_angles = 4;     // >= 0
     int fit_angles = 16;       // captured angles scored, evenly spread, >= 0
     uint64_t seed = 1;
-    double light_mask_px = -1.0;  // < 0: 3% of the image diagonal
+    // The light's disc, pixels; < 0: the model's own (lightDiscRadius), or 3% of the image
+    // diagonal for a model that does not record it (format version 4 and older).
+    double light_mask_px = -1.0;
     double log_scale = 1e-3;      // of the log image, relative to the truth's peak; > 0
     ModelRenderOptions render;
 };
@@ -90,6 +93,7 @@ struct AngleScore {
     // The truth's light inside the light's disc over its light in the whole image; 0 for a black
     // truth.
     double masked_energy_fraction = 0.0;
+    double light_mask_px = 0.0;  // the radius of the light's disc left out here
 };
 
 struct ScoreSummary {
@@ -122,6 +126,12 @@ struct ScoreImages {
     std::optional<Eigen::Vector2d> light_px;
     double light_mask_px = 0.0;
 };
+
+// The radius of the disc around the light that the fit left out at `angle_deg`, from the model's
+// record (ModelCapture::light_discs): a recorded angle's own; between two, the linear
+// interpolation of their radii, or the larger where one frame had no light (the light coming
+// into or leaving view); beyond them, the nearest one's. nullopt when nothing is recorded.
+std::optional<double> lightDiscRadius(const FlareModel& model, double angle_deg);
 
 // The angles scoreModel uses: the fitted ones ascending, then the held-out ones ascending (an
 // angle of two held-out kinds is scored once, as the first of left-out, half-way, random; a

@@ -369,6 +369,9 @@ private:
     const std::function<void(const SweepFitProgress&)>& progress_;
     std::vector<Track> tracks_;
     std::vector<std::vector<FrameEntry>> at_frame_;
+    // The light's disc the detection left out of each frame this fitter processed (the sweep's
+    // frames, by index).
+    std::vector<std::optional<LightSpot>> lights_;
     SweepFitResult result_;
     int64_t frames_total_ = 0;
     size_t start_ = 0;
@@ -436,6 +439,7 @@ Status SweepFitter::processFrame(
     if (extend || options_.path_seeds) detect.circles = false;
     auto detection = detectIn(j, *frame, detect);
     if (!detection) return detection.error();
+    lights_[j] = detection->light;
     const double angle = frames_.angles_deg[j];
     const auto& mapping = frame->mapping;
     // Fit above the sky; what this frame's background holds beyond it is a frame-filling ghost.
@@ -867,6 +871,7 @@ void SweepFitter::mergeBackward(SweepFitter& backward,
         }
     }
     for (size_t j = 0; j < s; ++j) {
+        if (backward.lights_[j]) lights_[j] = backward.lights_[j];
         at_frame_[j].clear();
         for (const FrameEntry& entry : backward.at_frame_[j]) {
             const size_t t = entry.track;
@@ -889,6 +894,7 @@ Result<SweepFitResult> SweepFitter::run() {
     const auto t0 = Clock::now();
     const size_t n = frames_.angles_deg.size();
     at_frame_.assign(n, {});
+    lights_.assign(n, std::nullopt);
     frames_total_ = static_cast<int64_t>(n);
     auto start = chooseStart();
     if (!start) return start.error();
@@ -911,6 +917,7 @@ Result<SweepFitResult> SweepFitter::run() {
     SweepFitter backward(frames_, options_, progress_);
     backward.tracks_ = tracks_;
     backward.at_frame_ = at_frame_;
+    backward.lights_ = lights_;
     backward.frames_total_ = frames_total_;
     backward.start_ = start_;
     backward.sky_ = sky_;
@@ -989,6 +996,10 @@ Result<SweepFitResult> SweepFitter::run() {
     result_.stages.link_ms = msSince(link_start);
     result_.sky = sky_;
     result_.detect = detect_;
+    for (size_t j = 0; j < n; ++j)
+        if (lights_[j])
+            result_.light_discs.push_back(
+                {frames_.angles_deg[j], lights_[j]->found ? lights_[j]->radius_px : 0.0});
     result_.time_ms = msSince(t0);
     SweepFitStages& st = result_.stages;
     st.track_ms = std::max(0.0, result_.time_ms - st.load_ms - st.detect_ms - st.fit_ms -
@@ -1142,6 +1153,11 @@ Result<FlareModel> buildModel(const SweepFitResult& result,
     int64_t min_frames = options.min_track_frames;
     if (result.frame_count > 0) min_frames = std::min(min_frames, result.frame_count);
     model.ghosts.clear();
+    // The light's discs, those inside the capture's angles (a caller's metadata may name fewer).
+    model.capture.light_discs.clear();
+    for (const ModelLightDisc& disc : result.light_discs)
+        if (disc.angle_deg >= model.capture.from_deg && disc.angle_deg <= model.capture.to_deg)
+            model.capture.light_discs.push_back(disc);
     for (const GhostTrack& track : result.tracks) {
         const size_t n = track.samples.size();
         if (n == 0 || static_cast<int64_t>(n) < min_frames) continue;

@@ -168,6 +168,9 @@ struct SweepFitResult {
     // that where the light is out of view a small bright ghost is not taken for it (and left
     // out). The shading refit detects with the same.
     DetectOptions detect;
+    // The disc around the light the detection left out of each frame processed, by increasing
+    // angle (radius 0 where no light was found); buildModel records it (ModelCapture).
+    std::vector<ModelLightDisc> light_discs;
     int64_t frame_count = 0;       // frames in the sweep (caps min_track_frames in buildModel)
     int64_t frames_fitted = 0;     // fitFrame calls
     int64_t fragments_linked = 0;  // links made between track fragments (track_link.h)

@@ -73,7 +73,7 @@ TEST(ModelShow, PrintsLensCaptureRangeAndGhosts) {
     ASSERT_EQ(run.code, 0) << run.err;
     EXPECT_TRUE(run.err.empty()) << run.err;
     for (const char* part :
-         {"format 4", "written by flarelab test", "created 2026-11-29T07:04:02Z",
+         {"format 5", "written by flarelab test", "created 2026-11-29T07:04:02Z",
           "lens: heliar 50mm, 50 mm, f/4.5, sensor 36 x 24 mm", "prescription: heliar-50.csv",
           "capture: -4 to 4 deg in steps of 0.5 deg", "64x48 pixels",
           "camera mono test camera, raw format mono", "light power: not measured",
@@ -92,7 +92,7 @@ TEST(ModelShow, JsonIsTheModelsJsonMapping) {
     ASSERT_TRUE(fit::writeModel(path, written));
     const CommandRun run = model({"show", path, "--json"});
     ASSERT_EQ(run.code, 0) << run.err;
-    EXPECT_TRUE(contains(run.out, "\"format_version\": 4")) << run.out;
+    EXPECT_TRUE(contains(run.out, "\"format_version\": 5")) << run.out;
     const Result<fit::FlareModel> back = fit::modelFromJson(run.out, "stdout");
     ASSERT_TRUE(back) << back.error().message;
     EXPECT_EQ(*back, written);

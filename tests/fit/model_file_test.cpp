@@ -52,6 +52,7 @@ FlareModel sampleModel() {
     m.capture.camera = "simulated camera";
     m.capture.raw_format = "bayer-rggb";
     m.capture.light_power_dn_s = 2.5e6;
+    m.capture.light_discs = {{-5.0, 31.5}, {-4.8, 0.0}, {5.0, 12.25}};  // version 5
     m.valid_from_deg = -5.0;
     m.valid_to_deg = 5.0;
 
@@ -170,7 +171,21 @@ std::vector<BrokenCase> brokenCases() {
     const double nan = std::numeric_limits<double>::quiet_NaN();
     const double inf = std::numeric_limits<double>::infinity();
     return {
-        {"format_version", [](FlareModel& m) { m.format_version = 5; }},
+        {"format_version", [](FlareModel& m) { m.format_version = 6; }},
+        // Version 5's light discs in a version 4 model; broken discs.
+        {"capture.light_discs", [](FlareModel& m) { m.format_version = 4; }},
+        {"capture.light_discs[1].angle_deg",
+         [](FlareModel& m) { m.capture.light_discs[1].angle_deg = -5.0; }},
+        {"capture.light_discs[2].angle_deg",
+         [](FlareModel& m) { m.capture.light_discs[2].angle_deg = 10.5; }},
+        {"capture.light_discs[0].angle_deg",
+         [nan](FlareModel& m) { m.capture.light_discs[0].angle_deg = nan; }},
+        {"capture.light_discs[0].radius_px",
+         [](FlareModel& m) { m.capture.light_discs[0].radius_px = -1.0; }},
+        {"capture.light_discs[2].radius_px",
+         [inf](FlareModel& m) { m.capture.light_discs[2].radius_px = inf; }},
+        {"capture.light_discs[2].radius_px",
+         [](FlareModel& m) { m.capture.light_discs[2].radius_px = 801.0; }},  // 640 x 480: 800
         // Version 4's light power in a version 3 model; one that is not a power.
         {"capture.light_power_dn_s", [](FlareModel& m) { m.format_version = 3; }},
         // Version 4's kept samples in a version 3 model; broken samples.
@@ -178,6 +193,7 @@ std::vector<BrokenCase> brokenCases() {
          [](FlareModel& m) {
              m.format_version = 3;
              m.capture.light_power_dn_s.reset();
+             m.capture.light_discs.clear();
          }},
         {"ghosts[1].parameters[0].sample_values",
          [](FlareModel& m) { m.ghosts[1].parameters[0].sample_values.pop_back(); }},
@@ -382,10 +398,10 @@ TEST(ReadModel, RefusesTruncatedBinaryAtEveryLength) {
 TEST(ReadModel, RefusesUnknownVersion) {
     FlareModel model = sampleModel();
     const std::string bytes = modelBytes(model);
-    // Field 1 (format_version, varint) comes first: tag 0x08, value 4.
+    // Field 1 (format_version, varint) comes first: tag 0x08, value 5.
     ASSERT_GE(bytes.size(), 2u);
-    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x04", 2));
-    for (const char version : {'\x00', '\x05'}) {
+    ASSERT_EQ(bytes.substr(0, 2), std::string("\x08\x05", 2));
+    for (const char version : {'\x00', '\x06'}) {
         std::string other = bytes;
         other[1] = version;
         const Result<FlareModel> read = readModelFromMemory(other, "other.flaremodel");
@@ -396,7 +412,7 @@ TEST(ReadModel, RefusesUnknownVersion) {
             << read.error().message;
     }
 
-    const Result<FlareModel> json = modelFromJson(R"({"format_version": 5, "new_field": 1})");
+    const Result<FlareModel> json = modelFromJson(R"({"format_version": 6, "new_field": 1})");
     ASSERT_FALSE(json);
     EXPECT_EQ(json.error().code, ErrorCode::Unsupported) << json.error().message;
     const Result<FlareModel> missing = modelFromJson(R"({"lens": {}})");
@@ -423,6 +439,7 @@ TEST(ReadModel, AVersion1ModelStillReads) {
     old.lens.coat_unspecified_surfaces.reset();
     old.capture.raw_format.clear();
     old.capture.light_power_dn_s.reset();
+    old.capture.light_discs.clear();
     for (ModelGhost& g : old.ghosts)
         for (ModelParameter& p : g.parameters) {
             p.sample_angles_deg.clear();
@@ -454,7 +471,7 @@ TEST(ReadModel, AVersion1ModelStillReads) {
 TEST(ModelFile, Version4RecordsTheCaptureSettingsRawFormatAndLightPower) {
     const Result<std::string> json = modelToJson(sampleModel());
     ASSERT_TRUE(json) << json.error().message;
-    EXPECT_TRUE(contains(*json, "\"format_version\": 4")) << *json;
+    EXPECT_TRUE(contains(*json, "\"format_version\": 5")) << *json;
     EXPECT_TRUE(contains(*json, "\"light_power_dn_s\": 2500000")) << *json;
     FlareModel unmeasured = sampleModel();
     unmeasured.capture.light_power_dn_s.reset();
@@ -488,6 +505,40 @@ TEST(ModelFile, Version4RecordsTheCaptureSettingsRawFormatAndLightPower) {
     EXPECT_EQ(read->lens.coat_unspecified_surfaces, false);
     const std::string shown = describeModel(sampleModel(), "m.flm");
     EXPECT_TRUE(contains(shown, "aperture: 6 blades, blades rotated 15 deg")) << shown;
+}
+
+TEST(ModelFile, Version5RecordsTheLightsDiscPerFittedFrame) {
+    const FlareModel m = sampleModel();
+    const Result<std::string> json = modelToJson(m);
+    ASSERT_TRUE(json) << json.error().message;
+    EXPECT_TRUE(contains(*json, "\"light_discs\"")) << *json;
+    EXPECT_TRUE(contains(*json, "\"radius_px\": 31.5")) << *json;
+    const Result<FlareModel> text = modelFromJson(*json, "v5.json");
+    ASSERT_TRUE(text) << text.error().message;
+    EXPECT_EQ(text->capture.light_discs, m.capture.light_discs);
+    const Result<FlareModel> binary = readModelFromMemory(modelBytes(m));
+    ASSERT_TRUE(binary) << binary.error().message;
+    EXPECT_EQ(*binary, m);
+    const std::string shown = describeModel(m, "m.flm");
+    EXPECT_TRUE(contains(shown, "light's disc: left out in 2 of 3 fitted frames, radius 12.25 to "
+                                "31.5 px"))
+        << shown;
+    FlareModel none = m;
+    none.capture.light_discs.clear();
+    EXPECT_TRUE(contains(describeModel(none, "m.flm"), "light's disc: not recorded"));
+    // A version 4 text that names them is refused by name.
+    FlareModel v4 = none;
+    v4.format_version = 4;
+    const Result<std::string> v4_json = modelToJson(v4);
+    ASSERT_TRUE(v4_json) << v4_json.error().message;
+    const Result<FlareModel> mixed = modelFromJson(
+        replaced(*v4_json, "\"light_discs\": []",
+                 "\"light_discs\": [{\"angle_deg\": 0, \"radius_px\": 3}]"),
+        "mixed.json");
+    ASSERT_FALSE(mixed);
+    EXPECT_TRUE(contains(mixed.error().message,
+                         "mixed.json: capture.light_discs: is a field of format version 5"))
+        << mixed.error().message;
 }
 
 TEST(ReadModel, RefusesUnknownFieldsInBinary) {

@@ -191,5 +191,61 @@ TEST(Score, EveryKindIsSummarizedAndEveryAngleShown) {
     EXPECT_NE(stopped.error().message.find("disk full"), std::string::npos);
 }
 
+
+TEST(Score, TheLightsDiscIsTheOneTheFitRecorded) {
+    FlareModel model = gridModel(0.0, 2.0, 1.0);
+    EXPECT_FALSE(lightDiscRadius(model, 1.0));  // not recorded
+    model.capture.light_discs = {{0.0, 10.0}, {1.0, 20.0}, {1.5, 0.0}, {2.0, 6.0}};
+    EXPECT_EQ(*lightDiscRadius(model, 0.0), 10.0);
+    EXPECT_DOUBLE_EQ(*lightDiscRadius(model, 0.25), 12.5);  // between two lit frames: linear
+    EXPECT_EQ(*lightDiscRadius(model, 1.0), 20.0);
+    EXPECT_EQ(*lightDiscRadius(model, 1.2), 20.0);  // beside a frame with no light: the larger
+    EXPECT_EQ(*lightDiscRadius(model, 1.5), 0.0);
+    EXPECT_EQ(*lightDiscRadius(model, 1.7), 6.0);
+    EXPECT_EQ(*lightDiscRadius(model, -1.0), 10.0);  // beyond the record: the nearest
+    EXPECT_EQ(*lightDiscRadius(model, 2.5), 6.0);
+
+    // scoreModel leaves out that disc, per angle, around the truth's light: a model wrong only
+    // inside the recorded disc scores 0, and a model wrong just outside it does not.
+    model.capture.width_px = 64;
+    model.capture.height_px = 64;
+    model.lens.sensor_width_mm = 64.0;
+    model.lens.sensor_height_mm = 64.0;
+    model.capture.light_discs = {{0.0, 20.0}, {1.0, 20.0}, {2.0, 20.0}};
+    // The truth has light the (empty) model does not draw in a ring 10..18 px from the light:
+    // inside the recorded disc, outside 3% of the diagonal (2.7 px).
+    const TruthSource truth = [](double) -> Result<TruthFrame> {
+        TruthFrame t;
+        t.image = ImageRGB(64, 64);
+        t.light_px = Eigen::Vector2d(32.0, 32.0);
+        for (int64_t y = 0; y < 64; ++y)
+            for (int64_t x = 0; x < 64; ++x) {
+                const double r = std::hypot(x + 0.5 - 32.0, y + 0.5 - 32.0);
+                for (int c = 0; c < 3; ++c) t.image.at(x, y)[c] = r >= 10.0 && r <= 18.0 ? 1.0f : 0.0f;
+            }
+        return t;
+    };
+    ScoreOptions options;
+    options.random_angles = 0;
+    auto recorded = scoreModel(model, truth, options);
+    ASSERT_TRUE(recorded) << recorded.error().message;
+    for (const AngleScore& a : recorded->angles) {
+        EXPECT_EQ(a.light_mask_px, 20.0) << a.angle_deg;
+        EXPECT_EQ(a.rel_l2, 0.0) << a.angle_deg;
+        EXPECT_EQ(a.masked_energy_fraction, 1.0) << a.angle_deg;
+    }
+    // Asked for the old fixed disc, the ring is scored and missed.
+    options.light_mask_px = 0.03 * std::hypot(64.0, 64.0);
+    auto fixed = scoreModel(model, truth, options);
+    ASSERT_TRUE(fixed) << fixed.error().message;
+    for (const AngleScore& a : fixed->angles) EXPECT_EQ(a.rel_l2, 1.0) << a.angle_deg;
+    // A model that records none falls back to the 3 %.
+    model.capture.light_discs.clear();
+    options.light_mask_px = -1.0;
+    auto old = scoreModel(model, truth, options);
+    ASSERT_TRUE(old) << old.error().message;
+    EXPECT_NEAR(old->angles.front().light_mask_px, 0.03 * std::hypot(64.0, 64.0), 1e-12);
+}
+
 }  // namespace
 }  // namespace flarelab::fit

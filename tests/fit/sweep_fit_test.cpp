@@ -578,8 +578,26 @@ TEST(SweepFit, ASmallBrightGhostIsNotTakenForTheLightOnceTheLightIsOutOfView) {
                                           {-8.0, 0.3, 3.0, 30.0, 0.0}};
     const auto angles = angleRange(0.0, 0.5, 13);  // the light in view up to 2.5 deg
     const SweepFitOptions options = quickOptions();
-    auto result = fitSweepFrames(syntheticSource(truth, angles, 2.75), options);
+    const FrameSource source = syntheticSource(truth, angles, 2.75);
+    auto result = fitSweepFrames(source, options);
     ASSERT_TRUE(result) << result.error().message;
+    // The light's disc the fit left out, one per frame, is the detection's own (the same options,
+    // the same frame), and 0 once the light is out of view; the model records it.
+    ASSERT_EQ(result->light_discs.size(), angles.size());
+    for (size_t i = 0; i < angles.size(); ++i) {
+        const ModelLightDisc& disc = result->light_discs[i];
+        EXPECT_EQ(disc.angle_deg, angles[i]);
+        auto frame = source.load(i);
+        ASSERT_TRUE(frame);
+        auto detection = detectGhosts(*frame, result->detect);
+        ASSERT_TRUE(detection);
+        EXPECT_EQ(disc.radius_px, detection->light.found ? detection->light.radius_px : 0.0)
+            << angles[i];
+        EXPECT_EQ(disc.radius_px > 0.0, angles[i] < 2.75) << angles[i];
+    }
+    auto model = buildModel(*result, modelShell(0.0, 6.0), options);
+    ASSERT_TRUE(model) << model.error().message;
+    EXPECT_EQ(model->capture.light_discs, result->light_discs);
     EXPECT_GT(result->detect.min_light_peak, 300.0);
     EXPECT_LT(result->detect.min_light_peak, 5e4);
     // The small ghost is fitted to its own pixels in every frame past the light's exit.
