@@ -104,6 +104,29 @@ struct ShadingRefitReport {
     double time_ms = 0.0;
 };
 
+// One sample of a ghost's crop: the inclusive pixel rectangle [x0, x1] x [y0, y1] whose mean
+// the refit compares with the model's mean over it, and its residual's weight.
+struct SampleBlock {
+    int64_t x0 = 0, x1 = -1, y0 = 0, y1 = -1;
+    double weight = 1.0;
+    bool operator==(const SampleBlock&) const = default;
+};
+
+// The samples of the crop [x0, x1] x [y0, y1] of a frame `width` pixels wide: blocks of `stride`
+// pixels a side from (x0, y0) (smaller at the crop's far edges), each of weight 1. A block that
+// holds pixels `excluded` marks (the light's disc, FrameDetection::excluded) is halved along its
+// longer side until its parts hold none, parts wholly excluded dropped, so that the samples cover
+// every pixel of the crop outside the excluded ones exactly once; a part weighs the square root
+// of its share of the block's pixels, so that the parts of a block together weigh what it would.
+// `excluded` must hold the frame's pixels; stride >= 1.
+std::vector<SampleBlock> sampleBlocks(int64_t x0,
+                                      int64_t x1,
+                                      int64_t y0,
+                                      int64_t y1,
+                                      int64_t stride,
+                                      const std::vector<uint8_t>& excluded,
+                                      int64_t width);
+
 Status checkShadingRefitOptions(const ShadingRefitOptions& options);
 
 // Refits the shading series of `model`'s ghosts to `frames` (the sweep the model was compressed

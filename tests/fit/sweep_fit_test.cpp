@@ -10,6 +10,7 @@
 #include <filesystem>
 #include <functional>
 #include <limits>
+#include <map>
 #include <optional>
 #include <random>
 #include <sstream>
@@ -916,6 +917,58 @@ double modelError(const FlareModel& model, double angle) {
     auto score = compareImages(*image, truth, std::nullopt, 0.0);
     EXPECT_TRUE(score) << score.error().message;
     return score ? score->rel_l2 : 1e9;
+}
+
+// The refit's samples cover every pixel of a crop outside the light's disc exactly once, the
+// disc's none; a block the disc cuts is split and its parts weigh together what it would.
+TEST(ShadingRefit, SamplesCoverEveryPixelOutsideTheLightsDiscOnce) {
+    const int64_t width = 97, height = 61;
+    std::vector<uint8_t> excluded(static_cast<size_t>(width * height), 0);
+    for (int64_t y = 0; y < height; ++y)
+        for (int64_t x = 0; x < width; ++x)
+            if (std::hypot(x + 0.5 - 40.3, y + 0.5 - 22.7) <= 13.4)
+                excluded[static_cast<size_t>(y * width + x)] = 1;
+    for (const int64_t stride : {1, 5, 19, 64}) {
+        const int64_t x0 = 3, x1 = 90, y0 = 2, y1 = 57;
+        const auto blocks = sampleBlocks(x0, x1, y0, y1, stride, excluded, width);
+        std::vector<int> covered(static_cast<size_t>(width * height), 0);
+        std::map<std::pair<int64_t, int64_t>, double> block_weight;  // by whole block's corner
+        for (const SampleBlock& b : blocks) {
+            ASSERT_LE(b.x0, b.x1);
+            ASSERT_LE(b.y0, b.y1);
+            ASSERT_GT(b.weight, 0.0);
+            ASSERT_LE(b.weight, 1.0);
+            for (int64_t y = b.y0; y <= b.y1; ++y)
+                for (int64_t x = b.x0; x <= b.x1; ++x) ++covered[static_cast<size_t>(y * width + x)];
+            const std::pair<int64_t, int64_t> corner = {x0 + (b.x0 - x0) / stride * stride,
+                                                        y0 + (b.y0 - y0) / stride * stride};
+            block_weight[corner] += b.weight * b.weight;
+        }
+        for (int64_t y = 0; y < height; ++y)
+            for (int64_t x = 0; x < width; ++x) {
+                const size_t i = static_cast<size_t>(y * width + x);
+                const bool in_crop = x >= x0 && x <= x1 && y >= y0 && y <= y1;
+                EXPECT_EQ(covered[i], in_crop && !excluded[i] ? 1 : 0)
+                    << "pixel " << x << ", " << y << ", stride " << stride;
+            }
+        // A block's parts: their squared weights sum to the share of its pixels outside the disc.
+        for (const auto& [corner, w2] : block_weight) {
+            const int64_t bx1 = std::min(x1, corner.first + stride - 1);
+            const int64_t by1 = std::min(y1, corner.second + stride - 1);
+            int64_t kept = 0;
+            for (int64_t y = corner.second; y <= by1; ++y)
+                for (int64_t x = corner.first; x <= bx1; ++x)
+                    kept += !excluded[static_cast<size_t>(y * width + x)];
+            const double area =
+                static_cast<double>((bx1 - corner.first + 1) * (by1 - corner.second + 1));
+            EXPECT_NEAR(w2, static_cast<double>(kept) / area, 1e-12) << "stride " << stride;
+        }
+    }
+    // No disc: the plain grid, every block whole.
+    const std::vector<uint8_t> none(static_cast<size_t>(width * height), 0);
+    const auto grid = sampleBlocks(0, 96, 0, 60, 10, none, width);
+    EXPECT_EQ(grid.size(), 70u);  // 10 x 7
+    for (const SampleBlock& b : grid) EXPECT_EQ(b.weight, 1.0);
 }
 
 TEST(ShadingRefit, RepairsShadingCompressedFromWanderingFits) {
