@@ -44,6 +44,7 @@ struct FitState {
     int shape_passes = fit::ShadingRefitOptions{}.shape_passes;
     int shape_frames = fit::ShadingRefitOptions{}.shape_frames_per_ghost;
     double shape_outline = fit::ShadingRefitOptions{}.shape_min_outline_in_frame;
+    double light_margin_px = fit::DetectOptions{}.light_margin_px;
     std::optional<double> light_power_dn_s;
     bool keep_samples = false;
     bool quiet = false;
@@ -178,6 +179,7 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.shading.shape_passes = s.shape_passes;
     options.shading.shape_frames_per_ghost = s.shape_frames;
     options.shading.shape_min_outline_in_frame = s.shape_outline;
+    options.detect.light_margin_px = s.light_margin_px;
     if (s.paths) {
         if (!lens) {
             err << "flarelab: fit: --paths needs --lens (the prescription whose ghost paths seed "
@@ -558,6 +560,11 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_option("--degree", fs->degree,
                     "fixed polynomial degree of every parameter (-1: chosen by cross-validation)")
         ->capture_default_str();
+    fit->add_option("--light-margin-px", fs->light_margin_px,
+                    "pixels added to the disc around the light left out of the fit (and of the "
+                    "score), beyond where the light's glare falls to the noise")
+        ->capture_default_str()
+        ->check(CLI::Range(0.0, 1000.0));
     fit->add_option("--every", fs->every,
                     "fit one frame in every K (the first, then every K-th): a sparse fit whose "
                     "other frames `score --sweep` holds out")

@@ -78,6 +78,7 @@ const std::vector<std::string>& tradeKnobs() {
                                                    "shading refit passes",
                                                    "shading refit min degree",
                                                    "shape refit passes",
+                                                   "light margin",
                                                    "angular step"};
     return knobs;
 }
@@ -278,6 +279,13 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
          {0, 1, 2, 4},
          [](auto& o, int v) { o.shading.shape_passes = v; },
          number},
+        // Pixels added to the light's disc (fit --light-margin-px): more leaves the glare out,
+        // and the data near the light with it; the score leaves out the same disc.
+        {"light margin",
+         {10},
+         {0, 10, 20},
+         [](auto& o, int v) { o.detect.light_margin_px = v; },
+         [](int v) { return std::to_string(v) + " px"; }},
     };
     for (const Knob& k : knobs) {
         FLARELAB_CHECK(std::find(tradeKnobs().begin(), tradeKnobs().end(), k.name) !=
