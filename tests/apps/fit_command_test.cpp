@@ -16,6 +16,7 @@
 #include "drivers/sim_truth.h"
 #include "fit/model_eval.h"
 #include "fit/model_file.h"
+#include "fit/score.h"
 #include "hdr/sweep.h"
 #include "render/preview.h"
 #include "tests/apps/command_runner.h"
@@ -114,12 +115,28 @@ TEST(FitCommand, ASparseFitIsScoredOnTheFramesItLeftOut) {
     ASSERT_TRUE(json["by_kind"].contains("left-out")) << scored.out;
     EXPECT_EQ(json["by_kind"]["left-out"]["count"].get<int>(), 2);
     std::vector<double> left;
+    // The fit recorded the light's disc of each frame it fitted; the score leaves out that disc
+    // (between fitted frames, interpolated).
+    ASSERT_EQ(read->capture.light_discs.size(), 3u);
     for (const auto& a : json["angles"]) {
-        for (const char* key : {"rel_l2", "energy_error", "log_rel_l2", "masked_energy_fraction"})
+        for (const char* key :
+             {"rel_l2", "energy_error", "log_rel_l2", "masked_energy_fraction", "light_mask_px"})
             EXPECT_TRUE(std::isfinite(a[key].get<double>())) << key;
         if (a["kind"] == "left-out") left.push_back(a["angle_deg"].get<double>());
+        EXPECT_DOUBLE_EQ(a["light_mask_px"].get<double>(),
+                         *fit::lightDiscRadius(*read, a["angle_deg"].get<double>()))
+            << a["angle_deg"];
     }
     EXPECT_EQ(left, (std::vector<double>{0.5, 1.5}));
+    const CommandRun fixed = run({"score", model.string(), "--lens", lensFile(), "--json",
+                                  "--halfway", "1", "--random", "0", "--fitted", "1",
+                                  "--light-mask-px", "7.5"});
+    ASSERT_EQ(fixed.code, 0) << fixed.err;
+    const auto fixed_json = nlohmann::json::parse(fixed.out);
+    for (const auto& a : fixed_json["angles"])
+        EXPECT_TRUE(a["light_mask_px"] == 7.5 || a["light_mask_px"] == 0.0) << fixed.out;
+    EXPECT_EQ(run({"score", model.string(), "--lens", lensFile(), "--light-mask-px", "-1"}).code,
+              2);
     // One image per angle, three frames wide.
     int pngs = 0;
     for (const auto& entry : fs::directory_iterator(images)) {
