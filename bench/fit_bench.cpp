@@ -5,6 +5,7 @@
 #include <cmath>
 #include <functional>
 #include <iomanip>
+#include <iterator>
 #include <nlohmann/json.hpp>
 #include <sstream>
 
@@ -287,6 +288,12 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
          [](auto& o, int v) { o.detect.light_margin_px = v; },
          [](int v) { return std::to_string(v) + " px"; }},
     };
+    // The table and the names `--knob` accepts are one list, both ways ("angular step" is the
+    // other sweeps, below).
+    for (const std::string& name : tradeKnobs())
+        FLARELAB_CHECK(name == "angular step" ||
+                       std::any_of(std::begin(knobs), std::end(knobs),
+                                   [&](const Knob& k) { return k.name == name; }));
     for (const Knob& k : knobs) {
         FLARELAB_CHECK(std::find(tradeKnobs().begin(), tradeKnobs().end(), k.name) !=
                        tradeKnobs().end());
