@@ -137,6 +137,24 @@ TEST(FitCommand, ASparseFitIsScoredOnTheFramesItLeftOut) {
         EXPECT_TRUE(a["light_mask_px"] == 7.5 || a["light_mask_px"] == 0.0) << fixed.out;
     EXPECT_EQ(run({"score", model.string(), "--lens", lensFile(), "--light-mask-px", "-1"}).code,
               2);
+    // A model of format 4 records no disc: 3 % of the diagonal, and the score says so.
+    fit::FlareModel older = *read;
+    older.format_version = 4;
+    older.capture.light_discs.clear();
+    const fs::path older_path = tempPath("older.flm");
+    ASSERT_TRUE(fit::writeModel(older_path.string(), older));
+    const CommandRun old_score = run({"score", older_path.string(), "--lens", lensFile(), "--json",
+                                      "--halfway", "1", "--random", "0", "--fitted", "1"});
+    ASSERT_EQ(old_score.code, 0) << old_score.err;
+    EXPECT_NE(old_score.err.find("does not record the light's disc"), std::string::npos)
+        << old_score.err;
+    const auto old_json = nlohmann::json::parse(old_score.out);
+    for (const auto& a : old_json["angles"])
+        EXPECT_TRUE(a["light_mask_px"] == 0.0 ||
+                    std::abs(a["light_mask_px"].get<double>() - 0.03 * std::hypot(160.0, 107.0)) <
+                        1e-9)
+            << old_score.out;
+    fs::remove(older_path);
     // One image per angle, three frames wide.
     int pngs = 0;
     for (const auto& entry : fs::directory_iterator(images)) {
