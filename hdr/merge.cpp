@@ -33,6 +33,9 @@ constexpr double kMaxFloorVariance = 1e30;
 // Floors that keep divisions finite where a select would break vectorization: sum_rel is 0 or at
 // least 1 / kMaxExposureRatio, a sum of weights 0 or at least 1 / (1e20 * 6.6e13 + 1e30).
 constexpr float kMinRel = 1e-12f;
+// A dark sample bounds its pixel's signal from above by its threshold plus this many read-noise
+// sigmas (the reading is noisy: a dim pixel's sample may fall under the threshold).
+constexpr double kDarkCeilingSigmas = 4.0;
 constexpr float kMinWeight = 1e-36f;
 // Samples one thread handles in one go; the per-sample sums of a run stay in L1.
 constexpr int64_t kRun = 1024;
@@ -161,6 +164,9 @@ struct BracketPlan {
     float inv_rel = 1.0f;
     float shot = 0.0f;   // 1 / (e * rel)
     float floor = 0.0f;  // (r^2 + 1/12) / rel^2
+    // The most signal (reference units) a dark sample of this bracket leaves room for: its
+    // threshold plus kDarkCeilingSigmas of its read noise, / rel.
+    float dark_ceiling = 0.0f;
 };
 
 // The integer thresholds of a bracket: {usable from, saturated from}. DN are integers: DN >= x
@@ -195,6 +201,11 @@ BracketPlan planBracket(const RawFrame& f,
         read_noise_dn = o.fallback_read_noise_dn;
         *used_fallback = true;
     }
+    p.dark_ceiling = static_cast<float>(std::min(
+        (usable - f.black_level_dn +
+         kDarkCeilingSigmas * std::sqrt(read_noise_dn * read_noise_dn + kQuantizationVarianceDn2)) /
+            rel,
+        static_cast<double>(std::numeric_limits<float>::max())));
     p.shot = static_cast<float>(std::min(1.0 / (electrons_per_dn * rel), kMaxShotCoefficient));
     p.floor = static_cast<float>(
         std::min((read_noise_dn * read_noise_dn + kQuantizationVarianceDn2) / (rel * rel),
@@ -289,9 +300,12 @@ template <int L>
     const int64_t vectors = (n + L - 1) / L;
     const auto validIn = [n](int64_t v) { return std::min<int64_t>(L, n - v * L); };
     F sum_signal[kRun / L], sum_rel[kRun / L], bound[kRun / L], sum_w[kRun / L], sum_wy[kRun / L];
+    F ceiling[kRun / L];  // the least signal a dark sample allows (reference units)
     I used[kRun / L];
+    const F no_ceiling = splat<L>(std::numeric_limits<float>::max());
     for (int64_t v = 0; v < vectors; ++v) {
         sum_signal[v] = sum_rel[v] = bound[v] = sum_w[v] = sum_wy[v] = F{};
+        ceiling[v] = no_ceiling;
         used[v] = I{};
     }
     // Pass 1: pilot sums and the saturation bound.
@@ -310,13 +324,20 @@ template <int L>
             used[v] -= is_usable;  // masks are -1
             const F lower = masked<L>(signal * inv_rel, is_saturated);
             bound[v] = bound[v] < lower ? lower : bound[v];
+            // A dark sample says the signal is under its threshold in this bracket (give or take
+            // its read noise).
+            const I is_dark = dn < usable;
+            const F upper = is_dark ? splat<L>(p.dark_ceiling) : no_ceiling;
+            ceiling[v] = upper < ceiling[v] ? upper : ceiling[v];
         }
     }
     // The pilot: shot-noise-optimal (total signal over total exposure), >= 0.
     F pilot[kRun / L];
     const F min_rel = splat<L>(kMinRel);
-    for (int64_t v = 0; v < vectors; ++v)
+    for (int64_t v = 0; v < vectors; ++v) {
         pilot[v] = sum_signal[v] / (sum_rel[v] > min_rel ? sum_rel[v] : min_rel);
+        pilot[v] = pilot[v] < ceiling[v] ? pilot[v] : ceiling[v];
+    }
     // Pass 2: inverse-variance weights at the pilot.
     for (const BracketPlan& p : plans) {
         const uint16_t* src = p.samples + begin;
@@ -337,7 +358,10 @@ template <int L>
     for (int64_t v = 0; v < vectors; ++v) {
         // Without a usable sample sum_wy and the mean are 0, and the bound (or 0) stands.
         const I none = used[v] == 0;
-        const F mean = sum_wy[v] / (sum_w[v] > min_weight ? sum_w[v] : min_weight);
+        F mean = sum_wy[v] / (sum_w[v] > min_weight ? sum_w[v] : min_weight);
+        // Usable samples of short brackets whose read noise claims more than a dark longer
+        // bracket allows are held to what that bracket allows (the pixel's signal is under it).
+        mean = mean < ceiling[v] ? mean : ceiling[v];
         const F y = (mean + masked<L>(bound[v], none)) * scale;
         const I positive = y > F{};
         const typename Lanes<L>::Count c =

@@ -32,8 +32,12 @@
 // Which samples count:
 //   - saturated: DN >= white_level_dn - saturation_margin_fraction * (white - black). Dropped:
 //     near white the converter and the pixel well are no longer linear.
-//   - dark: DN - black < min_signal_dn. Dropped: at or below the black level a sample holds no
-//     signal, and what lay below black may have been clipped by the converter.
+//   - dark: DN - black < min_signal_dn. Dropped as a value: at or below the black level a sample
+//     holds no signal, and what lay below black may have been clipped by the converter. Kept as
+//     an upper bound: the pixel's merged value is at most the least of its dark samples' ceilings,
+//     (the usable threshold above black + 4 read-noise sigmas) / (exposure_s * gain). Without
+//     it, where every long bracket is dark (outside a lens's image circle), a DN or two of read
+//     noise in a very short bracket made the pixel 1e8 DN/s.
 //   - every other sample is usable; MergedFrame::count holds how many each pixel had.
 // A sample with no usable bracket (count 0) is
 //   - a lower bound where at least one bracket saturated it: the largest (DN - black) /

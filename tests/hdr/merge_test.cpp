@@ -214,6 +214,29 @@ TEST(MergeBrackets, SampleBlackInEveryBracketIsZeroWithCountZero) {
     EXPECT_EQ(merged->saturated_samples, 0);
 }
 
+// Outside a lens's image circle a pixel sees nothing: the long brackets read black (dark, dropped)
+// and the read noise of a very short one may read a DN or two. Alone, those made the pixel 1e8
+// DN/s; a dark bracket bounds the signal (its threshold plus four read-noise sigmas), so the
+// pixel stays under what the longest dark one allows. A lit pixel of the same brackets keeps its
+// value.
+TEST(MergeBrackets, AShortBracketsReadNoiseIsHeldUnderWhatADarkLongerBracketAllows) {
+    const std::vector<double> exposures = {3.6e-9, 4.2e-8, 4.9e-7, 5.7e-6, 6.6e-5, 7.8e-4, 9.1e-3};
+    std::vector<RawFrame> brackets = exposeExactly({0.0, 2.0e5}, exposures);
+    brackets[0].samples[0] = 130;  // two DN of read noise in the shortest bracket
+    brackets[2].samples[0] = 129;  // and one in the third
+    auto merged = mergeBrackets(brackets);
+    ASSERT_TRUE(merged) << merged.error().message;
+    // At most one DN plus four read-noise sigmas over the longest exposure.
+    EXPECT_LE(merged->radiance[0], (1.0 + 4.0 * std::sqrt(2.5 * 2.5 + 1.0 / 12.0)) / 9.1e-3 * 1.0001);
+    EXPECT_GT(merged->count[0], 0);
+    EXPECT_NEAR(merged->radiance[1], 2.0e5, 2.0e5 * 2e-3);
+    // Without the dark brackets' bound the noise alone was the pixel's value.
+    std::vector<RawFrame> shortest = {brackets[0]};
+    auto alone = mergeBrackets(shortest);
+    ASSERT_TRUE(alone);
+    EXPECT_GT(alone->radiance[0], 1e8);
+}
+
 TEST(MergeBrackets, OneBracketIsItsOwnRadianceAtUnityGain) {
     RawFrame f = frame(4, 1, 0.5);
     f.gain = 2.0;
