@@ -30,12 +30,12 @@ constexpr double kQuantizationVarianceDn2 = 1.0 / 12.0;
 // keep every variance below 1e34 and so every weight a normal float.
 constexpr double kMaxShotCoefficient = 1e20;
 constexpr double kMaxFloorVariance = 1e30;
-// Floors that keep divisions finite where a select would break vectorization: sum_rel is 0 or at
-// least 1 / kMaxExposureRatio, a sum of weights 0 or at least 1 / (1e20 * 6.6e13 + 1e30).
-constexpr float kMinRel = 1e-12f;
 // A dark sample bounds its pixel's signal from above by its threshold plus this many read-noise
 // sigmas (the reading is noisy: a dim pixel's sample may fall under the threshold).
 constexpr double kDarkCeilingSigmas = 4.0;
+// Floors that keep divisions finite where a select would break vectorization: sum_rel is 0 or at
+// least 1 / kMaxExposureRatio, a sum of weights 0 or at least 1 / (1e20 * 6.6e13 + 1e30).
+constexpr float kMinRel = 1e-12f;
 constexpr float kMinWeight = 1e-36f;
 // Samples one thread handles in one go; the per-sample sums of a run stay in L1.
 constexpr int64_t kRun = 1024;
@@ -313,7 +313,7 @@ template <int L>
         const uint16_t* src = p.samples + begin;
         const F black = splat<L>(p.black_dn), saturated = splat<L>(p.saturated_dn);
         const F usable = splat<L>(p.usable_dn), rel = splat<L>(p.rel);
-        const F inv_rel = splat<L>(p.inv_rel);
+        const F inv_rel = splat<L>(p.inv_rel), dark_ceiling = splat<L>(p.dark_ceiling);
         for (int64_t v = 0; v < vectors; ++v) {
             const F dn = loadDn<L>(src + v * L, validIn(v));
             const F signal = dn - black;
@@ -327,7 +327,7 @@ template <int L>
             // A dark sample says the signal is under its threshold in this bracket (give or take
             // its read noise).
             const I is_dark = dn < usable;
-            const F upper = is_dark ? splat<L>(p.dark_ceiling) : no_ceiling;
+            const F upper = is_dark ? dark_ceiling : no_ceiling;
             ceiling[v] = upper < ceiling[v] ? upper : ceiling[v];
         }
     }
