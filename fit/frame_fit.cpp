@@ -142,6 +142,17 @@ void clampInto(std::vector<double>& v, const Bounds& b) {
     for (size_t i = 0; i < v.size(); ++i) v[i] = std::clamp(v[i], b.lower[i], b.upper[i]);
 }
 
+// A start with its extents (half height, left, right) less its outer falloff, clamped into the
+// bounds: a detection's blob reaches out over the ghost's outer falloff.
+std::vector<double> shrunkByOuterFalloff(std::vector<double> v,
+                                         const Layout& layout,
+                                         const Bounds& b) {
+    const double fo = v[static_cast<size_t>(layout.outerFalloff())];
+    for (int i : {2, 3, 4}) v[static_cast<size_t>(i)] -= fo;
+    clampInto(v, b);
+    return v;
+}
+
 // Whether every fitted channel's border is under a tenth of its inner intensity.
 bool darkRim(const std::vector<double>& v, const Layout& layout) {
     for (int c = 0; c < layout.channels; ++c) {
@@ -797,7 +808,8 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                 std::vector<GhostState>& ghosts,
                                 const FrameFitOptions& options,
                                 std::span<const GhostState> priors,
-                                std::span<const GhostState> fixed) {
+                                std::span<const GhostState> fixed,
+                                std::span<const std::vector<GhostState>> restarts) {
     if (Status ok = checkFrameFitOptions(options); !ok) return ok.error();
     const int64_t width = frame.image.width, height = frame.image.height;
     if (width < 1 || height < 1)
@@ -818,6 +830,20 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
             return makeError(ErrorCode::InvalidArgument,
                              "frame fit: ghost " + std::to_string(g) + ": " + ok.error().message);
     }
+    if (restarts.size() > ghosts.size())
+        return makeError(ErrorCode::InvalidArgument,
+                         "frame fit: restarts for " + std::to_string(restarts.size()) +
+                             " ghosts, but only " + std::to_string(ghosts.size()) +
+                             " ghosts to fit");
+    for (size_t g = 0; g < restarts.size(); ++g)
+        for (size_t k = 0; k < restarts[g].size(); ++k) {
+            Status ok = render::validateGhostShape(restarts[g][k].shape);
+            if (ok) ok = render::validateShading(restarts[g][k].shading);
+            if (!ok)
+                return makeError(ErrorCode::InvalidArgument,
+                                 "frame fit: ghost " + std::to_string(g) + ", restart " +
+                                     std::to_string(k) + ": " + ok.error().message);
+        }
     const auto start = Clock::now();
     FrameFitReport report;
     report.ghosts.assign(ghosts.size(), GhostFitReport{});
@@ -841,25 +867,43 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
     };
     std::stable_sort(order.begin(), order.end(),
                      [&](size_t a, size_t b) { return peak(a) > peak(b); });
+    // Ghosts whose fit from a restart was kept: their prior (the prediction the restart
+    // replaced) no longer holds them.
+    std::vector<char> restarted(ghosts.size(), 0);
     for (int pass = 0; pass < options.passes; ++pass) {
         const auto fit_one = [&](size_t g) {
             GhostFitReport& gr = report.ghosts[g];
             const GhostState state = ghosts[g];
-            const auto& s = state.shape;
             const double size_mm = ghostSize(state);
-            const double grow = state.shading.outer_falloff_mm + options.cost.margin * size_mm;
-            const auto& m = frame.mapping;
-            const Eigen::Vector2d a = m.toPixels(s.centre_x_mm - s.left_mm - grow,
-                                                 s.centre_y_mm - s.half_height_mm - grow);
-            const Eigen::Vector2d b = m.toPixels(s.centre_x_mm + s.right_mm + grow,
-                                                 s.centre_y_mm + s.half_height_mm + grow);
-            const int64_t x0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(a.x())));
-            const int64_t y0 = std::max<int64_t>(0, static_cast<int64_t>(std::floor(a.y())));
-            const int64_t x1 =
-                std::min<int64_t>(width - 1, static_cast<int64_t>(std::floor(b.x())));
-            const int64_t y1 =
-                std::min<int64_t>(height - 1, static_cast<int64_t>(std::floor(b.y())));
-            if (x0 > x1 || y0 > y1) {
+            // The crop: the pixels of the ghost's box grown by its outer falloff and the cost's
+            // margin, over every state given (their boxes' union), within the frame.
+            struct Crop {
+                int64_t x0, y0, x1, y1;
+                bool empty() const { return x0 > x1 || y0 > y1; }
+            };
+            const auto cropOf = [&](std::span<const GhostState> states) {
+                Crop c{width, height, -1, -1};
+                for (const GhostState& st : states) {
+                    const auto& s = st.shape;
+                    const double grow =
+                        st.shading.outer_falloff_mm + options.cost.margin * ghostSize(st);
+                    const auto& m = frame.mapping;
+                    const Eigen::Vector2d a = m.toPixels(s.centre_x_mm - s.left_mm - grow,
+                                                         s.centre_y_mm - s.half_height_mm - grow);
+                    const Eigen::Vector2d b = m.toPixels(s.centre_x_mm + s.right_mm + grow,
+                                                         s.centre_y_mm + s.half_height_mm + grow);
+                    c.x0 = std::min(c.x0, static_cast<int64_t>(std::floor(a.x())));
+                    c.y0 = std::min(c.y0, static_cast<int64_t>(std::floor(a.y())));
+                    c.x1 = std::max(c.x1, static_cast<int64_t>(std::floor(b.x())));
+                    c.y1 = std::max(c.y1, static_cast<int64_t>(std::floor(b.y())));
+                }
+                return Crop{std::max<int64_t>(0, c.x0), std::max<int64_t>(0, c.y0),
+                            std::min<int64_t>(width - 1, c.x1),
+                            std::min<int64_t>(height - 1, c.y1)};
+            };
+            const Crop crop = cropOf(std::span<const GhostState>(&state, 1));
+            const int64_t x0 = crop.x0, y0 = crop.y0, x1 = crop.x1, y1 = crop.y1;
+            if (crop.empty()) {
                 gr.samples = 0;
                 return;
             }
@@ -874,7 +918,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                             state.shading.inner_rgb[c], detection.noise_sigma[c]});
             GhostProblem problem(layout, options.cost, intensity_scale);
             problem.build(frame, detection, x0, y0, x1, y1, others, transform_scale);
-            if (g < priors.size() && options.prior_tolerance > 0.0)
+            if (g < priors.size() && options.prior_tolerance > 0.0 && !restarted[g])
                 problem.setPrior(priors[g], size_mm, options.prior_tolerance);
             gr.samples = problem.samples();
             if (problem.samples() < layout.size()) return;  // not enough data: keep the state
@@ -882,6 +926,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                              0.5 * options.cost.margin * size_mm);
             std::vector<double> v = packState(state, layout, intensity_scale);
             clampInto(v, bounds);
+            Bounds kept_bounds = bounds;  // the bounds the kept fit was solved within
             const double initial = problem.cost(v.data());
             if (pass == 0) gr.initial_cost = initial;
             if (!std::isfinite(initial)) {
@@ -904,23 +949,27 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                 so.num_threads = 1;
                 so.logging_type = ceres::SILENT;
                 so.minimizer_progress_to_stdout = false;
-                // Levenberg-Marquardt from x within the bounds; the final cost, or nullopt.
-                const auto solve = [&](std::vector<double>& x) -> std::optional<double> {
+                // Levenberg-Marquardt from x within `within` on `on`; the final cost, or nullopt.
+                const auto solveOn = [&](const GhostProblem& on, const Bounds& within,
+                                         std::vector<double>& x) -> std::optional<double> {
                     ceres::Problem cp;
-                    cp.AddResidualBlock(new GhostCostFunction(problem, layout.size()), nullptr,
+                    cp.AddResidualBlock(new GhostCostFunction(on, layout.size()), nullptr,
                                         x.data());
                     for (int k = 0; k < layout.size(); ++k) {
                         cp.SetParameterLowerBound(x.data(), k,
-                                                  bounds.lower[static_cast<size_t>(k)]);
+                                                  within.lower[static_cast<size_t>(k)]);
                         cp.SetParameterUpperBound(x.data(), k,
-                                                  bounds.upper[static_cast<size_t>(k)]);
+                                                  within.upper[static_cast<size_t>(k)]);
                     }
                     ceres::Solver::Summary summary;
                     ceres::Solve(so, &cp, &summary);
                     gr.iterations += static_cast<int>(summary.iterations.size());
                     if (summary.termination_type == ceres::FAILURE || !summary.IsSolutionUsable())
                         return std::nullopt;
-                    return problem.cost(x.data());
+                    return on.cost(x.data());
+                };
+                const auto solve = [&](std::vector<double>& x) {
+                    return solveOn(problem, bounds, x);
                 };
                 // Another start, kept when it ends lower.
                 const auto tryFrom = [&](std::vector<double> x) {
@@ -941,13 +990,8 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                 // large and the border dimmed. The same start with the extents less the outer
                 // falloff is tried too (on synthetic discs it takes the recovered image's error
                 // from 0.07-0.29 to 0.02).
-                if (pass == 0 && g >= priors.size()) {
-                    std::vector<double> shrunk = from;
-                    const double fo = shrunk[static_cast<size_t>(layout.outerFalloff())];
-                    for (int i : {2, 3, 4}) shrunk[static_cast<size_t>(i)] -= fo;
-                    clampInto(shrunk, bounds);
-                    tryFrom(std::move(shrunk));
-                }
+                if (pass == 0 && g >= priors.size())
+                    tryFrom(shrunkByOuterFalloff(from, layout, bounds));
                 // A dark rim: a shape started too large can settle with its border at zero and
                 // its inner light rising steeply some way inside, which draws the ghost's edge
                 // where the rise is, but cannot draw a rim brighter than the inside and holds
@@ -958,6 +1002,43 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                 std::vector<double> retry = v;
                 if (darkRim(retry, layout) && shrinkToRise(retry, layout, bounds, px_mm))
                     tryFrom(std::move(retry));
+                // Other starts for a tracked ghost whose prediction is uncertain (the tracker
+                // extrapolated across missing frames): each is solved on a crop that also holds
+                // the start's box, without the prior (which is that prediction), and the fit
+                // that explains that crop best is kept; if a restart's is, the prior is dropped
+                // for the frame's later passes.
+                if (pass == 0 && g < restarts.size() && !restarts[g].empty()) {
+                    std::vector<GhostState> boxes = {
+                        state, unpackState(v.data(), layout, intensity_scale)};
+                    boxes.insert(boxes.end(), restarts[g].begin(), restarts[g].end());
+                    const Crop wide = cropOf(boxes);
+                    GhostProblem wider(layout, options.cost, intensity_scale);
+                    wider.build(frame, detection, wide.x0, wide.y0, wide.x1, wide.y1, others,
+                                transform_scale);
+                    if (wider.samples() >= layout.size()) {
+                        double best = wider.cost(v.data());
+                        for (const GhostState& restart : restarts[g]) {
+                            const double restart_mm = ghostSize(restart);
+                            const Bounds around =
+                                makeBounds(layout, px_mm, diagonal_mm, restart_mm, restart,
+                                           0.5 * options.cost.margin * restart_mm);
+                            std::vector<double> given = packState(restart, layout, intensity_scale);
+                            clampInto(given, around);
+                            // As given and, like a new ghost's start, less its outer falloff.
+                            for (std::vector<double> x :
+                                 {given, shrunkByOuterFalloff(given, layout, around)}) {
+                                if (const auto c = solveOn(wider, around, x); c && *c < best) {
+                                    best = *c;
+                                    v = std::move(x);
+                                    kept_bounds = around;
+                                    gr.final_cost = best;  // on the wider crop
+                                    restarted[g] = 1;
+                                }
+                            }
+                        }
+                        gr.evaluations += wider.evaluations();
+                    }
+                }
             } else {
                 GhostFitReport local;
                 gradientDescent(problem, v, bounds, options, local);
@@ -965,7 +1046,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
                 gr.final_cost = local.final_cost;
             }
             gr.evaluations += problem.evaluations();
-            clampInto(v, bounds);
+            clampInto(v, kept_bounds);
             GhostState fitted = unpackState(v.data(), layout, intensity_scale);
             if (render::validateGhostShape(fitted.shape) && render::validateShading(fitted.shading))
                 ghosts[g] = fitted;

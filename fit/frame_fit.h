@@ -145,12 +145,20 @@ std::array<double, 3> transformScales(const FitFrame& frame,
 // (shape value - prior) / tolerance, so that what the frame does not constrain (an edge outside
 // the frame, a rim hidden under a brighter ghost) stays where the track predicts it instead of
 // drifting; where the data speaks, its thousands of samples outweigh the nine.
+// Restarts (optional; restarts[g] for the first restarts.size() ghosts, each list possibly
+// empty): other starts for ghost g, for a start that may be far off (a track predicted across
+// missing frames). After the first pass's fit from the given state, each restart, as given and
+// with its extents less its outer falloff, is fitted within bounds around itself on a crop that
+// holds every box involved, without the prior; the state that explains that crop best is kept,
+// and where a restart's is, the ghost's prior is dropped for the later passes. More restarts
+// than ghosts, or an invalid restart state, is InvalidArgument.
 Result<FrameFitReport> fitFrame(const FitFrame& frame,
                                 const FrameDetection& detection,
                                 std::vector<GhostState>& ghosts,
                                 const FrameFitOptions& options = {},
                                 std::span<const GhostState> priors = {},
-                                std::span<const GhostState> fixed = {});
+                                std::span<const GhostState> fixed = {},
+                                std::span<const std::vector<GhostState>> restarts = {});
 
 // The frame's model: the ghosts drawn as pixel means (through the tile engine) plus the
 // background, in the frame's unit, with the frame's channel count.

@@ -130,6 +130,17 @@ GhostState predictState(
 
 using Clock = std::chrono::steady_clock;
 
+// The median gap between neighbouring angles (in sorted order); 0 with fewer than two.
+double medianStep(std::vector<double> angles) {
+    if (angles.size() < 2) return 0.0;
+    std::sort(angles.begin(), angles.end());
+    std::vector<double> gaps;
+    for (size_t i = 1; i < angles.size(); ++i) gaps.push_back(angles[i] - angles[i - 1]);
+    std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2),
+                     gaps.end());
+    return gaps[gaps.size() / 2];
+}
+
 // A path seed's ghost as the frame shows it: the seed's outline with circle-like falloffs, its
 // inner intensity the median of the frame over the sky inside half its extents, its border the
 // 90th percentile between 0.6 and 1 of them (per channel; excluded pixels and pixels off the
@@ -384,6 +395,8 @@ private:
                                   std::numeric_limits<double>::infinity()};
     // options_.detect, with a floor under the light's peak once the probes have shown the light.
     DetectOptions detect_ = options_.detect;
+    // The sweep's step: the median gap between neighbouring frame angles (0 for one frame).
+    double step_deg_ = medianStep(frames_.angles_deg);
 };
 
 Result<int> SweepFitter::chooseStart() {
@@ -536,10 +549,12 @@ Status SweepFitter::processFrame(
     std::sort(pairs.begin(), pairs.end(),
               [](const Pair& a, const Pair& b) { return a.distance < b.distance; });
     std::vector<bool> matched(live.size(), false), used(candidates.size(), false);
+    std::vector<int64_t> match_of(live.size(), -1);
     for (const Pair& pair : pairs) {
         if (matched[pair.track] || used[pair.candidate]) continue;
         matched[pair.track] = true;
         used[pair.candidate] = true;
+        match_of[pair.track] = static_cast<int64_t>(pair.candidate);
     }
 
     // The frame's extent in mm, for "left the frame".
@@ -665,8 +680,32 @@ Status SweepFitter::processFrame(
         // is all there is; a seed's outline as a new ghost's prior kept ghosts whose seed the
         // frame does not bear out, docs/path-tracking.md).
         const std::span<const GhostState> priors(predicted);
+        // The first frame after missing frames (more than a step and a half from the frame
+        // before it in the pass): a track predicted across the gap may have moved from where
+        // the prediction puts it, so its nearest sample as it was, and the detection it
+        // matched, are tried as starts too. Sweeps without gaps are fitted as before.
+        std::vector<std::vector<GhostState>> restarts(live.size());
+        const int64_t before = static_cast<int64_t>(j) - direction;
+        const bool after_gap =
+            direction != 0 && step_deg_ > 0.0 && before >= 0 &&
+            before < static_cast<int64_t>(frames_.angles_deg.size()) &&
+            std::abs(frames_.angles_deg[static_cast<size_t>(before)] - angle) > 1.5 * step_deg_;
+        if (after_gap) {
+            for (size_t i = 0; i < live.size(); ++i) {
+                const Track& track = tracks_[live[i]];
+                if (track.samples.empty()) continue;
+                const TrackSample* nearest = &track.samples.front();
+                for (const TrackSample& sample : track.samples)
+                    if (std::abs(sample.angle_deg - angle) < std::abs(nearest->angle_deg - angle))
+                        nearest = &sample;
+                if (std::abs(nearest->angle_deg - angle) <= 1.5 * step_deg_) continue;
+                restarts[i].push_back(nearest->state);
+                if (match_of[i] >= 0)
+                    restarts[i].push_back(candidates[static_cast<size_t>(match_of[i])].initial);
+            }
+        }
         const auto t0 = Clock::now();
-        auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame, priors, fixed);
+        auto fitted = fitFrame(*frame, *detection, ghosts, options_.frame, priors, fixed, restarts);
         (extend ? result_.stages.extend_ms : result_.stages.fit_ms) += msSince(t0);
         if (!fitted)
             return fitted.error().withContext("frame " + std::to_string(j) + " (" +

@@ -265,6 +265,66 @@ TEST(FrameFit, RefusesBadInput) {
     broken.shape.left_mm = -1.0;
     ghosts = {broken};
     EXPECT_FALSE(fitFrame(frame, detection, ghosts, {}).has_value());
+    // Restarts: no more lists than ghosts, and each state valid, named by ghost and restart.
+    ghosts = {disc(0.0, 0.0, 2.0, 10.0, 10.0)};
+    const std::vector<std::vector<GhostState>> two = {{}, {}};
+    auto refused = fitFrame(frame, detection, ghosts, {}, {}, {}, two);
+    ASSERT_FALSE(refused.has_value());
+    EXPECT_NE(refused.error().message.find("restarts for 2 ghosts"), std::string::npos);
+    const std::vector<std::vector<GhostState>> bad = {{ghosts[0], broken}};
+    refused = fitFrame(frame, detection, ghosts, {}, {}, {}, bad);
+    ASSERT_FALSE(refused.has_value());
+    EXPECT_NE(refused.error().message.find("ghost 0, restart 1"), std::string::npos)
+        << refused.error().message;
+}
+
+// A tracked ghost predicted across missing frames: the prediction (and so its prior and its
+// crop) lies well away from where the ghost now is, so the fit from it alone cannot reach the
+// ghost. Given a restart near the ghost (its detection, or the track's nearest sample), the fit
+// finds it; a restart that explains the frame worse than the fit from the prediction is not
+// kept.
+TEST(FrameFit, ARestartFarFromThePredictionIsKeptWhenItExplainsTheFrameBetter) {
+    const std::vector<GhostState> truth = {disc(6.0, 0.5, 2.5, 400.0, 200.0)};
+    const FitFrame frame = makeFrame(truth, 160, 107, 5.0, 2.0, 11);
+    const FrameDetection detection = plainDetection(frame, 5.0, 2.0);
+    const GhostState predicted = disc(-8.0, 0.0, 2.5, 300.0, 150.0);
+    const GhostState nearest = disc(5.7, 0.35, 2.35, 380.0, 210.0);
+    const std::vector<GhostState> priors = {predicted};
+    // With and without Ceres' line search.
+    for (const int steps : {0, 20}) {
+        SCOPED_TRACE("line_search_steps " + std::to_string(steps));
+        FrameFitOptions options;
+        options.line_search_steps = steps;
+        options.passes = 3;
+        options.max_iterations = 25;
+
+        std::vector<GhostState> alone = {predicted};
+        ASSERT_TRUE(fitFrame(frame, detection, alone, options, priors));
+        EXPECT_GT(std::abs(alone[0].shape.centre_x_mm - 6.0), 3.0);  // stuck where it started
+        EXPECT_GT(relativeL2(alone, truth, frame), 0.5);
+
+        const std::vector<std::vector<GhostState>> restarts = {{nearest}};
+        std::vector<GhostState> ghosts = {predicted};
+        auto report = fitFrame(frame, detection, ghosts, options, priors, {}, restarts);
+        ASSERT_TRUE(report.has_value()) << report.error().message;
+        EXPECT_TRUE(report->ghosts[0].ok);
+        EXPECT_NEAR(ghosts[0].shape.centre_x_mm, 6.0, 0.1);
+        EXPECT_NEAR(ghosts[0].shape.centre_y_mm, 0.5, 0.1);
+        EXPECT_LT(relativeL2(ghosts, truth, frame), 0.05);
+
+        // Predicted well, with a restart far off in the empty sky: the restart is not kept, and
+        // the fit is the one without it, bit for bit.
+        const GhostState close = disc(5.9, 0.45, 2.45, 380.0, 210.0);
+        const std::vector<GhostState> close_prior = {close};
+        std::vector<GhostState> plain = {close};
+        ASSERT_TRUE(fitFrame(frame, detection, plain, options, close_prior));
+        EXPECT_LT(relativeL2(plain, truth, frame), 0.05);
+        const std::vector<std::vector<GhostState>> astray = {{predicted}};
+        ghosts = {close};
+        report = fitFrame(frame, detection, ghosts, options, close_prior, {}, astray);
+        ASSERT_TRUE(report.has_value()) << report.error().message;
+        EXPECT_EQ(ghosts[0], plain[0]);
+    }
 }
 
 }  // namespace
