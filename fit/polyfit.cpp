@@ -92,24 +92,62 @@ DegreeChoice chooseDegree(
     const int n = end - begin;
     if (n == 1) return {0, std::nullopt};
     if (n == 2) return {std::min(1, options.max_degree), std::nullopt};
-    const int folds = n <= options.cv_folds ? n : options.cv_folds;
+    const int interleaved = n <= options.cv_folds ? n : options.cv_folds;
     // The smallest training set has n - ceil(n / folds) samples; it must exceed the coefficients.
-    const int min_train = n - (n + folds - 1) / folds;
+    const int min_train = n - (n + interleaved - 1) / interleaved;
     const int top = std::min(options.max_degree, min_train - 1);
+    // The folds' held-out samples: the interleaved folds, then two more for each gap (neighbours
+    // more than twice the median spacing apart, as missing frames leave), holding out the samples
+    // within one gap's width after it and before it (the nearest first), so that a degree is
+    // also judged by how it predicts across a gap, where the interleaved folds never test it.
+    std::vector<std::vector<int>> held(static_cast<size_t>(interleaved));
+    for (int i = begin; i < end; ++i)
+        held[static_cast<size_t>((i - begin) % interleaved)].push_back(i);
+    if (n >= 3) {
+        std::vector<double> spacing;
+        for (int i = begin + 1; i < end; ++i)
+            spacing.push_back(s.angles_deg[i] - s.angles_deg[i - 1]);
+        std::nth_element(spacing.begin(),
+                         spacing.begin() + static_cast<std::ptrdiff_t>(spacing.size() / 2),
+                         spacing.end());
+        const double median = spacing[spacing.size() / 2];
+        for (int i = begin + 1; i < end; ++i) {
+            const double from = s.angles_deg[i - 1], to = s.angles_deg[i];
+            if (!(to - from > 2.0 * median)) continue;
+            const double width = to - from;
+            // Nearest the gap first, as many as an interleaved fold holds out or half the
+            // samples on that side, whichever is more.
+            const int most_after = std::max(n - min_train, (end - i) / 2);
+            const int most_before = std::max(n - min_train, (i - begin) / 2);
+            std::vector<int> after, before;
+            for (int k = i; k < end && s.angles_deg[k] <= to + width; ++k)
+                if (static_cast<int>(after.size()) < most_after) after.push_back(k);
+            for (int k = i - 1; k >= begin && s.angles_deg[k] >= from - width; --k)
+                if (static_cast<int>(before.size()) < most_before) before.push_back(k);
+            held.push_back(std::move(after));
+            held.push_back(std::move(before));
+        }
+    }
+    const int folds = static_cast<int>(held.size());
 
     std::vector<double> cv_mse(top + 1, 0.0);
     std::vector<double> cv_se(top + 1, 0.0);
+    // The interleaved folds' mean square alone: the held-out error the pieces' split rule
+    // compares with the noise (a gap fold's error is the gap's, which a split cannot mend).
+    std::vector<double> interleaved_mse(top + 1, 0.0);
     std::vector<int> train;
-    std::vector<int> test;
+    std::vector<char> out(static_cast<size_t>(n));  // held out in the fold at hand
     for (int d = 0; d <= top; ++d) {
         double sum_sq = 0.0;
         double sum_w = 0.0;
         std::vector<double> fold_mse;
         for (int f = 0; f < folds; ++f) {
+            const std::vector<int>& test = held[static_cast<size_t>(f)];
+            std::fill(out.begin(), out.end(), 0);
+            for (const int i : test) out[static_cast<size_t>(i - begin)] = 1;
             train.clear();
-            test.clear();
             for (int i = begin; i < end; ++i)
-                ((i - begin) % folds == f ? test : train).push_back(i);
+                if (!out[static_cast<size_t>(i - begin)]) train.push_back(i);
             const std::vector<double> c = toVector(solveChebyshev(s, train, d, lo, hi));
             double fold_sq = 0.0;
             double fold_w = 0.0;
@@ -123,6 +161,7 @@ DegreeChoice chooseDegree(
             sum_sq += fold_sq;
             sum_w += fold_w;
             fold_mse.push_back(fold_sq / fold_w);
+            if (f + 1 == interleaved) interleaved_mse[static_cast<size_t>(d)] = sum_sq / sum_w;
         }
         cv_mse[d] = sum_sq / sum_w;
         double mean = 0.0;
@@ -147,7 +186,7 @@ DegreeChoice chooseDegree(
             break;
         }
     }
-    return {chosen, std::sqrt(cv_mse[chosen])};
+    return {chosen, std::sqrt(interleaved_mse[static_cast<size_t>(chosen)])};
 }
 
 // Residual statistics of a piece over its samples.

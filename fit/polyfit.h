@@ -18,8 +18,15 @@
 //   - K-fold with interleaved folds (sample i is held out in fold i mod K): for an ordered sweep
 //     every fold predicts angles between kept neighbours, which is how the model is used;
 //     leave-one-out when there are no more samples than folds;
+//   - a gap (two neighbouring samples more than twice the median spacing apart, as missing
+//     frames leave) adds two folds, the samples within one gap's width after it and those
+//     within one width before it (the nearest to the gap first, no more than an interleaved fold
+//     holds out): the interleaved folds never test a gap's inside, where a high degree can
+//     swing freely, and these judge each degree by how it predicts across one.
+//     Without gaps nothing changes; the held-out error reported (and compared with the noise
+//     for splitting) is the interleaved folds' alone;
 //   - the held-out error of a degree is the weighted mean square over all held-out samples, its
-//     standard error the spread of the per-fold mean squares over sqrt(K);
+//     standard error the spread of the per-fold mean squares over sqrt(the number of folds);
 //   - one-standard-error rule (Hastie, Tibshirani & Friedman, ESL 2nd ed., sec. 7.10): the lowest
 //     degree whose held-out error is within one standard error of the best degree's.
 // A degree is only tried when every training fold has more samples than coefficients, so the
