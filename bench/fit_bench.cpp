@@ -236,8 +236,8 @@ Result<FitBenchReport> runFitBench(const FitBenchOptions& options, std::ostream&
     const Knob knobs[] = {
         {"iterations", {5}, {3, 8, 40}, [](auto& o, int v) { o.frame.max_iterations = v; }, number},
         {"line search steps",
-         {0},
-         {0, 2, 5},
+         {20},
+         {2, 5, 20},
          [](auto& o, int v) { o.frame.line_search_steps = v; },
          number},
         {"trust region radius",

@@ -83,10 +83,11 @@ struct FrameFitOptions {
     Optimizer optimizer = Optimizer::Ceres;
     int max_iterations = 10;           // per ghost and pass: LM iterations or descent epochs, >= 1
     // Ceres only: the most steps of the projected line search that follows each trust-region
-    // step (0..100; 0: none). Each step evaluates the Jacobian; with none the sweep fit is 1.65
-    // times faster and as accurate over 24 captures, but the first fits after a gap of missing
-    // frames land in worse minima (docs/fit-scoring.md), so Ceres' 20 stay.
-    int line_search_steps = 20;
+    // step (0..100; 0: none; Ceres' own default is 20). Each step evaluates the Jacobian; with
+    // none the sweep fit is about 1.5 times faster and as accurate (docs/fit-scoring.md). The
+    // first fits after a gap of missing frames, which landed in worse minima without it, now
+    // also start from the track's nearest sample and the matched detection (fitFrame's restarts).
+    int line_search_steps = 0;
     // Ceres only: the Levenberg-Marquardt trust region's initial radius, 1 / the first step's
     // damping on the Jacobi-scaled normal equations, in [1e-6, 1e16]. Ceres' default 1e4 makes
     // the first step nearly Gauss-Newton's; 10 or 1 save 29 or 38 % of the evaluations, but the

@@ -89,7 +89,7 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
                                            disc(1.5, -0.5, 3.0, 900.0, 600.0)};
     const FitFrame frame = makeFrame(truth, 160, 107, 5.0, 2.0, 1);
     const FrameDetection detection = plainDetection(frame, 5.0, 2.0);
-    // With Ceres' projected line search (the default) and without it (the faster setting), and
+    // With Ceres' projected line search (its own 20 steps) and without it (the default), and
     // with a first trust region far smaller than Ceres' default, which takes another path (the
     // evaluations differ) to the same ghosts.
     struct Setting {
@@ -98,9 +98,8 @@ TEST(FrameFit, RecoversTwoOverlappingGhostsFromAPerturbedStart) {
     };
     int64_t default_evaluations = -1;
     for (const Setting setting :
-         {Setting{FrameFitOptions{}.line_search_steps, FrameFitOptions{}.trust_region_radius},
-          Setting{0, FrameFitOptions{}.trust_region_radius},
-          Setting{FrameFitOptions{}.line_search_steps, 1.0}}) {
+         {Setting{20, FrameFitOptions{}.trust_region_radius},
+          Setting{0, FrameFitOptions{}.trust_region_radius}, Setting{20, 1.0}}) {
         SCOPED_TRACE("line_search_steps " + std::to_string(setting.line_search_steps) +
                      ", radius " + std::to_string(setting.radius));
         std::vector<GhostState> ghosts = {perturbed(truth[0], 0.6, 0.5, 0.7),
