@@ -103,30 +103,23 @@ DegreeChoice chooseDegree(
     std::vector<std::vector<int>> held(static_cast<size_t>(interleaved));
     for (int i = begin; i < end; ++i)
         held[static_cast<size_t>((i - begin) % interleaved)].push_back(i);
-    if (n >= 3) {
-        std::vector<double> spacing;
-        for (int i = begin + 1; i < end; ++i)
-            spacing.push_back(s.angles_deg[i] - s.angles_deg[i - 1]);
-        std::nth_element(spacing.begin(),
-                         spacing.begin() + static_cast<std::ptrdiff_t>(spacing.size() / 2),
-                         spacing.end());
-        const double median = spacing[spacing.size() / 2];
-        for (int i = begin + 1; i < end; ++i) {
-            const double from = s.angles_deg[i - 1], to = s.angles_deg[i];
-            if (!(to - from > 2.0 * median)) continue;
-            const double width = to - from;
-            // Nearest the gap first, as many as an interleaved fold holds out or half the
-            // samples on that side, whichever is more.
-            const int most_after = std::max(n - min_train, (end - i) / 2);
-            const int most_before = std::max(n - min_train, (i - begin) / 2);
-            std::vector<int> after, before;
-            for (int k = i; k < end && s.angles_deg[k] <= to + width; ++k)
-                if (static_cast<int>(after.size()) < most_after) after.push_back(k);
-            for (int k = i - 1; k >= begin && s.angles_deg[k] >= from - width; --k)
-                if (static_cast<int>(before.size()) < most_before) before.push_back(k);
-            held.push_back(std::move(after));
-            held.push_back(std::move(before));
-        }
+    const double median =
+        medianSpacing(s.angles_deg.subspan(static_cast<size_t>(begin), static_cast<size_t>(n)));
+    for (int i = begin + 1; i < end; ++i) {
+        const double from = s.angles_deg[i - 1], to = s.angles_deg[i];
+        if (!(to - from > 2.0 * median)) continue;
+        const double width = to - from;
+        // Nearest the gap first, as many as an interleaved fold holds out or half the samples
+        // on that side, whichever is more.
+        const int most_after = std::max(n - min_train, (end - i) / 2);
+        const int most_before = std::max(n - min_train, (i - begin) / 2);
+        std::vector<int> after, before;
+        for (int k = i; k < end && s.angles_deg[k] <= to + width; ++k)
+            if (static_cast<int>(after.size()) < most_after) after.push_back(k);
+        for (int k = i - 1; k >= begin && s.angles_deg[k] >= from - width; --k)
+            if (static_cast<int>(before.size()) < most_before) before.push_back(k);
+        held.push_back(std::move(after));
+        held.push_back(std::move(before));
     }
     const int folds = static_cast<int>(held.size());
 
@@ -409,6 +402,16 @@ Result<PolyFit> fitPolynomial(std::span<const double> angles_deg,
     }
     fit.rms_residual = std::sqrt(sum_sq / static_cast<double>(n));
     return fit;
+}
+
+double medianSpacing(std::span<const double> ascending_deg) {
+    if (ascending_deg.size() < 2) return 0.0;
+    std::vector<double> gaps;
+    for (size_t i = 1; i < ascending_deg.size(); ++i)
+        gaps.push_back(ascending_deg[i] - ascending_deg[i - 1]);
+    std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2),
+                     gaps.end());
+    return gaps[gaps.size() / 2];
 }
 
 double chebyshevValue(std::span<const double> coefficients, double x) {

@@ -128,4 +128,8 @@ Result<double> evaluatePolyFit(const PolyFit& fit, double angle_deg);
 // d value / d angle, per degree, with the same range rule; 0 for a single-sample constant.
 Result<double> evaluatePolyFitSlope(const PolyFit& fit, double angle_deg);
 
+// The median of the gaps between neighbouring angles, given in ascending order (the gap rule of
+// the degree's cross-validation, and the sweep fit's step); 0 for fewer than two angles.
+double medianSpacing(std::span<const double> ascending_deg);
+
 }  // namespace flarelab::fit

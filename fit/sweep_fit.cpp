@@ -132,13 +132,8 @@ using Clock = std::chrono::steady_clock;
 
 // The median gap between neighbouring angles (in sorted order); 0 with fewer than two.
 double medianStep(std::vector<double> angles) {
-    if (angles.size() < 2) return 0.0;
     std::sort(angles.begin(), angles.end());
-    std::vector<double> gaps;
-    for (size_t i = 1; i < angles.size(); ++i) gaps.push_back(angles[i] - angles[i - 1]);
-    std::nth_element(gaps.begin(), gaps.begin() + static_cast<std::ptrdiff_t>(gaps.size() / 2),
-                     gaps.end());
-    return gaps[gaps.size() / 2];
+    return medianSpacing(angles);
 }
 
 // A path seed's ghost as the frame shows it: the seed's outline with circle-like falloffs, its
