@@ -4,6 +4,7 @@
 #include <ceres/jet.h>
 #include <tbb/parallel_for.h>
 
+#include <Eigen/QR>
 #include <algorithm>
 #include <atomic>
 #include <chrono>
@@ -367,8 +368,10 @@ public:
                         sum[s][static_cast<size_t>(c)] += light[static_cast<size_t>(c)];
                 });
             }
+            // The frame's sample rows are handed to Ceres compressed (Evaluate): values_ rows
+            // and one more, whatever the number of samples.
             offsets_[o] = rows;
-            rows += static_cast<int>(obs.self.size()) * channels;
+            rows += kGhostParameterCount - model.first() + 1;
         }
         // Then one row per observation and value: how far the series has left its bounds. The
         // clamp gives the image rows no gradient there, so without these a series that strays
@@ -412,6 +415,7 @@ public:
         tbb::parallel_for(size_t{0}, observations_.size(), [&](size_t o) {
             const Observation& obs = observations_[o];
             const auto v = model_.values(ghost_, obs.angle_deg, c);
+            const int sample_rows = static_cast<int>(obs.self.size()) * channels_;
             // d value / d coefficient: the Chebyshev basis at each value's point.
             double basis[kGhostParameterCount][64];
             for (int p = model_.first(); p < kGhostParameterCount; ++p)
@@ -430,10 +434,14 @@ public:
                 for (int k = 0; k < std::min(v.point[i].count, 64); ++k)
                     out[v.point[i].offset + k] += weight * basis[p][k];
             }
+            // The frame's sample rows, before compression: residuals and d residual / d value.
+            Eigen::VectorXd local_r = Eigen::VectorXd::Zero(sample_rows);
+            Eigen::MatrixXd local_j;
+            if (jacobian) local_j.setZero(sample_rows, values_);
             // One sample's model m in channel ch (and d m / d value per parameter, when the
             // Jacobian is asked): the robust residual and its row.
             const auto emit = [&](size_t s, int ch, double m, const double* dm) {
-                const int row = offsets_[o] + static_cast<int>(s) * channels_ + ch;
+                const int row = static_cast<int>(s) * channels_ + ch;
                 const double scale = obs.scale[static_cast<size_t>(ch)];
                 const double total = m + others_[o][s][static_cast<size_t>(ch)];
                 double r = std::asinh(total / scale) -
@@ -448,24 +456,43 @@ public:
                     return;
                 }
                 const double w = obs.weight[s];
-                residuals[row] = w * rt;
+                local_r[row] = w * rt;
                 if (!jacobian) return;
                 const double factor = w * (rt != 0.0 ? (1.0 / (1.0 + s2 / c2_)) * r / rt : 1.0);
-                double* out = jacobian + static_cast<size_t>(row) * np;
-                std::fill(out, out + np, 0.0);
-                for (int p = model_.first(); p < kGhostParameterCount; ++p) {
-                    const size_t i = static_cast<size_t>(p);
-                    if (v.clamped[i]) continue;
-                    const double g = factor * dr * dm[p];
-                    if (g == 0.0) continue;
-                    for (int k = 0; k < std::min(v.point[i].count, 64); ++k)
-                        out[v.point[i].offset + k] += g * basis[p][k];
-                }
+                for (int p = model_.first(); p < kGhostParameterCount; ++p)
+                    if (!v.clamped[static_cast<size_t>(p)])
+                        local_j(row, p - model_.first()) = factor * dr * dm[p];
             };
             if (shape_)
                 shapeSamples(o, v, jacobian != nullptr, emit);
             else
                 shadingSamples(obs, v, jacobian != nullptr, emit);
+            if (!finite) return;
+            // The frame's rows J = D B (D: d residual / d value, B: the values' Chebyshev
+            // bases) reach Ceres compressed (detail::compressRows): the dense solve sees
+            // values_ + 1 rows per frame instead of one per sample and channel.
+            double* const rows_out = residuals + offsets_[o];
+            std::fill(rows_out, rows_out + values_ + 1, 0.0);
+            if (!jacobian) {
+                rows_out[values_] = local_r.norm();
+                return;
+            }
+            const detail::CompressedRows packed = detail::compressRows(local_j, local_r);
+            const int kept = static_cast<int>(packed.head.size());
+            for (int i = 0; i < kept; ++i) rows_out[i] = packed.head[i];
+            rows_out[values_] = packed.rest;
+            for (int i = 0; i <= values_; ++i) {
+                double* out = jacobian + static_cast<size_t>(offsets_[o] + i) * np;
+                std::fill(out, out + np, 0.0);
+                if (i >= kept) continue;
+                for (int p = model_.first() + i; p < kGhostParameterCount; ++p) {
+                    const size_t pi = static_cast<size_t>(p);
+                    const double g = packed.factor(i, p - model_.first());
+                    if (g == 0.0 || v.clamped[pi]) continue;
+                    for (int k = 0; k < std::min(v.point[pi].count, 64); ++k)
+                        out[v.point[pi].offset + k] += g * basis[p][k];
+                }
+            }
         });
         return finite;
     }
@@ -636,6 +663,22 @@ Crop cropOf(const GhostState& state, double grow_mm, const FitFrame& frame) {
 }
 
 }  // namespace
+
+namespace detail {
+
+CompressedRows compressRows(const Eigen::MatrixXd& d, Eigen::VectorXd r) {
+    FLARELAB_CHECK(d.rows() == r.size());
+    const Eigen::Index kept = std::min(d.rows(), d.cols());
+    const Eigen::HouseholderQR<Eigen::MatrixXd> qr(d);
+    r.applyOnTheLeft(qr.householderQ().adjoint());
+    CompressedRows out;
+    out.factor = qr.matrixQR().topRows(kept).triangularView<Eigen::Upper>();
+    out.head = r.head(kept);
+    out.rest = r.tail(r.size() - kept).norm();
+    return out;
+}
+
+}  // namespace detail
 
 Status checkShadingRefitOptions(const ShadingRefitOptions& options) {
     if (options.frames_per_ghost < 0 || options.frames_per_ghost == 1 ||
@@ -811,8 +854,8 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
             // sharp edges but noisier, and measured worse on the Heliar sweep (held-out median
             // 0.143 against 0.132). Blocks holding the light's disc are split around it
             // (sampleBlocks), so that every pixel the score counts is fitted.
-            for (const SampleBlock& block : sampleBlocks(crop.x0, crop.x1, crop.y0, crop.y1,
-                                                         stride, detection->excluded, width)) {
+            for (const SampleBlock& block : sampleBlocks(crop.x0, crop.x1, crop.y0, crop.y1, stride,
+                                                         detection->excluded, width)) {
                 std::array<double, 3> sum{};
                 uint8_t bounds = 0;
                 for (int64_t y = block.y0; y <= block.y1; ++y)
@@ -831,14 +874,14 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
                 obs.data.push_back(data);
                 obs.bound.push_back(bounds);
                 obs.weight.push_back(block.weight);
-                points.push_back({(0.5 * static_cast<double>(block.x0 + block.x1 + 1) -
-                                   m.centre_x_px) /
-                                      m.px_per_mm_x,
-                                  (0.5 * static_cast<double>(block.y0 + block.y1 + 1) -
-                                   m.centre_y_px) /
-                                      m.px_per_mm_y});
-                halves.push_back({0.5 * static_cast<double>(block.x1 - block.x0 + 1) / m.px_per_mm_x,
-                                  0.5 * static_cast<double>(block.y1 - block.y0 + 1) / m.px_per_mm_y});
+                points.push_back(
+                    {(0.5 * static_cast<double>(block.x0 + block.x1 + 1) - m.centre_x_px) /
+                         m.px_per_mm_x,
+                     (0.5 * static_cast<double>(block.y0 + block.y1 + 1) - m.centre_y_px) /
+                         m.px_per_mm_y});
+                halves.push_back(
+                    {0.5 * static_cast<double>(block.x1 - block.x0 + 1) / m.px_per_mm_x,
+                     0.5 * static_cast<double>(block.y1 - block.y0 + 1) / m.px_per_mm_y});
             }
             if (points.empty()) continue;
             const auto distances = [&](const GhostState& s) {

@@ -47,6 +47,7 @@
 // every shipped lens with ghosts (docs/shape-refit.md).
 #pragma once
 
+#include <Eigen/Core>
 #include <array>
 #include <cstdint>
 
@@ -126,6 +127,24 @@ std::vector<SampleBlock> sampleBlocks(int64_t x0,
                                       int64_t stride,
                                       const std::vector<uint8_t>& excluded,
                                       int64_t width);
+
+namespace detail {
+
+// Least-squares rows r + D x (D m x k) in at most k + 1 rows: D = Q R, the rows become
+// `head` + `factor` x (the first min(m, k) rows of Q' r and R) and one constant row `rest` (the
+// norm of the rest of Q' r), whose squares sum to those of the original rows for every x, so
+// that a Gauss-Newton or Levenberg-Marquardt step on them is the same. The refit hands each
+// frame's sample rows (D the residuals' derivatives with respect to the ghost's values) to Ceres
+// this way: its dense QR then sees 10 or 19 rows and one per frame instead of one per sample,
+// and its Householder products had been 40 % of a refit's time.
+struct CompressedRows {
+    Eigen::MatrixXd factor;  // min(m, k) x k, upper triangular
+    Eigen::VectorXd head;    // min(m, k)
+    double rest = 0.0;
+};
+CompressedRows compressRows(const Eigen::MatrixXd& d, Eigen::VectorXd r);
+
+}  // namespace detail
 
 Status checkShadingRefitOptions(const ShadingRefitOptions& options);
 

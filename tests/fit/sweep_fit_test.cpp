@@ -240,8 +240,7 @@ TEST(SweepFit, TracksTwoGhostsAndBuildsModel) {
                 EXPECT_EQ(parameter.sample_angles_deg[i], track.samples[i].angle_deg);
             if (parameter.name == "centre_x_mm") {
                 for (size_t i = 0; i < track.samples.size(); ++i)
-                    EXPECT_EQ(parameter.sample_values[i],
-                              track.samples[i].state.shape.centre_x_mm);
+                    EXPECT_EQ(parameter.sample_values[i], track.samples[i].state.shape.centre_x_mm);
             }
         }
     }
@@ -919,6 +918,52 @@ double modelError(const FlareModel& model, double angle) {
     return score ? score->rel_l2 : 1e9;
 }
 
+// A frame's rows, compressed for the refit's solver, keep the sum of squares of r + D x for
+// every x (hence the cost, J'J and J'r), with fewer samples than values too, and a zero column
+// (a clamped value) stays one.
+TEST(ShadingRefit, CompressedRowsKeepEveryStepOfTheFrame) {
+    std::mt19937 rng(7);
+    std::normal_distribution<double> normal(0.0, 1.0);
+    for (const auto& [m, k] : {std::pair{200, 19}, std::pair{40, 10}, std::pair{6, 10},
+                               std::pair{1, 19}, std::pair{19, 19}}) {
+        Eigen::MatrixXd d(m, k);
+        Eigen::VectorXd r(m);
+        for (int i = 0; i < m; ++i) {
+            r[i] = normal(rng);
+            for (int j = 0; j < k; ++j)
+                d(i, j) = j == 3 ? 0.0 : normal(rng) * std::pow(10.0, j % 5);
+        }
+        const auto packed = fit::detail::compressRows(d, r);
+        ASSERT_EQ(packed.factor.rows(), std::min(m, k));
+        ASSERT_EQ(packed.factor.cols(), k);
+        ASSERT_EQ(packed.head.size(), std::min(m, k));
+        EXPECT_GE(packed.rest, 0.0);
+        if (m <= k) {
+            EXPECT_LT(packed.rest, 1e-12 * r.norm());
+        }
+        for (int i = 0; i < packed.factor.rows(); ++i) {
+            EXPECT_EQ(packed.factor(i, 3), 0.0) << m << " x " << k << ", row " << i;
+            for (int j = 0; j < i; ++j) EXPECT_EQ(packed.factor(i, j), 0.0);
+        }
+        for (int trial = 0; trial < 5; ++trial) {
+            Eigen::VectorXd x(k);
+            for (int j = 0; j < k; ++j) x[j] = trial == 0 ? 0.0 : normal(rng) * 1e-3;
+            const double full = (r + d * x).squaredNorm();
+            const double kept =
+                (packed.head + packed.factor * x).squaredNorm() + packed.rest * packed.rest;
+            EXPECT_NEAR(kept, full, 1e-10 * full) << m << " x " << k << ", trial " << trial;
+        }
+        const Eigen::MatrixXd normal_full = d.transpose() * d;
+        const Eigen::MatrixXd normal_kept = packed.factor.transpose() * packed.factor;
+        EXPECT_LT((normal_kept - normal_full).norm(), 1e-10 * normal_full.norm())
+            << m << " x " << k;
+        const Eigen::VectorXd gradient_full = d.transpose() * r;
+        const Eigen::VectorXd gradient_kept = packed.factor.transpose() * packed.head;
+        EXPECT_LT((gradient_kept - gradient_full).norm(), 1e-10 * gradient_full.norm())
+            << m << " x " << k;
+    }
+}
+
 // The refit's samples cover every pixel of a crop outside the light's disc exactly once, the
 // disc's none; a block the disc cuts is split and its parts weigh together what it would.
 TEST(ShadingRefit, SamplesCoverEveryPixelOutsideTheLightsDiscOnce) {
@@ -939,7 +984,8 @@ TEST(ShadingRefit, SamplesCoverEveryPixelOutsideTheLightsDiscOnce) {
             ASSERT_GT(b.weight, 0.0);
             ASSERT_LE(b.weight, 1.0);
             for (int64_t y = b.y0; y <= b.y1; ++y)
-                for (int64_t x = b.x0; x <= b.x1; ++x) ++covered[static_cast<size_t>(y * width + x)];
+                for (int64_t x = b.x0; x <= b.x1; ++x)
+                    ++covered[static_cast<size_t>(y * width + x)];
             const std::pair<int64_t, int64_t> corner = {x0 + (b.x0 - x0) / stride * stride,
                                                         y0 + (b.y0 - y0) / stride * stride};
             block_weight[corner] += b.weight * b.weight;
