@@ -239,12 +239,17 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
             << result.shape_unobserved
             << " kept as compressed (their outline mostly outside the frame)\n";
     const fit::SweepFitStages& st = result.stages;
-    const std::pair<const char*, double> stages[] = {
-        {"load frames", st.load_ms},      {"detect", st.detect_ms},
-        {"fit frames", st.fit_ms},        {"follow new tracks back", st.extend_ms},
-        {"ghost paths", st.seed_ms},      {"link fragments", st.link_ms},
-        {"track", st.track_ms},           {"compress", st.compress_ms},
-        {"refit shading", st.shading_ms}, {"refit shapes", st.shape_ms}};
+    const std::pair<const char*, double> stages[] = {{"load frames", st.load_ms},
+                                                     {"detect", st.detect_ms},
+                                                     {"read ahead", st.ahead_ms},
+                                                     {"fit frames", st.fit_ms},
+                                                     {"follow new tracks back", st.extend_ms},
+                                                     {"ghost paths", st.seed_ms},
+                                                     {"link fragments", st.link_ms},
+                                                     {"track", st.track_ms},
+                                                     {"compress", st.compress_ms},
+                                                     {"refit shading", st.shading_ms},
+                                                     {"refit shapes", st.shape_ms}};
     // The two passes run side by side: their stages are summed over both.
     out << "  stage                    time_s   share\n";
     for (const auto& [name, ms] : stages)

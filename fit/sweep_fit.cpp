@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <ctime>
+#include <future>
 #include <limits>
 #include <map>
 #include <memory>
@@ -246,6 +247,13 @@ public:
         return detection;
     }
 
+    // Frame `index` and its detection with `options` read into memory, where they fit in it.
+    void prefetch(size_t index, const DetectOptions& options) {
+        auto entry = find(index);
+        if (!entry || !*entry) return;  // unreadable (the load will say why) or too large
+        (void)detect(index, (*entry)->frame, options);
+    }
+
 private:
     struct Entry {
         FitFrame frame;
@@ -355,6 +363,27 @@ private:
         result_.stages.load_ms += msSince(t0);
         return frame;
     }
+    // Frame `index` loaded and detected into the source's memory on another thread while this
+    // pass fits the frame before it (FrameSource::prefetch), with the options the pass will
+    // detect it with unless no track is live then. The last read-ahead is waited for first.
+    void readAhead(size_t index, const DetectOptions& options) {
+        settleReadAhead();
+        if (!frames_.prefetch) return;
+        ahead_ = std::async(std::launch::async, [this, index, options] {
+            const auto t0 = Clock::now();
+            if ((options_.cancel && options_.cancel->load()) || share_->stop.load()) return 0.0;
+            try {
+                std::lock_guard<std::mutex> lock(share_->source);
+                frames_.prefetch(index, options);
+            } catch (const std::exception&) {
+                // The pass reads the frame itself, and reports what went wrong.
+            }
+            return msSince(t0);
+        });
+    }
+    void settleReadAhead() {
+        if (ahead_.valid()) result_.stages.ahead_ms += ahead_.get();
+    }
     Result<FrameDetection> detectIn(size_t index,
                                     const FitFrame& frame,
                                     const DetectOptions& options) {
@@ -392,6 +421,9 @@ private:
     DetectOptions detect_ = options_.detect;
     // The sweep's step: the median gap between neighbouring frame angles (0 for one frame).
     double step_deg_ = medianStep(frames_.angles_deg);
+    // The read-ahead in flight (readAhead): its time, ms. Declared last, so that it is waited
+    // for before anything it uses goes.
+    std::future<double> ahead_;
 };
 
 Result<int> SweepFitter::chooseStart() {
@@ -447,6 +479,16 @@ Status SweepFitter::processFrame(
     if (extend || options_.path_seeds) detect.circles = false;
     auto detection = detectIn(j, *frame, detect);
     if (!detection) return detection.error();
+    if (!extend) {  // the start frame's pass (direction 0) goes on forward
+        const int64_t next = static_cast<int64_t>(j) + (direction != 0 ? direction : +1);
+        if (next >= 0 && next < static_cast<int64_t>(frames_.angles_deg.size())) {
+            DetectOptions ahead = detect_;
+            if (options_.path_seeds ||
+                std::abs(next - static_cast<int64_t>(start_)) % options_.detect_every != 0)
+                ahead.circles = false;
+            readAhead(static_cast<size_t>(next), ahead);
+        }
+    }
     lights_[j] = detection->light;
     const double angle = frames_.angles_deg[j];
     const auto& mapping = frame->mapping;
@@ -880,6 +922,7 @@ Status SweepFitter::backwardPass(size_t s) {
         auto status = processFrame(j, live, true, -1, false);
         if (!status) return status;
     }
+    settleReadAhead();
     return Ok{};
 }
 
@@ -920,6 +963,7 @@ void SweepFitter::mergeBackward(SweepFitter& backward,
     const SweepFitStages& b = backward.result_.stages;
     st.load_ms += b.load_ms;
     st.detect_ms += b.detect_ms;
+    st.ahead_ms += b.ahead_ms;
     st.fit_ms += b.fit_ms;
     st.seed_ms += b.seed_ms;
 }
@@ -976,6 +1020,7 @@ Result<SweepFitResult> SweepFitter::run() {
     Status forward_status = Ok{};
     for (size_t j = head; j < n && forward_status; ++j)
         forward_status = processFrame(j, live, true, +1, false);
+    settleReadAhead();
     int none = 0;
     if (!forward_status && first_failure.compare_exchange_strong(none, 1)) share_->stop = true;
     backward_thread.join();
@@ -1340,6 +1385,9 @@ Result<FlareModel> fitSweep(const hdr::Sweep& sweep,
     source.load = [cache](size_t index) { return cache->get(index); };
     source.detect = [cache](size_t index, const FitFrame& frame, const DetectOptions& detect) {
         return cache->detect(index, frame, detect);
+    };
+    source.prefetch = [cache](size_t index, const DetectOptions& detect) {
+        cache->prefetch(index, detect);
     };
     auto fitted = fitSweepFrames(source, options, progress);
     if (!fitted) return fitted.error();

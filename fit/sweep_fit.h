@@ -88,8 +88,8 @@ struct SweepFitOptions {
     // -1: chosen automatically, by probing start_probes frames, which also set the sky and the
     // light's floor (step 1 above); a frame given here skips the probes, and with them both.
     int start_frame = -1;
-    int start_probes = 9;      // frames detected to choose the start, >= 1
-    int max_ghosts = 64;       // live tracks at most, >= 1
+    int start_probes = 9;  // frames detected to choose the start, >= 1
+    int max_ghosts = 64;   // live tracks at most, >= 1
     // A ghost whose light in a frame is below this fraction of all the ghosts' light there ends:
     // it changes no figure a user measures, and the model stays small. 0 keeps every ghost.
     double min_energy_fraction = 0.003;
@@ -145,8 +145,12 @@ struct SweepFitProgress {
 // side, and their load, detect and fit times are summed over both, so the stages may add up to
 // more than the whole (track_ms is what the whole leaves, 0 when nothing is left).
 struct SweepFitStages {
-    double load_ms = 0.0;      // frames read from disk and mapped (the tracking passes)
-    double detect_ms = 0.0;    // detectGhosts, start probes included
+    double load_ms = 0.0;    // frames read from disk and mapped (the tracking passes)
+    double detect_ms = 0.0;  // detectGhosts, start probes included
+    // Frames loaded and detected ahead of each pass on another thread (FrameSource::prefetch),
+    // while the pass fits the frame before; load_ms and detect_ms then hold what the pass
+    // itself still waited for.
+    double ahead_ms = 0.0;
     double fit_ms = 0.0;       // fitFrame in the forward and backward passes
     double extend_ms = 0.0;    // fitFrame following tracks born away from the start back
     double seed_ms = 0.0;      // SweepFitOptions::path_seeds and reading the seeds off the frames
@@ -191,6 +195,11 @@ struct FrameSource {
     // source may remember (fitSweep's does, with its frames); empty: detected every time.
     std::function<Result<FrameDetection>(size_t index, const FitFrame&, const DetectOptions&)>
         detect;
+    // Optional: frame `index` read and detected with these options into the source's memory, so
+    // that the load and detect of it that follow return at once (fitSweep's source keeps its
+    // frames and their detections); errors are left for the load to report. The fitter calls it
+    // from another thread, never at the same time as load, detect or another prefetch.
+    std::function<void(size_t index, const DetectOptions&)> prefetch;
 };
 
 Status checkSweepFitOptions(const SweepFitOptions& options);

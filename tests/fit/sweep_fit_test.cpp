@@ -13,6 +13,7 @@
 #include <map>
 #include <optional>
 #include <random>
+#include <set>
 #include <sstream>
 #include <string>
 #include <tuple>
@@ -179,6 +180,73 @@ const std::vector<TrueGhost> kTwoGhosts = {
     {-10.0, 1.0, 3.0, 60.0, -5.0},  // x -10 .. -4 over 0..6 deg, border 60 .. 30
     {3.0, 1.0, 4.0, 12.0, 2.0},     // x 3 .. 9, border 12 .. 24
 };
+
+// Frames read ahead of each pass (FrameSource::prefetch, on another thread) are the frames and
+// detections the pass then uses, and change nothing: the tracks are the same to the bit as with
+// a source that cannot read ahead.
+TEST(SweepFit, FramesReadAheadAreUsedAndChangeNothing) {
+    const auto angles = angleRange(0.0, 0.5, 13);
+    const FrameSource plain = syntheticSource(kTwoGhosts, angles);
+    SweepFitOptions options = quickOptions();
+    options.start_frame = 6;  // both passes read ahead
+    const auto expected = fitSweepFrames(plain, options);
+    ASSERT_TRUE(expected) << expected.error().message;
+
+    // A source that keeps what it read, as fitSweep's does, and counts.
+    struct Kept {
+        std::map<size_t, FitFrame> frames;
+        std::map<size_t, std::pair<DetectOptions, FrameDetection>> detections;
+        std::set<size_t> ahead;
+        int detect_hits = 0;
+    };
+    auto kept = std::make_shared<Kept>();
+    FrameSource source = plain;
+    source.load = [plain, kept](size_t i) -> Result<FitFrame> {
+        if (const auto found = kept->frames.find(i); found != kept->frames.end())
+            return found->second;
+        auto frame = plain.load(i);
+        if (frame) kept->frames[i] = *frame;
+        return frame;
+    };
+    source.detect = [kept](size_t i, const FitFrame& frame,
+                           const DetectOptions& detect) -> Result<FrameDetection> {
+        if (const auto found = kept->detections.find(i);
+            found != kept->detections.end() && found->second.first == detect) {
+            ++kept->detect_hits;
+            return found->second.second;
+        }
+        auto detection = detectGhosts(frame, detect);
+        if (detection) kept->detections[i] = {detect, *detection};
+        return detection;
+    };
+    source.prefetch = [load = source.load, detect = source.detect, kept](
+                          size_t i, const DetectOptions& options) {
+        kept->ahead.insert(i);
+        const int hits = kept->detect_hits;
+        if (auto frame = load(i)) (void)detect(i, *frame, options);
+        kept->detect_hits = hits;  // only the passes' hits count
+    };
+    const auto result = fitSweepFrames(source, options);
+    ASSERT_TRUE(result) << result.error().message;
+    // Every frame but the start frame and the backward pass's first is read ahead, and the
+    // passes find most of them detected already (not those where no track was live).
+    EXPECT_GE(kept->ahead.size(), angles.size() - 2);
+    EXPECT_EQ(kept->ahead.count(6), 0u);
+    EXPECT_GE(kept->detect_hits, static_cast<int>(angles.size()) / 2);
+    EXPECT_GT(result->stages.ahead_ms, 0.0);
+    ASSERT_EQ(result->tracks.size(), expected->tracks.size());
+    for (size_t t = 0; t < result->tracks.size(); ++t) {
+        const auto& a = result->tracks[t].samples;
+        const auto& b = expected->tracks[t].samples;
+        ASSERT_EQ(a.size(), b.size()) << "track " << t;
+        for (size_t k = 0; k < a.size(); ++k) {
+            EXPECT_EQ(a[k].angle_deg, b[k].angle_deg);
+            EXPECT_EQ(ghostParameters(a[k].state), ghostParameters(b[k].state))
+                << "track " << t << " at " << a[k].angle_deg;
+            EXPECT_EQ(a[k].cost, b[k].cost);
+        }
+    }
+}
 
 TEST(SweepFit, TracksTwoGhostsAndBuildsModel) {
     const auto angles = angleRange(0.0, 0.5, 13);
