@@ -304,9 +304,21 @@ void forVisibleArc(const Circle& c,
                    F&& f) {
     const int n =
         static_cast<int>(std::clamp(std::ceil(2.0 * M_PI * c.radius_px / step_px), 16.0, 8192.0));
+    // The points' directions by a rotation from one to the next, taken afresh from the cosine
+    // and sine every 32 points (within some 1e-14 of them; the trigonometric functions had been
+    // 7 % of a fit's time).
+    const double step = 2.0 * M_PI / n, cs = std::cos(step), ss = std::sin(step);
+    double ca = 1.0, sa = 0.0;
     for (int k = 0; k < n; ++k) {
-        const double a = 2.0 * M_PI * (static_cast<double>(k) + 0.5) / n;
-        const double ca = std::cos(a), sa = std::sin(a);
+        if (k % 32 == 0) {
+            const double a = 2.0 * M_PI * (static_cast<double>(k) + 0.5) / n;
+            ca = std::cos(a);
+            sa = std::sin(a);
+        } else {
+            const double next_ca = ca * cs - sa * ss;
+            sa = sa * cs + ca * ss;
+            ca = next_ca;
+        }
         const double x = c.centre_px.x() + c.radius_px * ca;
         const double y = c.centre_px.y() + c.radius_px * sa;
         if (!(x >= 0.0 && y >= 0.0 && x < static_cast<double>(width) &&
