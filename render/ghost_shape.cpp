@@ -16,19 +16,19 @@ using Cubic = std::array<Vec2, 4>;
 
 constexpr double kInfinity = std::numeric_limits<double>::infinity();
 
-Vec2 evalCubic(const Cubic& c, double t) {
+[[gnu::always_inline]] inline Vec2 evalCubic(const Cubic& c, double t) {
     const double s = 1.0 - t;
     return (s * s * s) * c[0] + (3.0 * s * s * t) * c[1] + (3.0 * s * t * t) * c[2] +
            (t * t * t) * c[3];
 }
 
-Vec2 firstDerivative(const Cubic& c, double t) {
+[[gnu::always_inline]] inline Vec2 firstDerivative(const Cubic& c, double t) {
     const double s = 1.0 - t;
     return (3.0 * s * s) * (c[1] - c[0]) + (6.0 * s * t) * (c[2] - c[1]) +
            (3.0 * t * t) * (c[3] - c[2]);
 }
 
-Vec2 secondDerivative(const Cubic& c, double t) {
+[[gnu::always_inline]] inline Vec2 secondDerivative(const Cubic& c, double t) {
     return (6.0 * (1.0 - t)) * (c[2] - 2.0 * c[1] + c[0]) + (6.0 * t) * (c[3] - 2.0 * c[2] + c[1]);
 }
 
