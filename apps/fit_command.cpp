@@ -42,8 +42,10 @@ struct FitState {
     int link_max_gap = fit::TrackLinkOptions{}.max_gap_frames;
     double link_gate = fit::TrackLinkOptions{}.gate;
     int shape_passes = fit::ShadingRefitOptions{}.shape_passes;
+    int shading_passes = fit::ShadingRefitOptions{}.passes;
     int shape_frames = fit::ShadingRefitOptions{}.shape_frames_per_ghost;
     double shape_outline = fit::ShadingRefitOptions{}.shape_min_outline_in_frame;
+    double start_share = fit::SweepFitOptions{}.start_min_share;
     double light_margin_px = fit::DetectOptions{}.light_margin_px;
     std::optional<double> light_power_dn_s;
     bool keep_samples = false;
@@ -177,8 +179,10 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.link.max_gap_frames = s.link_max_gap;
     options.link.gate = s.link_gate;
     options.shading.shape_passes = s.shape_passes;
+    options.shading.passes = s.shading_passes;
     options.shading.shape_frames_per_ghost = s.shape_frames;
     options.shading.shape_min_outline_in_frame = s.shape_outline;
+    options.start_min_share = s.start_share;
     options.detect.light_margin_px = s.light_margin_px;
     if (s.paths) {
         if (!lens) {
@@ -588,6 +592,11 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                     "with --link: largest cost of a link (1: every feature at its tolerance)")
         ->capture_default_str()
         ->check(CLI::Range(1e-3, 1e3));
+    fit->add_option("--refit-shading-passes", fs->shading_passes,
+                    "passes of the shading refit over the ghosts, brightest first, before the "
+                    "shape refit (docs/fit-scoring.md)")
+        ->capture_default_str()
+        ->check(CLI::Range(1, 100));
     fit->add_option("--refit-shapes", fs->shape_passes,
                     "passes that refit every series of each ghost, its shape's too, to the frames' "
                     "pixels after the shading refit (0: shapes stay as compressed; "
@@ -601,6 +610,11 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     fit->add_option("--refit-shape-outline", fs->shape_outline,
                     "with --refit-shapes: a ghost's shape is refitted only where at least this "
                     "share of its outline lies in the frame (median over its frames)")
+        ->capture_default_str()
+        ->check(CLI::Range(0.0, 1.0));
+    fit->add_option("--start-share", fs->start_share,
+                    "the passes start from the probe nearest the sweep's middle of those showing "
+                    "at least this share of the most ghosts any probe shows (1: the most)")
         ->capture_default_str()
         ->check(CLI::Range(0.0, 1.0));
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");

@@ -440,9 +440,7 @@ Result<int> SweepFitter::chooseStart() {
             if (indices.empty() || indices.back() != index) indices.push_back(index);
         }
     }
-    int best = indices.front();
-    size_t best_count = 0;
-    bool first = true;
+    std::vector<size_t> counts;
     double brightest_light = 0.0;
     for (const int index : indices) {
         auto frame = load(static_cast<size_t>(index));
@@ -453,14 +451,18 @@ Result<int> SweepFitter::chooseStart() {
             sky_[c] = std::min(sky_[c], detection->background[static_cast<size_t>(c)]);
         if (detection->light.found)
             brightest_light = std::max(brightest_light, detection->light.peak);
-        const size_t count = detection->candidates.size();
-        const auto off_middle = [&](int k) { return std::abs(2 * k - (n - 1)); };
-        if (first || count > best_count ||
-            (count == best_count && off_middle(index) < off_middle(best))) {
-            best = index;
-            best_count = count;
-            first = false;
-        }
+        counts.push_back(detection->candidates.size());
+    }
+    if (counts.empty()) return 0;
+    // Of the probes that show nearly as many ghosts as the most any shows, the one nearest the
+    // middle: the two passes from it then take about as long, and they run side by side.
+    const size_t most = *std::max_element(counts.begin(), counts.end());
+    const auto off_middle = [&](int k) { return std::abs(2 * k - (n - 1)); };
+    int best = -1;
+    for (size_t i = 0; i < indices.size(); ++i) {
+        if (static_cast<double>(counts[i]) < options_.start_min_share * static_cast<double>(most))
+            continue;
+        if (best < 0 || off_middle(indices[i]) < off_middle(best)) best = indices[i];
     }
     detect_.min_light_peak =
         std::max(options_.detect.min_light_peak, kLightPeakShare * brightest_light);
@@ -1101,6 +1103,8 @@ Status checkSweepFitOptions(const SweepFitOptions& options) {
     if (options.min_track_frames < 1) return invalid("min_track_frames must be >= 1");
     if (options.start_frame < -1) return invalid("start_frame must be -1 (automatic) or a frame");
     if (options.start_probes < 1) return invalid("start_probes must be >= 1");
+    if (!(options.start_min_share > 0.0) || options.start_min_share > 1.0)
+        return invalid("start_min_share must lie in (0, 1]");
     if (options.max_ghosts < 1) return invalid("max_ghosts must be >= 1");
     if (!(options.min_energy_fraction >= 0.0) || options.min_energy_fraction >= 1.0)
         return invalid("min_energy_fraction must lie in [0, 1)");

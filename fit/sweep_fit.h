@@ -89,7 +89,11 @@ struct SweepFitOptions {
     // light's floor (step 1 above); a frame given here skips the probes, and with them both.
     int start_frame = -1;
     int start_probes = 9;  // frames detected to choose the start, >= 1
-    int max_ghosts = 64;   // live tracks at most, >= 1
+    // The start is the probe nearest the sweep's middle among those showing at least this share
+    // of the most candidates any probe shows, (0, 1]; 1: the most (the one nearest the middle
+    // of those). A start near one end leaves one pass to run alone for most of the sweep.
+    double start_min_share = 1.0;
+    int max_ghosts = 64;  // live tracks at most, >= 1
     // A ghost whose light in a frame is below this fraction of all the ghosts' light there ends:
     // it changes no figure a user measures, and the model stays small. 0 keeps every ghost.
     double min_energy_fraction = 0.003;

@@ -391,6 +391,28 @@ TEST(SweepFit, GhostFadingInIsPickedUpAndFollowedBack) {
     }
 }
 
+// The passes start from the probe that shows the most ghosts, or with a share below 1 from the
+// probe nearest the middle of those that show nearly as many; the ghosts are tracked either way.
+TEST(SweepFit, TheStartIsTheProbeNearestTheMiddleOfThoseShowingEnoughGhosts) {
+    // Ghost 1 appears at 4 deg: the last probe (6 deg) shows two ghosts, the others one.
+    const std::vector<TrueGhost> truth = {{-9.0, 0.5, 3.0, 40.0, 0.0},
+                                          {4.0, 0.5, 3.5, -40.0, 10.0}};
+    const auto angles = angleRange(0.0, 0.5, 13);
+    SweepFitOptions options = quickOptions();
+    options.start_probes = 3;  // frames 0, 6 and 12
+    for (const double share : {1.0, 0.5}) {
+        options.start_min_share = share;
+        auto result = fitSweepFrames(syntheticSource(truth, angles), options);
+        ASSERT_TRUE(result) << result.error().message;
+        EXPECT_EQ(result->start_frame, share == 1.0 ? 12 : 6) << "share " << share;
+        ASSERT_EQ(result->tracks.size(), 2u) << "share " << share << "\n" << describe(*result);
+    }
+    options.start_min_share = 0.0;
+    EXPECT_FALSE(fitSweepFrames(syntheticSource(truth, angles), options));
+    options.start_min_share = 1.5;
+    EXPECT_FALSE(fitSweepFrames(syntheticSource(truth, angles), options));
+}
+
 TEST(SweepFit, ThreeFramesAndOneFrame) {
     const auto angles = angleRange(1.0, 0.5, 3);
     const SweepFitOptions options = quickOptions();
