@@ -249,7 +249,9 @@ public:
         const int64_t width = frame.image.width;
         const bool has_bounds =
             frame.lower_bound.size() == static_cast<size_t>(width * frame.image.height);
-        for (int j = 0; j < ny_; ++j) {
+        // Each sample's block mean, rows of samples on every core (each sample is summed alone,
+        // in the same order, whichever thread sums it).
+        tbb::parallel_for(0, ny_, [&](int j) {
             for (int i = 0; i < nx_; ++i) {
                 const int64_t ax = x0 + i * stride_, bx = std::min(x1, ax + stride_ - 1);
                 const int64_t ay = y0 + j * stride_, by = std::min(y1, ay + stride_ - 1);
@@ -277,7 +279,7 @@ public:
                     bound_[c][s] = (bounds >> c) & 1u;
                 }
             }
-        }
+        });
         // The other ghosts at the sample centres (only those whose range meets the crop).
         for (const GhostState& g : others) {
             const render::BezierLoop loop = render::toBezierLoop(g.shape);
@@ -292,10 +294,19 @@ public:
             if (hi_x + grow < qx_.front() || lo_x - grow > qx_.back() ||
                 hi_y + grow < qy_.front() || lo_y - grow > qy_.back())
                 continue;
+            const Eigen::Vector2d box_lo(lo_x, lo_y), box_hi(hi_x, hi_y);
             tbb::parallel_for(0, ny_, [&](int j) {
                 for (int i = 0; i < nx_; ++i) {
                     const size_t s = static_cast<size_t>(j * nx_ + i);
                     if (!valid_[s]) continue;
+                    // A block farther from the ghost's control box than its outer falloff plus
+                    // the block's reach gets none of its light (as in evaluateOnce).
+                    const Eigen::Vector2d q(qx_[static_cast<size_t>(i)],
+                                            qy_[static_cast<size_t>(j)]);
+                    const double reach = hx_[static_cast<size_t>(i)] + hy_[static_cast<size_t>(j)];
+                    if ((box_lo - q).cwiseMax(q - box_hi).cwiseMax(0.0).norm() >
+                        (grow + reach) * (1.0 + 1e-9))
+                        continue;
                     const auto v = render::shadeGhostBlock(
                         loop, g.shading, {qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]},
                         {hx_[static_cast<size_t>(i)], hy_[static_cast<size_t>(j)]},
