@@ -15,6 +15,7 @@
 #include <optional>
 #include <sstream>
 #include <stdexcept>
+#include <system_error>
 #include <thread>
 #include <utility>
 
@@ -369,17 +370,21 @@ private:
     void readAhead(size_t index, const DetectOptions& options) {
         settleReadAhead();
         if (!frames_.prefetch) return;
-        ahead_ = std::async(std::launch::async, [this, index, options] {
-            const auto t0 = Clock::now();
-            if ((options_.cancel && options_.cancel->load()) || share_->stop.load()) return 0.0;
-            try {
-                std::lock_guard<std::mutex> lock(share_->source);
-                frames_.prefetch(index, options);
-            } catch (const std::exception&) {
-                // The pass reads the frame itself, and reports what went wrong.
-            }
-            return msSince(t0);
-        });
+        try {
+            ahead_ = std::async(std::launch::async, [this, index, options] {
+                const auto t0 = Clock::now();
+                if ((options_.cancel && options_.cancel->load()) || share_->stop.load()) return 0.0;
+                try {
+                    std::lock_guard<std::mutex> lock(share_->source);
+                    frames_.prefetch(index, options);
+                } catch (const std::exception&) {
+                    // The pass reads the frame itself, and reports what went wrong.
+                }
+                return msSince(t0);
+            });
+        } catch (const std::system_error&) {
+            // No thread to spare: the pass reads the frame itself when it gets there.
+        }
     }
     void settleReadAhead() {
         if (ahead_.valid()) result_.stages.ahead_ms += ahead_.get();
