@@ -153,6 +153,30 @@ std::vector<double> shrunkByOuterFalloff(std::vector<double> v,
     return v;
 }
 
+// The box of a loop's control points, which holds the loop.
+struct ControlBox {
+    Eigen::Vector2d lo, hi;
+};
+ControlBox controlBox(const render::BezierLoop& loop) {
+    ControlBox box{loop.control_points_mm.front(), loop.control_points_mm.front()};
+    for (const auto& p : loop.control_points_mm) {
+        box.lo = box.lo.cwiseMin(p);
+        box.hi = box.hi.cwiseMax(p);
+    }
+    return box;
+}
+
+// Whether a block centred on q gets none of a ghost's light: farther from its control box than
+// its outer falloff plus the block's reach (half width plus half height), so that its weights
+// are exactly zero, as the distance would find. The bound keeps a margin far above rounding.
+bool beyondReach(const ControlBox& box,
+                 const Eigen::Vector2d& q,
+                 double outer_falloff_mm,
+                 double reach_mm) {
+    return (box.lo - q).cwiseMax(q - box.hi).cwiseMax(0.0).norm() >
+           (outer_falloff_mm + reach_mm) * (1.0 + 1e-9);
+}
+
 // Whether every fitted channel's border is under a tenth of its inner intensity.
 bool darkRim(const std::vector<double>& v, const Layout& layout) {
     for (int c = 0; c < layout.channels; ++c) {
@@ -283,29 +307,18 @@ public:
         // The other ghosts at the sample centres (only those whose range meets the crop).
         for (const GhostState& g : others) {
             const render::BezierLoop loop = render::toBezierLoop(g.shape);
-            double lo_x = 1e300, hi_x = -1e300, lo_y = 1e300, hi_y = -1e300;
-            for (const auto& p : loop.control_points_mm) {
-                lo_x = std::min(lo_x, p.x());
-                hi_x = std::max(hi_x, p.x());
-                lo_y = std::min(lo_y, p.y());
-                hi_y = std::max(hi_y, p.y());
-            }
+            const ControlBox box = controlBox(loop);
             const double grow = g.shading.outer_falloff_mm;
-            if (hi_x + grow < qx_.front() || lo_x - grow > qx_.back() ||
-                hi_y + grow < qy_.front() || lo_y - grow > qy_.back())
+            if (box.hi.x() + grow < qx_.front() || box.lo.x() - grow > qx_.back() ||
+                box.hi.y() + grow < qy_.front() || box.lo.y() - grow > qy_.back())
                 continue;
-            const Eigen::Vector2d box_lo(lo_x, lo_y), box_hi(hi_x, hi_y);
             tbb::parallel_for(0, ny_, [&](int j) {
                 for (int i = 0; i < nx_; ++i) {
                     const size_t s = static_cast<size_t>(j * nx_ + i);
                     if (!valid_[s]) continue;
-                    // A block farther from the ghost's control box than its outer falloff plus
-                    // the block's reach gets none of its light (as in evaluateOnce).
-                    const Eigen::Vector2d q(qx_[static_cast<size_t>(i)],
-                                            qy_[static_cast<size_t>(j)]);
-                    const double reach = hx_[static_cast<size_t>(i)] + hy_[static_cast<size_t>(j)];
-                    if ((box_lo - q).cwiseMax(q - box_hi).cwiseMax(0.0).norm() >
-                        (grow + reach) * (1.0 + 1e-9))
+                    if (beyondReach(box, {qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]},
+                                    grow,
+                                    hx_[static_cast<size_t>(i)] + hy_[static_cast<size_t>(j)]))
                         continue;
                     const auto v = render::shadeGhostBlock(
                         loop, g.shading, {qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]},
@@ -429,15 +442,9 @@ private:
             border[c] = Jet(params[layout_.border(c)], layout_.border(c)) * intensity_scale_;
             inner[c] = Jet(params[layout_.inner(c)], layout_.inner(c)) * intensity_scale_;
         }
-        // The control points' box holds the loop. A block farther from it than the outer falloff
-        // plus the block's reach gets no light from the ghost: its weights are exactly zero, as
-        // the distance would find, so the distance is not sought (most of a crop, whose margin
-        // is wide). The bound keeps a margin far above rounding.
-        Eigen::Vector2d box_lo = loop.control_points_mm.front(), box_hi = box_lo;
-        for (const auto& p : loop.control_points_mm) {
-            box_lo = box_lo.cwiseMin(p);
-            box_hi = box_hi.cwiseMax(p);
-        }
+        // A block beyond the ghost's reach (most of a crop, whose margin is wide) gets no light
+        // from it, so its distance is not sought.
+        const ControlBox box = controlBox(loop);
         // The closest points depend on the nine shape values only. Ceres evaluates a step's
         // residuals, and on accepting it the Jacobian at the same values; the points of the
         // last shape are kept per sample and reused when the shape is the same bit for bit.
@@ -455,8 +462,7 @@ private:
                 if (!valid_[s]) continue;
                 const Eigen::Vector2d q(qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]);
                 const double reach = hx_[static_cast<size_t>(i)] + hy_[static_cast<size_t>(j)];
-                if ((box_lo - q).cwiseMax(q - box_hi).cwiseMax(0.0).norm() >
-                    (fo.a + reach) * (1.0 + 1e-9)) {
+                if (beyondReach(box, q, fo.a, reach)) {
                     for (int c = 0; c < layout_.channels; ++c) {
                         const size_t row = s * layout_.channels + c;
                         residual_[row] = censored(c, s,

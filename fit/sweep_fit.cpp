@@ -364,6 +364,17 @@ private:
         result_.stages.load_ms += msSince(t0);
         return frame;
     }
+    // The options frame j is detected with: circles (which only start tracks) in the start frame,
+    // every detect_every frames from it and wherever no track is live; in between the
+    // predictions carry the fit and the cheap blobs still match. None when following a track
+    // back, nor with the paths as seeds (the seeds start the tracks).
+    DetectOptions detectOptionsAt(size_t j, bool any_live, bool extend) const {
+        DetectOptions detect = detect_;
+        const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));
+        if (any_live && from_start % options_.detect_every != 0) detect.circles = false;
+        if (extend || options_.path_seeds) detect.circles = false;
+        return detect;
+    }
     // Frame `index` loaded and detected into the source's memory on another thread while this
     // pass fits the frame before it (FrameSource::prefetch), with the options the pass will
     // detect it with unless no track is live then. The last read-ahead is waited for first.
@@ -478,23 +489,13 @@ Status SweepFitter::processFrame(
     size_t j, std::vector<size_t>& live, bool allow_new, int direction, bool extend) {
     auto frame = load(j);
     if (!frame) return frame.error().withContext("frame " + std::to_string(j));
-    DetectOptions detect = detect_;
-    const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));
-    if (!live.empty() && !extend && from_start % options_.detect_every != 0)
-        detect.circles = false;  // the predictions carry the fit; the cheap blobs still match
-    // Circles only start tracks; with the paths as seeds, the seeds do.
-    if (extend || options_.path_seeds) detect.circles = false;
-    auto detection = detectIn(j, *frame, detect);
+    auto detection = detectIn(j, *frame, detectOptionsAt(j, !live.empty(), extend));
     if (!detection) return detection.error();
     if (!extend) {  // the start frame's pass (direction 0) goes on forward
         const int64_t next = static_cast<int64_t>(j) + (direction != 0 ? direction : +1);
-        if (next >= 0 && next < static_cast<int64_t>(frames_.angles_deg.size())) {
-            DetectOptions ahead = detect_;
-            if (options_.path_seeds ||
-                std::abs(next - static_cast<int64_t>(start_)) % options_.detect_every != 0)
-                ahead.circles = false;
-            readAhead(static_cast<size_t>(next), ahead);
-        }
+        if (next >= 0 && next < static_cast<int64_t>(frames_.angles_deg.size()))
+            readAhead(static_cast<size_t>(next),
+                      detectOptionsAt(static_cast<size_t>(next), true, false));
     }
     lights_[j] = detection->light;
     const double angle = frames_.angles_deg[j];
