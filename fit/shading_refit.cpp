@@ -13,9 +13,11 @@
 #include <map>
 #include <optional>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "common/check.h"
+#include "fit/gauss_seidel.h"
 #include "fit/model_eval.h"
 #include "fit/polyfit.h"
 #include "fit/sweep_fit.h"
@@ -931,9 +933,15 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
     std::stable_sort(order.begin(), order.end(),
                      [&](size_t a, size_t b) { return peak[a] > peak[b]; });
     report.ghosts = static_cast<int>(order.size());
-    // One ghost's series refitted to its observations; its cost before and after. A failed or
-    // worse solve leaves the coefficients as they were.
-    const auto solve = [&](SeriesModel& model, size_t g, const std::vector<Observation>& seen) {
+    // One ghost's series refitted to its observations; its cost before and after and the
+    // evaluations it took. A failed or worse solve leaves the coefficients as they were. It
+    // writes only ghost g's coefficients and reads those of the ghosts its observations show.
+    struct Solved {
+        double before = 0.0, after = 0.0;
+        int64_t evaluations = 0;
+    };
+    const auto solve = [&](SeriesModel& model, size_t g,
+                           const std::vector<Observation>& seen) -> Solved {
         std::vector<double>& c = model.coefficients(g);
         auto* function =
             new GhostSeriesCost(model, g, seen, channels, cost.robust_scale, cost.distance);
@@ -948,28 +956,49 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
         so.logging_type = ceres::SILENT;
         ceres::Solver::Summary summary;
         ceres::Solve(so, &problem, &summary);
-        report.evaluations += summary.num_residual_evaluations;
         const bool usable =
             summary.IsSolutionUsable() && summary.final_cost <= summary.initial_cost &&
             std::all_of(c.begin(), c.end(), [](double x) { return std::isfinite(x); });
         if (!usable) c = start_values;
         model.store(g);
-        return std::pair{summary.initial_cost, usable ? summary.final_cost : summary.initial_cost};
+        return Solved{summary.initial_cost, usable ? summary.final_cost : summary.initial_cost,
+                      summary.num_residual_evaluations};
+    };
+    // `passes` Gauss-Seidel passes over `ghosts` in their order, each ghost on its `seen`
+    // observations, run on every core where ghosts share no observation (runGaussSeidel: the
+    // result is the plain loop's, bit for bit); the summed costs before the first pass and
+    // after the last, in the loop's order.
+    const auto sweep = [&](SeriesModel& model, const std::vector<size_t>& ghosts,
+                           const std::vector<std::vector<Observation>>& seen, int passes) {
+        std::vector<std::vector<size_t>> neighbours(model.size());
+        for (const size_t g : ghosts)
+            for (const Observation& obs : seen[g])
+                for (const auto& other : obs.others) neighbours[g].push_back(other.first);
+        std::vector<size_t> items;
+        for (int pass = 0; pass < passes; ++pass)
+            items.insert(items.end(), ghosts.begin(), ghosts.end());
+        std::vector<Solved> solved(items.size());
+        runGaussSeidel(items, neighbours,
+                       [&](size_t k) { solved[k] = solve(model, items[k], seen[items[k]]); });
+        std::pair<double, double> cost{0.0, 0.0};
+        for (size_t k = 0; k < items.size(); ++k) {
+            report.evaluations += solved[k].evaluations;
+            if (k < ghosts.size()) cost.first += solved[k].before;
+            if (k + ghosts.size() >= items.size()) cost.second += solved[k].after;
+        }
+        return cost;
     };
     // The shading passes. Their values whose bounds meet keep a gradient (SeriesModel::values):
     // it is wrong there, and stalls the solver where such a value pulls hardest, but on one
     // double Gauss sweep it was what held a veil larger than the frame, which had soaked up the
     // light of a ghost the tracker lost, from growing 13 times brighter with no other ghost near
     // it to share that light (the fitted angle's relative L2 3.3, with the exact gradient 428).
-    for (int pass = 0; pass < options.passes; ++pass) {
-        double pass_final = 0.0;
-        for (const size_t g : order) {
-            if (series.coefficients(g).empty()) continue;
-            const auto [before, after] = solve(series, g, observations[g]);
-            if (pass == 0) report.initial_cost += before;
-            pass_final += after;
-        }
-        report.final_cost = pass_final;
+    {
+        std::vector<size_t> refitted_ghosts;
+        for (const size_t g : order)
+            if (!series.coefficients(g).empty()) refitted_ghosts.push_back(g);
+        std::tie(report.initial_cost, report.final_cost) =
+            sweep(series, refitted_ghosts, observations, options.passes);
     }
     if (options.shape_passes > 0) {
         const auto shape_start = Clock::now();
@@ -1018,15 +1047,8 @@ Result<ShadingRefitReport> refitShading(FlareModel& model,
                 last = index;
             }
         }
-        for (int pass = 0; pass < options.shape_passes; ++pass) {
-            double pass_final = 0.0;
-            for (const size_t g : shaped) {
-                const auto [before, after] = solve(full, g, seen[g]);
-                if (pass == 0) report.shape_initial_cost += before;
-                pass_final += after;
-            }
-            report.shape_final_cost = pass_final;
-        }
+        std::tie(report.shape_initial_cost, report.shape_final_cost) =
+            sweep(full, shaped, seen, options.shape_passes);
         report.shape_ghosts = static_cast<int>(shaped.size());
         report.shape_unobserved = static_cast<int>(order.size() - shaped.size());
         report.shape_ms =
