@@ -239,6 +239,8 @@ public:
                std::span<const GhostState> others,
                const std::array<double, 3>& transform_scale) {
         closest_shape_valid_ = false;  // new samples: no closest point is known
+        closest_.clear();
+        anchors_.clear();
         last_[0].valid = last_[1].valid = false;
         const int64_t w = x1 - x0 + 1, h = y1 - y0 + 1;
         const int64_t side = std::max(w, h);
@@ -406,6 +408,21 @@ public:
     int64_t evaluations() const { return evaluations_; }
 
 private:
+    // Row `row`'s gradient: dt times the model's, and its nonzero span.
+    void writeGradient(size_t row, double dt, const Jet& m) const {
+        const int np = layout_.size();
+        int first = np, last = 0;
+        for (int k = 0; k < np; ++k) {
+            const double g = dt * m.v[k];
+            gradient_[row * np + static_cast<size_t>(k)] = g;
+            if (g != 0.0) {
+                first = std::min(first, k);
+                last = k + 1;
+            }
+        }
+        span_[row] = {static_cast<uint8_t>(std::min(first, last)), static_cast<uint8_t>(last)};
+    }
+
     bool evaluateOnce(const double* params, double* residuals, double* jacobian) const {
         ++evaluations_;
         const int np = layout_.size();
@@ -452,17 +469,51 @@ private:
         for (int i = 0; i < 9 && same_shape; ++i)
             same_shape = closest_shape_[static_cast<size_t>(i)] == params[i];
         if (!same_shape) {
-            closest_.assign(n, SampleClosest{});
+            // Every sample keeps the shape its distance was last sought for (its anchor): a
+            // cubic's points are weighted means of its control points, so no point of the
+            // loop moved farther than the control points did (anchor_shift_), and neither did
+            // any distance to it.
+            if (closest_.size() != n) closest_.assign(n, SampleClosest{});
+            for (SampleClosest& c : closest_) c.known = false;
+            anchor_shift_.resize(anchors_.size());
+            for (size_t a = 0; a < anchors_.size(); ++a) {
+                double shift = 0.0;
+                for (size_t k = 0; k < 12; ++k)
+                    shift = std::max(shift, (loop.control_points_mm[k] - anchors_[a][k]).norm());
+                anchor_shift_[a] = shift;
+            }
+            anchors_.emplace_back();
+            std::copy_n(loop.control_points_mm.begin(), 12, anchors_.back().begin());
+            anchor_shift_.push_back(0.0);
             for (int i = 0; i < 9; ++i) closest_shape_[static_cast<size_t>(i)] = params[i];
             closest_shape_valid_ = true;
         }
+        const int anchor_now = static_cast<int>(anchors_.size()) - 1;
         tbb::parallel_for(0, ny_, [&](int j) {
             for (int i = 0; i < nx_; ++i) {
                 const size_t s = static_cast<size_t>(j * nx_ + i);
                 if (!valid_[s]) continue;
                 const Eigen::Vector2d q(qx_[static_cast<size_t>(i)], qy_[static_cast<size_t>(j)]);
                 const double reach = hx_[static_cast<size_t>(i)] + hy_[static_cast<size_t>(j)];
-                if (beyondReach(box, q, fo.a, reach)) {
+                // A sample whose block lay, at its anchor, farther outside the outer falloff or
+                // deeper inside the inner one than the loop has moved since gets the weights
+                // the transfer's flat ends give (0 outside; all inner light inside), as
+                // boxTransferWeights would: its spread is at most the half sizes' sum.
+                SampleClosest& sc = closest_[s];
+                bool inside_flat = false;
+                if (!sc.known && sc.anchor >= 0) {
+                    const double moved = anchor_shift_[static_cast<size_t>(sc.anchor)];
+                    const double away = std::abs(sc.anchor_distance) - moved - reach;
+                    if (sc.anchor_distance > 0.0 && away >= fo.a) {
+                        // as beyond reach, below
+                    } else if (sc.anchor_distance < 0.0 && away >= fi.a) {
+                        inside_flat = true;
+                    } else {
+                        sc.anchor = -1;
+                    }
+                }
+                const bool outside_flat = !sc.known && sc.anchor >= 0 && !inside_flat;
+                if (outside_flat || beyondReach(box, q, fo.a, reach)) {
                     for (int c = 0; c < layout_.channels; ++c) {
                         const size_t row = s * layout_.channels + c;
                         residual_[row] = censored(c, s,
@@ -474,13 +525,46 @@ private:
                     }
                     continue;
                 }
-                if (!closest_[s].known) {
-                    closest_[s].point = render::closestPointFast(loop, q, options_.distance);
-                    closest_[s].sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
-                    closest_[s].known = true;
+                if (inside_flat) {
+                    for (int c = 0; c < layout_.channels; ++c) {
+                        const size_t row = s * layout_.channels + c;
+                        const Jet& m = inner[c];
+                        const double total = m.a + others_[c][s];
+                        residual_[row] = censored(
+                            c, s,
+                            std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]));
+                        if (!jacobian) continue;
+                        const double dt =
+                            residual_[row] == 0.0 && bound_[c][s]
+                                ? 0.0
+                                : 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
+                        writeGradient(row, dt, m);
+                    }
+                    continue;
                 }
-                const render::ClosestPoint& cp = closest_[s].point;
-                const double sign = closest_[s].sign;
+                if (!sc.known) {
+                    sc.point = render::closestPointFast(loop, q, options_.distance);
+                    sc.sign = render::windingNumber(loop, q) != 0 ? -1.0 : 1.0;
+                    sc.known = true;
+                    sc.anchor = anchor_now;
+                    // The fast distance is a point's on the loop, so it can only overstate
+                    // the distance, and does by far where Newton leaves its segment (a straight
+                    // side with handles of no length). Where it puts the block on a flat end of
+                    // the transfer now, a bound below it is proven (fartherThan) and kept;
+                    // elsewhere the anchor holds none.
+                    const double flat_from = (sc.sign < 0.0 ? fi.a : fo.a) + reach;
+                    sc.anchor_distance = 0.0;
+                    if (sc.point.distance_mm >= flat_from) {
+                        // Most of the way to the fast distance: room for the loop to move
+                        // before the bound no longer holds (0.5 and 0.95 were no faster on
+                        // the Heliar).
+                        const double bound = flat_from + 0.8 * (sc.point.distance_mm - flat_from);
+                        if (render::fartherThan(loop, q, bound))
+                            sc.anchor_distance = sc.sign * bound;
+                    }
+                }
+                const render::ClosestPoint& cp = sc.point;
+                const double sign = sc.sign;
                 const double d = sign * cp.distance_mm;
                 const Eigen::Vector2d half(hx_[static_cast<size_t>(i)],
                                            hy_[static_cast<size_t>(j)]);
@@ -535,17 +619,7 @@ private:
                     const double dt = residual_[row] == 0.0 && bound_[c][s]
                                           ? 0.0
                                           : 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
-                    int first = np, last = 0;
-                    for (int k = 0; k < np; ++k) {
-                        const double g = dt * m.v[k];
-                        gradient_[row * np + static_cast<size_t>(k)] = g;
-                        if (g != 0.0) {
-                            first = std::min(first, k);
-                            last = k + 1;
-                        }
-                    }
-                    span_[row] = {static_cast<uint8_t>(std::min(first, last)),
-                                  static_cast<uint8_t>(last)};
+                    writeGradient(row, dt, m);
                 }
             }
         });
@@ -676,9 +750,15 @@ private:
     struct SampleClosest {
         render::ClosestPoint point;
         double sign = 1.0;
-        bool known = false;  // sought for closest_shape_
+        bool known = false;            // sought for closest_shape_
+        int anchor = -1;               // the shape (anchors_) it was last sought for; -1 none
+        double anchor_distance = 0.0;  // the signed distance then
     };
     mutable std::vector<SampleClosest> closest_;
+    // The loops' control points distances were sought for, and how far the current loop's lie
+    // from each (the most any of the 12 moved).
+    mutable std::vector<std::array<Eigen::Vector2d, 12>> anchors_;
+    mutable std::vector<double> anchor_shift_;
     mutable std::array<double, 9> closest_shape_{};
     mutable bool closest_shape_valid_ = false;
 };

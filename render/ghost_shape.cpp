@@ -301,6 +301,37 @@ ClosestPoint closestPointExact(const BezierLoop& loop, const Vec2& q, double tol
     return best;
 }
 
+bool fartherThan(const BezierLoop& loop, const Vec2& q, double bound_mm) {
+    if (!isFinite(q) || !(bound_mm >= 0.0) || loop.segmentCount() == 0) return false;
+    // Pieces whose lower bound reaches the bound are done; a curve point nearer than it ends the
+    // search. Each segment's pieces are halved at most kDepth times (a 2^-kDepth share of the
+    // segment), past which a piece still in doubt answers no.
+    constexpr int kDepth = 12;
+    struct Open {
+        Cubic cubic;
+        int depth;
+    };
+    Open stack[2 * kDepth + 2];
+    for (int s = 0; s < loop.segmentCount(); ++s) {
+        int top = 0;
+        stack[top++] = Open{loop.segment(s), 0};
+        while (top > 0) {
+            const Open piece = stack[--top];
+            const Cubic& c = piece.cubic;
+            if (distanceToBox(controlBox(c), q) >= bound_mm) continue;
+            if ((c[0] - q).norm() < bound_mm || (c[3] - q).norm() < bound_mm) return false;
+            const double u = projectOnChord(c[0], c[3], q);
+            if ((c[0] + u * (c[3] - c[0]) - q).norm() - flatness(c) >= bound_mm) continue;
+            if (piece.depth == kDepth) return false;
+            Cubic left, right;
+            splitHalf(c, left, right);
+            stack[top++] = Open{left, piece.depth + 1};
+            stack[top++] = Open{right, piece.depth + 1};
+        }
+    }
+    return true;
+}
+
 ClosestPoint closestPointFast(const BezierLoop& loop,
                               const Vec2& q,
                               const FastDistanceOptions& options) {

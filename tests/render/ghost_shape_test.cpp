@@ -131,6 +131,54 @@ TEST(GhostShape, ExactDistanceIsNeverAboveDenseSampling) {
     }
 }
 
+TEST(GhostShape, FartherThanProvesOnlyTrueBoundsAndFindsLooseOnes) {
+    // Random shapes, some with handles of no length (straight sides whose speed vanishes at both
+    // ends, where Newton leaves the segment), against the exact distance.
+    std::mt19937_64 rng(41);
+    std::uniform_real_distribution<double> share(0.0, 1.5);
+    int proven = 0;
+    for (int i = 0; i < 200; ++i) {
+        GhostShapeParams p = randomShape(rng);
+        if (i % 3 == 0) p.right_handle_x_mm = p.right_handle_y_mm = 0.0;
+        if (i % 5 == 0) p.left_handle_x_mm = p.left_handle_y_mm = 0.0;
+        const BezierLoop loop = toBezierLoop(p);
+        for (int k = 0; k < 20; ++k) {
+            const Vec2 q = randomQuery(p, rng);
+            const double exact = closestPointExact(loop, q, 1e-12).distance_mm;
+            const double bound = share(rng) * exact;
+            const bool farther = fartherThan(loop, q, bound);
+            if (farther) {
+                EXPECT_GE(exact, bound - 1e-12) << "i=" << i << " k=" << k;
+                ++proven;
+            }
+            if (bound <= 0.8 * exact && exact > 1e-3) {  // a loose bound is proven
+                EXPECT_TRUE(farther) << "i=" << i << " k=" << k << " " << bound << " " << exact;
+            }
+            if (bound > exact) {
+                EXPECT_FALSE(farther) << "i=" << i << " k=" << k;
+            }
+        }
+    }
+    EXPECT_GT(proven, 1000);
+    // A straight side with handles of no length: the fast distance lands on a corner, nine
+    // times too far; the bound it would suggest is refused.
+    BezierLoop side;
+    side.control_points_mm = {{-7.8165, -16.4622}, {-20.1555, -16.4622}, {-30.1733, -9.4575},
+                              {-30.1733, -0.8298}, {-30.1733, 7.7979},   {-20.1555, 14.8025},
+                              {-7.8165, 14.8025},  {-7.8165, 14.8025},   {7.8333, -0.8298},
+                              {7.8333, -0.8298},   {7.8333, -0.8298},    {-7.8165, -16.4622}};
+    const Vec2 q(1.688, -8.066);
+    const double fast = closestPointFast(side, q, {4, 2}).distance_mm;
+    const double exact = closestPointExact(side, q).distance_mm;
+    EXPECT_GT(fast, 5.0 * exact);
+    EXPECT_FALSE(fartherThan(side, q, 0.5 * fast));
+    EXPECT_TRUE(fartherThan(side, q, 0.8 * exact));
+    // Degenerate asks answer no.
+    EXPECT_FALSE(fartherThan(side, Vec2(std::nan(""), 0.0), 1.0));
+    EXPECT_FALSE(fartherThan(side, q, -1.0));
+    EXPECT_FALSE(fartherThan(BezierLoop{}, q, 1.0));
+}
+
 TEST(GhostShape, FastAgreesWithExactAfterEnoughIterations) {
     std::mt19937_64 rng(5);
     double worst = 0.0;
