@@ -172,8 +172,9 @@ TEST(InteriorEdges, AreTheWholeEdgesBetweenQuadsOfTheSameDensityOnEitherSide) {
         const Eigen::Vector2d a = q.corners[0].position_px;
         // The 2 x 2 block at cells (4, 2): its left edge (corner 3 to 0) faces single cells.
         if (std::abs(a.x() - (10.3 + 3.0 * 4 + 0.5 * 2)) < 1e-9 &&
-            std::abs(a.y() - (7.1 + 2.5 * 2 + 0.2 * 4)) < 1e-9)
+            std::abs(a.y() - (7.1 + 2.5 * 2 + 0.2 * 4)) < 1e-9) {
             EXPECT_EQ(q.centre_edges & 8u, 0u);
+        }
     }
 }
 
