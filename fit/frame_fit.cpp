@@ -382,26 +382,61 @@ public:
         last_[0].valid = last_[1].valid = false;
     }
 
-    // Residuals (robust-transformed) and, when `jacobian` is not null, their row-major Jacobian.
-    // Ceres asks for the same point twice: its projected line search evaluates each trial point
-    // with the Jacobian, and an accepted step's point is then evaluated with the Jacobian again.
-    // The last evaluation is kept and copied when the same point is asked for in the same way
-    // (with or without the Jacobian: the two ways round differently in the last bits, and a
-    // copy must be what a new evaluation would give).
-    bool evaluate(const double* params, double* residuals, double* jacobian) const {
+    // The residuals (robust-transformed). The last evaluation is kept and copied when the same
+    // point is asked for again (a copy must be what a new evaluation would give).
+    bool evaluate(const double* params, double* residuals) const {
         const int np = layout_.size();
         const size_t rows = static_cast<size_t>(residualCount());
-        LastEvaluation& last = last_[jacobian ? 1 : 0];
+        LastEvaluation& last = last_[0];
         if (last.valid && std::equal(params, params + np, last.params.begin())) {
             std::copy_n(last.residuals.begin(), rows, residuals);
-            if (jacobian) std::copy_n(last.jacobian.begin(), rows * np, jacobian);
             return last.ok;
         }
-        last.ok = evaluateOnce(params, residuals, jacobian);
+        last.ok = evaluateOnce(params, residuals, nullptr);
         last.valid = true;
         last.params.assign(params, params + np);
         last.residuals.assign(residuals, residuals + rows);
-        if (jacobian) last.jacobian.assign(jacobian, jacobian + rows * np);
+        return last.ok;
+    }
+
+    // The rows r + J x compressed to np + 1 (GhostCostFunction): `residuals` np + 1 values and,
+    // when `jacobian` is not null, their row-major (np + 1) x np Jacobian. Without the Jacobian
+    // only the cost is wanted: the residuals' norm, last. Ceres asks for a point's Jacobian
+    // again after a step it accepts; the last one is kept (as evaluate keeps its last).
+    bool evaluateCompressed(const double* params, double* residuals, double* jacobian) const {
+        const int np = layout_.size();
+        const auto m = static_cast<Eigen::Index>(residualCount());
+        std::fill_n(residuals, np + 1, 0.0);
+        if (!jacobian) {
+            rows_.resize(m);
+            if (!evaluate(params, rows_.data())) return false;
+            residuals[np] = rows_.norm();
+            return std::isfinite(residuals[np]);
+        }
+        LastEvaluation& last = last_[1];
+        const size_t out_rows = static_cast<size_t>(np + 1);
+        if (!(last.valid && std::equal(params, params + np, last.params.begin()))) {
+            rows_.resize(m);
+            rows_jacobian_.resize(m, np);
+            last.ok = evaluateOnce(params, rows_.data(), &rows_jacobian_);
+            last.valid = true;
+            last.params.assign(params, params + np);
+            last.residuals.assign(out_rows, 0.0);
+            last.jacobian.assign(out_rows * static_cast<size_t>(np), 0.0);
+            if (last.ok) {
+                const detail::CompressedRows packed =
+                    detail::compressRowsInPlace(rows_jacobian_, rows_);
+                for (Eigen::Index i = 0; i < packed.head.size(); ++i) {
+                    last.residuals[static_cast<size_t>(i)] = packed.head[i];
+                    for (int k = 0; k < np; ++k)
+                        last.jacobian[static_cast<size_t>(i * np + k)] = packed.factor(i, k);
+                }
+                last.residuals[static_cast<size_t>(np)] = packed.rest;
+                last.ok = std::isfinite(packed.rest);
+            }
+        }
+        std::copy_n(last.residuals.begin(), out_rows, residuals);
+        std::copy_n(last.jacobian.begin(), out_rows * static_cast<size_t>(np), jacobian);
         return last.ok;
     }
 
@@ -424,7 +459,8 @@ private:
         span_[row] = {static_cast<uint8_t>(std::min(first, last)), static_cast<uint8_t>(last)};
     }
 
-    bool evaluateOnce(const double* params, double* residuals, double* jacobian) const {
+    // The full rows, and their Jacobian (residualCount() x np) when `jacobian` is not null.
+    bool evaluateOnce(const double* params, double* residuals, Eigen::MatrixXd* jacobian) const {
         ++evaluations_;
         const int np = layout_.size();
         const size_t n = static_cast<size_t>(nx_) * static_cast<size_t>(ny_);
@@ -636,8 +672,7 @@ private:
             if (jacobian) {
                 // d rt / d theta = rho'(r^2) r / rt * dr / dtheta; the factor is 1 at r = 0.
                 const double factor = rt != 0.0 ? (1.0 / (1.0 + s2 / c2)) * r / rt : 1.0;
-                double* row = jacobian + static_cast<size_t>(out) * np;
-                for (int k = 0; k < np; ++k) row[k] = grad ? factor * grad[k] : 0.0;
+                for (int k = 0; k < np; ++k) (*jacobian)(out, k) = grad ? factor * grad[k] : 0.0;
             }
             ++out;
             return true;
@@ -695,9 +730,8 @@ private:
                 residuals[out] = (params[i] - prior_values_[static_cast<size_t>(i)]) /
                                  prior_tolerance_[static_cast<size_t>(i)];
                 if (jacobian) {
-                    double* row = jacobian + static_cast<size_t>(out) * np;
-                    for (int k = 0; k < np; ++k) row[k] = 0.0;
-                    row[i] = 1.0 / prior_tolerance_[static_cast<size_t>(i)];
+                    for (int k = 0; k < np; ++k) (*jacobian)(out, k) = 0.0;
+                    (*jacobian)(out, i) = 1.0 / prior_tolerance_[static_cast<size_t>(i)];
                 }
                 ++out;
             }
@@ -709,7 +743,7 @@ public:
     // Half the sum of squared transformed residuals (Ceres' cost), or +inf when not finite.
     double cost(const double* params) const {
         std::vector<double> r(static_cast<size_t>(residualCount()));
-        if (!evaluate(params, r.data(), nullptr)) return std::numeric_limits<double>::infinity();
+        if (!evaluate(params, r.data())) return std::numeric_limits<double>::infinity();
         double sum = 0.0;
         for (double v : r) sum += v * v;
         return 0.5 * sum;
@@ -739,6 +773,8 @@ private:
     bool prior_ = false;
     std::vector<double> prior_values_, prior_tolerance_;
     mutable std::vector<double> residual_, gradient_, edge_, edge_gradient_;
+    mutable Eigen::VectorXd rows_;  // evaluateCompressed's full rows and their Jacobian
+    mutable Eigen::MatrixXd rows_jacobian_;
     mutable std::vector<std::array<uint8_t, 2>> span_;
     mutable int64_t evaluations_ = 0;
     struct LastEvaluation {
@@ -772,44 +808,19 @@ private:
 // once per Jacobian. Without a Jacobian only the cost is wanted: its norm goes in the last row.
 class GhostCostFunction final : public ceres::CostFunction {
 public:
-    GhostCostFunction(const GhostProblem& problem, int parameters)
-        : problem_(problem), parameters_(parameters) {
+    GhostCostFunction(const GhostProblem& problem, int parameters) : problem_(problem) {
         set_num_residuals(parameters + 1);
         mutable_parameter_block_sizes()->push_back(parameters);
     }
     bool Evaluate(double const* const* parameters,
                   double* residuals,
                   double** jacobians) const override {
-        const int k = parameters_;
-        const auto m = static_cast<Eigen::Index>(problem_.residualCount());
-        rows_.resize(m);
-        double* jacobian = jacobians ? jacobians[0] : nullptr;
-        if (jacobian) rows_jacobian_.resize(static_cast<size_t>(m * k));
-        if (!problem_.evaluate(parameters[0], rows_.data(),
-                               jacobian ? rows_jacobian_.data() : nullptr))
-            return false;
-        std::fill_n(residuals, k + 1, 0.0);
-        if (!jacobian) {
-            residuals[k] = rows_.norm();
-            return std::isfinite(residuals[k]);
-        }
-        using RowMajor = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
-        const Eigen::Map<const RowMajor> j(rows_jacobian_.data(), m, k);
-        Eigen::Map<RowMajor> out(jacobian, k + 1, k);
-        out.setZero();
-        const detail::CompressedRows packed = detail::compressRows(j, rows_);
-        const auto kept = packed.head.size();
-        out.topRows(kept) = packed.factor;
-        for (Eigen::Index i = 0; i < kept; ++i) residuals[i] = packed.head[i];
-        residuals[k] = packed.rest;
-        return std::isfinite(residuals[k]);
+        return problem_.evaluateCompressed(parameters[0], residuals,
+                                           jacobians ? jacobians[0] : nullptr);
     }
 
 private:
     const GhostProblem& problem_;
-    int parameters_;
-    mutable Eigen::VectorXd rows_;
-    mutable std::vector<double> rows_jacobian_;
 };
 
 // The thesis's optimizer (§7.2): central differences, a step and a learning rate per parameter,

@@ -669,9 +669,14 @@ Crop cropOf(const GhostState& state, double grow_mm, const FitFrame& frame) {
 namespace detail {
 
 CompressedRows compressRows(const Eigen::MatrixXd& d, Eigen::VectorXd r) {
+    Eigen::MatrixXd work = d;
+    return compressRowsInPlace(work, r);
+}
+
+CompressedRows compressRowsInPlace(Eigen::Ref<Eigen::MatrixXd> d, Eigen::Ref<Eigen::VectorXd> r) {
     FLARELAB_CHECK(d.rows() == r.size());
     const Eigen::Index kept = std::min(d.rows(), d.cols());
-    const Eigen::HouseholderQR<Eigen::MatrixXd> qr(d);
+    const Eigen::HouseholderQR<Eigen::Ref<Eigen::MatrixXd>> qr(d);
     r.applyOnTheLeft(qr.householderQ().adjoint());
     CompressedRows out;
     out.factor = qr.matrixQR().topRows(kept).triangularView<Eigen::Upper>();

@@ -143,6 +143,8 @@ struct CompressedRows {
     double rest = 0.0;
 };
 CompressedRows compressRows(const Eigen::MatrixXd& d, Eigen::VectorXd r);
+// The same on the caller's rows, which it overwrites (with the QR's factors, and Q' r).
+CompressedRows compressRowsInPlace(Eigen::Ref<Eigen::MatrixXd> d, Eigen::Ref<Eigen::VectorXd> r);
 
 }  // namespace detail
 
