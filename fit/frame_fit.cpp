@@ -781,7 +781,8 @@ private:
         bool valid = false, ok = false;
         std::vector<double> params, residuals, jacobian;
     };
-    // evaluate's last without and with the Jacobian; invalidated by build and setPrior.
+    // evaluate's last (full rows) and evaluateCompressed's last with the Jacobian (compressed
+    // rows); invalidated by build and setPrior.
     mutable std::array<LastEvaluation, 2> last_;
     // Per sample: the closest point and inside sign of the loop of closest_shape_ (evaluate).
     struct SampleClosest {
@@ -789,7 +790,7 @@ private:
         double sign = 1.0;
         bool known = false;            // sought for closest_shape_
         int anchor = -1;               // the shape (anchors_) it was last sought for; -1 none
-        double anchor_distance = 0.0;  // the signed distance then
+        double anchor_distance = 0.0;  // a proven bound below its distance then, signed; 0 none
     };
     mutable std::vector<SampleClosest> closest_;
     // The loops' control points distances were sought for, and how far the current loop's lie
