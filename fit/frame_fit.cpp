@@ -444,8 +444,22 @@ public:
     int64_t evaluations() const { return evaluations_; }
 
 private:
-    // Row `row`'s gradient: dt times the model's, and its nonzero span.
-    void writeGradient(size_t row, double dt, const Jet& m) const {
+    // Channel c's residual at sample s for the light `total` the model puts there (this ghost's
+    // and the others').
+    double residualAt(int c, size_t s, double total) const {
+        return censored(c, s, std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]));
+    }
+
+    // Row `row` (sample s, channel c) for this ghost's light m there: its residual and, when
+    // asked, its gradient (zero where the bound is met: the residual stays 0 nearby) and the
+    // gradient's nonzero span.
+    void writeRow(size_t row, int c, size_t s, const Jet& m, bool jacobian) const {
+        const double total = m.a + others_[c][s];
+        residual_[row] = residualAt(c, s, total);
+        if (!jacobian) return;
+        const double dt = residual_[row] == 0.0 && bound_[c][s]
+                              ? 0.0
+                              : 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
         const int np = layout_.size();
         int first = np, last = 0;
         for (int k = 0; k < np; ++k) {
@@ -553,9 +567,7 @@ private:
                 if (outside_flat || beyondReach(box, q, fo.a, reach)) {
                     for (int c = 0; c < layout_.channels; ++c) {
                         const size_t row = s * layout_.channels + c;
-                        residual_[row] = censored(c, s,
-                                                  std::asinh((0.0 + others_[c][s]) / scale_[c]) -
-                                                      std::asinh(data_[c][s] / scale_[c]));
+                        residual_[row] = residualAt(c, s, 0.0 + others_[c][s]);
                         if (!jacobian) continue;
                         std::fill_n(&gradient_[row * np], np, 0.0);
                         span_[row] = {0, 0};
@@ -563,20 +575,8 @@ private:
                     continue;
                 }
                 if (inside_flat) {
-                    for (int c = 0; c < layout_.channels; ++c) {
-                        const size_t row = s * layout_.channels + c;
-                        const Jet& m = inner[c];
-                        const double total = m.a + others_[c][s];
-                        residual_[row] = censored(
-                            c, s,
-                            std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]));
-                        if (!jacobian) continue;
-                        const double dt =
-                            residual_[row] == 0.0 && bound_[c][s]
-                                ? 0.0
-                                : 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
-                        writeGradient(row, dt, m);
-                    }
+                    for (int c = 0; c < layout_.channels; ++c)
+                        writeRow(s * layout_.channels + c, c, s, inner[c], jacobian != nullptr);
                     continue;
                 }
                 if (!sc.known) {
@@ -611,10 +611,7 @@ private:
                                                                       fi.a, fo.a, ei.a, eo.a);
                     for (int c = 0; c < layout_.channels; ++c) {
                         const double m = border[c].a * w.border + inner[c].a * w.inner;
-                        residual_[s * layout_.channels + c] =
-                            censored(c, s,
-                                     std::asinh((m + others_[c][s]) / scale_[c]) -
-                                         std::asinh(data_[c][s] / scale_[c]));
+                        residual_[s * layout_.channels + c] = residualAt(c, s, m + others_[c][s]);
                     }
                     continue;
                 }
@@ -646,18 +643,9 @@ private:
                     return out;
                 };
                 const render::TransferWeights<Jet> w{chain(w5.border), chain(w5.inner)};
-                for (int c = 0; c < layout_.channels; ++c) {
-                    const Jet m = border[c] * w.border + inner[c] * w.inner;
-                    const double total = m.a + others_[c][s];
-                    const size_t row = s * layout_.channels + c;
-                    residual_[row] = censored(
-                        c, s, std::asinh(total / scale_[c]) - std::asinh(data_[c][s] / scale_[c]));
-                    // Zero where the bound is met: the residual stays 0 nearby.
-                    const double dt = residual_[row] == 0.0 && bound_[c][s]
-                                          ? 0.0
-                                          : 1.0 / std::sqrt(scale_[c] * scale_[c] + total * total);
-                    writeGradient(row, dt, m);
-                }
+                for (int c = 0; c < layout_.channels; ++c)
+                    writeRow(s * layout_.channels + c, c, s,
+                             border[c] * w.border + inner[c] * w.inner, true);
             }
         });
         // Output: the data term, then the edge term, each robust-transformed.
