@@ -329,6 +329,20 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
                      "of the ghost's peak")
         ->check(CLI::Range(1e-9, 0.1))
         ->capture_default_str();
+    playback->add_flag("!--ghost-tolerance", playback_options->frame_tolerance,
+                       "the smooth tolerance a fraction of each ghost's own peak (as the fit "
+                       "and score draw) instead of the frame's brightest ghost's (as model "
+                       "render draws)");
+    playback
+        ->add_option("--dense-tile", playback_options->dense_tile_px,
+                     "the fast frames' dense tiles (px; a divisor of --coarse-tile)")
+        ->check(CLI::Range(1, 256))
+        ->capture_default_str();
+    playback
+        ->add_option("--coarse-tile", playback_options->coarse_tile_px,
+                     "the fast frames' coarse tiles (px, at most 4096)")
+        ->check(CLI::Range(1, 4096))
+        ->capture_default_str();
     playback
         ->add_option("--exact-seeds", playback_options->exact_seeds,
                      "Newton seeds per segment of the exact frame's distance")

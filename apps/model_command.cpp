@@ -73,6 +73,7 @@ int runRender(const RenderState& s, std::ostream& out, std::ostream& err) {
     const double roll = std::isnan(s.roll_deg) ? model->capture.roll_deg : s.roll_deg;
     fit::ModelRenderOptions options;
     options.intensity_scale = s.intensity_scale;
+    options.frame_tolerance = true;  // the frame's error budget, not each ghost's
     if (s.exact) options.evaluation = render::GhostEvaluation::Exact;
     const auto start = std::chrono::steady_clock::now();
     auto image = fit::renderModel(*model, s.angle_deg, roll, width, height, options);

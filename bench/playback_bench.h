@@ -22,6 +22,7 @@
 
 #include "common/result.h"
 #include "render/ghost_shape.h"
+#include "render/tiles.h"
 
 namespace flarelab::bench {
 
@@ -33,7 +34,10 @@ struct PlaybackBenchOptions {
     double roll_deg = std::numeric_limits<double>::quiet_NaN();   // NaN: the capture's roll
     int frames = 10;                 // timed frames after the first, >= 1
     double smooth_tolerance = 1e-4;  // fit::ModelRenderOptions::smooth_tolerance
+    bool frame_tolerance = true;     // fit::ModelRenderOptions::frame_tolerance, as model render
     bool exact = true;               // false: no exact frame, no error figures
+    int dense_tile_px = render::TileOptions{}.dense_tile_px;  // the fast frames' tiles
+    int coarse_tile_px = render::TileOptions{}.coarse_tile_px;
     // The exact frame's Newton distance (the renderer's default is 4 seeds, 4 steps); more of
     // both bring it nearer the curve's true distance where sharp edges make 0.01 px matter.
     int exact_seeds = 4;
@@ -55,6 +59,10 @@ struct PlaybackBenchResult {
     double rel_l2 = -1.0;
     double peak = 0.0;  // the exact frame's brightest value (the fast one's without it)
     int threads = 0;
+    // The best frame's tile engine: dense tiles x ghosts interpolated and drawn per pixel, and its
+    // clocks (classification while the tiles are built; drawing).
+    int64_t tiles_smooth = 0, tiles_edge = 0;
+    double build_ms = 0.0, traverse_ms = 0.0;
 };
 
 // InvalidArgument for options out of range; the model reader's and renderer's errors as they are.

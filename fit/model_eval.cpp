@@ -273,6 +273,13 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
     // they are prepared on every core; the array keeps the ghosts' order.
     std::vector<std::optional<render::GhostPrimitive>> prepared(ghosts.size());
     const double angle = rotation_deg * std::numbers::pi / 180.0;
+    double frame_peak = 0.0;
+    if (options.frame_tolerance)
+        for (const GhostState& g : ghosts)
+            for (int c = 0; c < 3; ++c)
+                for (const double v : {g.shading.border_rgb[c], g.shading.inner_rgb[c]})
+                    if (const double scaled = v * options.intensity_scale; std::isfinite(scaled))
+                        frame_peak = std::max(frame_peak, scaled);
     tbb::parallel_for(size_t{0}, ghosts.size(), [&](size_t i) {
         const GhostState& g = ghosts[i];
         render::GhostShading shading = g.shading;
@@ -284,6 +291,7 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
         draw.distance = options.distance;
         draw.evaluation = options.evaluation;
         draw.smooth_tolerance = options.smooth_tolerance;
+        draw.tolerance_peak = frame_peak;
         prepared[i] = render::prepareGhostPrimitive(rotatedLoop(g, angle), shading, mapping, width,
                                                     height, draw);
     });
@@ -291,8 +299,8 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
     primitives.reserve(ghosts.size());
     for (auto& p : prepared)
         if (p) primitives.push_back(std::move(*p));
-    const Status drawn =
-        render::renderTiled(image, {}, primitives, optics::ApertureShape{}, options.tiles);
+    const Status drawn = render::renderTiled(image, {}, primitives, optics::ApertureShape{},
+                                             options.tiles, options.stats);
     FLARELAB_CHECK(
         drawn.has_value());  // ranges come from prepareGhostPrimitive, tiles from the caller
     return image;

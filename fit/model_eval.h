@@ -99,8 +99,14 @@ struct ModelRenderOptions {
     // Exact: every pixel of every ghost's range by shadeGhostBlock (render/model_ghost.h).
     render::GhostEvaluation evaluation = render::GhostEvaluation::Fast;
     double smooth_tolerance = 1e-4;  // render::GhostDrawOptions::smooth_tolerance
+    // The smooth tolerance a fraction of the frame's brightest ghost's peak (its largest border or
+    // inner value) for every ghost, instead of each ghost's own: a frame drawn for people, whose
+    // error budget is the frame's. Off for the fit's frames and the score, whose ruler stays per
+    // ghost.
+    bool frame_tolerance = false;
     render::TileOptions tiles;
-    double intensity_scale = 1.0;  // multiplies every intensity (another light's power), >= 0
+    double intensity_scale = 1.0;        // multiplies every intensity (another light's power), >= 0
+    render::TileStats* stats = nullptr;  // when set, the tile engine's counts and clocks
 };
 
 // The model's ghosts at (angle_deg, roll_deg) drawn by the tile engine into a width x height image

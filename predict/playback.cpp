@@ -128,7 +128,10 @@ Result<PlaybackResult> playback(const fit::FlareModel& model,
             modelAngleFor(model, placed.model_theta_deg, placed.constellation.phi_deg);
         if (!angle)
             return makeError(ErrorCode::Internal, "playback: a placed light left the model");
-        auto image = fit::renderModel(model, angle->angle_deg, angle->roll_deg, width, height);
+        fit::ModelRenderOptions render;
+        render.frame_tolerance = true;  // the frame's error budget, not each ghost's
+        auto image =
+            fit::renderModel(model, angle->angle_deg, angle->roll_deg, width, height, render);
         if (!image) return image.error().withContext("playback: light '" + light.name + "'");
         float* dst = result.image.pixels.data();
         const float* src = image->pixels.data();

@@ -49,6 +49,10 @@ struct GhostDrawOptions {
     // fast: a block drawn by interpolation is off by at most this fraction of the ghost's peak
     // (its largest border or inner value) at its check points, in (0, 0.1]
     double smooth_tolerance = 1e-4;
+    // fast: when larger than the ghost's peak, the peak the tolerance is a fraction of: a frame's
+    // brightest ghost, so that the frame's error budget, not each ghost's, sets how finely a dim
+    // ghost is drawn. Finite and >= 0.
+    double tolerance_peak = 0.0;
 };
 
 // The fast evaluation's flattened loop (see above). Built by prepareGhostPrimitive.
@@ -94,6 +98,9 @@ struct GhostOutline {
     double tolerance_mm = 0.0;  // the chords' largest distance from the curve
     double reach_mm = 0.0;      // half a pixel's diagonal: how far a pixel's mean looks
     double tolerance = 0.0;     // smooth_tolerance times the peak, in the shading's unit
+    // Blocks over which the ghost varies by at most twice `tolerance` are drawn as one value,
+    // wherever they lie (coverGhostBlock); set for a frame's tolerance (tolerance_peak).
+    bool flat_blocks = false;
 };
 
 struct GhostPrimitive {

@@ -161,8 +161,8 @@ TEST(ModelGhostPrimitive, QuadsAndGhostsTogetherAddUp) {
                 // Slightly skewed 16 px cells over the image, each with its own throughputs.
                 Quad q;
                 const double x = 16.0 * i + 0.3, y = 16.0 * j + 0.7;
-                const double corner[4][2] = {{x, y}, {x + 16.0, y + 0.4}, {x + 15.6, y + 16.0},
-                                             {x - 0.2, y + 15.7}};
+                const double corner[4][2] = {
+                    {x, y}, {x + 16.0, y + 0.4}, {x + 15.6, y + 16.0}, {x - 0.2, y + 15.7}};
                 for (int k = 0; k < 4; ++k) {
                     q.corners[k].position_px = {corner[k][0], corner[k][1]};
                     q.corners[k].throughput = static_cast<float>(0.5 + 0.1 * k + 0.05 * (i + c));
@@ -172,12 +172,12 @@ TEST(ModelGhostPrimitive, QuadsAndGhostsTogetherAddUp) {
     ASSERT_GT(quads.size(), 60u);
     ImageRGB apart_quads(w, h), apart_ghost(w, h), together(w, h);
     ASSERT_TRUE(renderTiled(apart_quads, quads, {}, optics::ApertureShape{}).has_value());
-    ASSERT_TRUE(renderTiled(apart_ghost, {}, std::vector<GhostPrimitive>{*g},
-                            optics::ApertureShape{})
-                    .has_value());
-    ASSERT_TRUE(renderTiled(together, quads, std::vector<GhostPrimitive>{*g},
-                            optics::ApertureShape{})
-                    .has_value());
+    ASSERT_TRUE(
+        renderTiled(apart_ghost, {}, std::vector<GhostPrimitive>{*g}, optics::ApertureShape{})
+            .has_value());
+    ASSERT_TRUE(
+        renderTiled(together, quads, std::vector<GhostPrimitive>{*g}, optics::ApertureShape{})
+            .has_value());
     int64_t shared = 0, quads_only = 0;
     for (size_t k = 0; k < together.pixels.size(); ++k) {
         const float q = apart_quads.pixels[k], gh = apart_ghost.pixels[k];
@@ -269,15 +269,17 @@ struct DrawnPair {
     TileStats fast_stats;
 };
 
+// The fast frame with `fast_options` (the default: each ghost's own tolerance) and the exact one.
 DrawnPair drawBoth(const std::vector<std::pair<BezierLoop, GhostShading>>& ghosts,
                    int64_t w,
-                   int64_t h) {
+                   int64_t h,
+                   const GhostDrawOptions& fast_options = {}) {
     const SensorToImage m = mappingFor(w, h);
     std::vector<GhostPrimitive> fast, exact;
     GhostDrawOptions exact_options;
     exact_options.evaluation = GhostEvaluation::Exact;
     for (const auto& [loop, s] : ghosts) {
-        auto f = prepareGhostPrimitive(loop, s, m, w, h);
+        auto f = prepareGhostPrimitive(loop, s, m, w, h, fast_options);
         auto e = prepareGhostPrimitive(loop, s, m, w, h, exact_options);
         EXPECT_EQ(f.has_value(), e.has_value());
         if (!f || !e) continue;
@@ -338,6 +340,111 @@ TEST(ModelGhostFast, MatchesTheExactEvaluationOnRandomFrames) {
         EXPECT_GT(drawn.fast_stats.ghost_tiles_smooth, 0) << "seed " << seed;
     }
     RecordProperty("max_rel_err", std::to_string(worst));
+}
+
+// A frame's tolerance (GhostDrawOptions::tolerance_peak, what flarelab model render draws with):
+// every ghost's blocks are held to the smooth tolerance of the frame's brightest ghost's peak, so
+// that dim ghosts are interpolated in larger blocks and drawn per pixel less often. Random frames
+// of one bright ghost among dim ones of every kind of shading (peaks 1e-4 to 1 of the bright one):
+// the frame stays within the same 2e-3 of its peak as with each ghost's own tolerance, and fewer
+// tiles are drawn per pixel.
+TEST(ModelGhostFast, AFramesToleranceDrawsDimGhostsCoarselyWithinTheFramesBudget) {
+    const int64_t w = 360, h = 240;
+    double worst = 0.0;
+    for (uint64_t seed = 1; seed <= 4; ++seed) {
+        std::mt19937_64 rng(100 + seed);
+        std::uniform_real_distribution<double> u(-1.0, 1.0);
+        std::vector<std::pair<BezierLoop, GhostShading>> ghosts;
+        double peak = 0.0;
+        for (int i = 0; i < 8; ++i) {
+            GhostShading s = randomShading(rng);
+            const double scale = i == 0 ? 100.0 : std::pow(10.0, -2.0 + 2.0 * u(rng));
+            for (size_t c = 0; c < 3; ++c) {
+                s.border_rgb[c] *= scale;
+                s.inner_rgb[c] *= scale;
+                peak = std::max({peak, s.border_rgb[c], s.inner_rgb[c]});
+            }
+            ghosts.push_back({toBezierLoop(randomShape(rng, 14.0 * u(rng), 9.0 * u(rng),
+                                                       std::exp(1.5 + u(rng)))),
+                              s});
+        }
+        GhostDrawOptions frame;
+        frame.tolerance_peak = peak;
+        const DrawnPair own = drawBoth(ghosts, w, h);
+        const DrawnPair budget = drawBoth(ghosts, w, h, frame);
+        const double error = maxRelativeError(budget.fast, budget.exact);
+        EXPECT_LT(error, 2e-3) << "seed " << seed;
+        worst = std::max(worst, error);
+        EXPECT_LT(budget.fast_stats.ghost_tiles_edge, own.fast_stats.ghost_tiles_edge)
+            << "seed " << seed;
+    }
+    RecordProperty("max_rel_err", std::to_string(worst));
+}
+
+// Under a frame's tolerance a block across a dim ghost's outline, where no biquadratic holds (the
+// slope jumps at the edge), is one value when eq. 6.4 varies by no more than twice the tolerance
+// over the distances its pixels' means see; every pixel then lies within the tolerance of it. Under
+// the ghost's own tolerance, or where the ghost varies more, the block is left to its pixels.
+TEST(ModelGhostFast, ABlockAcrossADimGhostsOutlineIsOneValueWithinTheTolerance) {
+    const int64_t w = 640, h = 427;
+    const SensorToImage m = mappingFor(w, h);
+    const BezierLoop loop = toBezierLoop(circleGhostShape(0.0, 0.0, 5.0));
+    GhostShading s = shading(1.0, 1.2);
+    s.inner_falloff_mm = 3.0;
+    s.outer_falloff_mm = 2.0;
+    s.inner_exponent = 0.5;  // steep at the edge: no biquadratic across it
+    s.outer_exponent = 2.0;
+    // A 16-pixel block the outline crosses (x = 5 mm at 17.8 px per mm, about pixel 409).
+    const int64_t x0 = 400, y0 = 205, x1 = 415, y1 = 220;
+    GhostDrawOptions exact_options;
+    exact_options.evaluation = GhostEvaluation::Exact;
+    const auto exact = prepareGhostPrimitive(loop, s, m, w, h, exact_options);
+    ASSERT_TRUE(exact.has_value());
+    // How much the ghost varies over the block: a tenth or so of its peak, so that its own
+    // tolerance (1e-4 of it) leaves the block to its pixels, and so does any tolerance below half
+    // that variation.
+    const auto [lo, hi] = [&] {
+        double a = 1e300, b = -1e300;
+        for (int64_t y = y0; y <= y1; ++y)
+            for (int64_t x = x0; x <= x1; ++x) {
+                a = std::min(a, ghostPixelValue(*exact, x, y)[0]);
+                b = std::max(b, ghostPixelValue(*exact, x, y)[0]);
+            }
+        return std::pair{a, b};
+    }();
+    ASSERT_GT(hi - lo, 0.05);
+    ASSERT_LT(hi - lo, 0.3);
+    const auto own = prepareGhostPrimitive(loop, s, m, w, h);
+    ASSERT_TRUE(own.has_value());
+    EXPECT_EQ(coverGhostBlock(*own, x0, y0, x1, y1, false).kind, GhostBlockKind::Edge);
+    GhostDrawOptions bright;
+    bright.tolerance_peak = 0.4 * (hi - lo) / 1e-4;  // tolerance 0.4 (hi - lo)
+    const auto dim = prepareGhostPrimitive(loop, s, m, w, h, bright);
+    ASSERT_TRUE(dim.has_value());
+    EXPECT_NE(coverGhostBlock(*dim, x0, y0, x1, y1, false).kind, GhostBlockKind::Smooth);
+    // A tolerance of the whole variation (the rule's distances reach the corner pixels' means
+    // and the chords' sagitta beyond the pixels' own; three quarters of it are not enough
+    // here): the block is one value.
+    const double tolerance = hi - lo;
+    GhostDrawOptions brighter;
+    brighter.tolerance_peak = tolerance / 1e-4;
+    const auto dimmer = prepareGhostPrimitive(loop, s, m, w, h, brighter);
+    ASSERT_TRUE(dimmer.has_value());
+    const GhostBlockCover cover = coverGhostBlock(*dimmer, x0, y0, x1, y1, false);
+    ASSERT_EQ(cover.kind, GhostBlockKind::Smooth);
+    for (int64_t y = y0; y <= y1; ++y)
+        for (int64_t x = x0; x <= x1; ++x) {
+            const auto truth = ghostPixelValue(*exact, x, y);
+            for (size_t k = 0; k < 3; ++k)
+                EXPECT_LE(std::abs(cover.nodes[1][1][k] - truth[k]), tolerance * (1.0 + 1e-6))
+                    << x << "," << y;
+        }
+    // The drawn frame agrees: every pixel within the tolerance of the exact frame.
+    ImageRGB fast(w, h), reference(w, h);
+    ASSERT_TRUE(renderTiled(fast, {}, std::span(&*dimmer, 1), optics::ApertureShape{}));
+    ASSERT_TRUE(renderTiled(reference, {}, std::span(&*exact, 1), optics::ApertureShape{}));
+    for (size_t i = 0; i < fast.pixels.size(); ++i)
+        ASSERT_LE(std::abs(fast.pixels[i] - reference.pixels[i]), tolerance * (1.0 + 1e-5)) << i;
 }
 
 // The memo of samples changes no block's answer, only how often a point is evaluated: blocks of
@@ -561,6 +668,12 @@ TEST(ModelGhostFast, RefusesOptionsOutOfRange) {
         GhostDrawOptions o;
         o.smooth_tolerance = tolerance;
         EXPECT_FALSE(prepareGhostPrimitive(loop, shading(1.0, 1.0), m, 64, 48, o)) << tolerance;
+    }
+    for (const double peak : {-1.0, std::numeric_limits<double>::quiet_NaN(),
+                              std::numeric_limits<double>::infinity()}) {
+        GhostDrawOptions o;
+        o.tolerance_peak = peak;
+        EXPECT_FALSE(prepareGhostPrimitive(loop, shading(1.0, 1.0), m, 64, 48, o)) << peak;
     }
 }
 
