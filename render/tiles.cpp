@@ -294,6 +294,19 @@ Status renderTiledAt(ImageRGB& image,
 
     const auto traverse_start = Clock::now();
     const StopMask stop(aperture);
+    // The biquadratic's weights along a whole tile's row or column, pixel by pixel: the same for
+    // every whole tile (they depend on the pixel's offset in the tile alone, all in whole numbers
+    // until the last division), so computed once; tiles cut by the image's edge compute their own.
+    using TileWeights = std::vector<std::array<double, 3>>;
+    const auto tileWeights = [](int64_t t0, int64_t t1) {
+        TileWeights w(static_cast<size_t>(t1 - t0 + 1));
+        const double mid = static_cast<double>(midPixel(t0, t1));
+        for (int64_t x = t0; x <= t1; ++x)
+            w[static_cast<size_t>(x - t0)] = quadraticWeights(
+                static_cast<double>(t0), mid, static_cast<double>(t1), static_cast<double>(x));
+        return w;
+    };
+    const TileWeights whole_tile = tileWeights(0, dense - 1);
     tbb::parallel_for(int64_t{0}, dense_x * dense_y, [&](int64_t t) {
         const std::vector<uint32_t>& list = dense_lists[static_cast<size_t>(t)];
         const bool smooth = !has_smooth.empty() && has_smooth[static_cast<size_t>(t)];
@@ -313,9 +326,9 @@ Status renderTiledAt(ImageRGB& image,
                 const Primitive& p = *primitives[index];
                 const int64_t x0 = std::max(tx, p.x0), x1 = std::min(tx1, p.x1);
                 const int64_t y0 = std::max(ty, p.y0), y1 = std::min(ty1, p.y1);
-                addPrimitiveBlock(
-                    p, x0, y0, x1, y1, stop,
-                    planes.data() + p.channel * plane + (y0 - ty) * dense + (x0 - tx), dense, 1);
+                addPrimitiveBlock(p, x0, y0, x1, y1, stop,
+                                  planes.data() + p.channel * plane + (y0 - ty) * dense + (x0 - tx),
+                                  dense, 1);
             }
             for (int64_t y = ty; y <= ty1; ++y) {
                 float* pixel = image.at(tx, y);
@@ -334,18 +347,18 @@ Status renderTiledAt(ImageRGB& image,
         accumulator.assign(static_cast<size_t>(dense) * dense * 3, 0.0f);
         if (smooth) {  // the fast ghosts' smooth parts first, biquadratic between the nodes
             const Nodes& nodes = smooth_nodes[static_cast<size_t>(t)];
-            const double xm = static_cast<double>(midPixel(tx, tx1));
-            const double ym = static_cast<double>(midPixel(ty, ty1));
+            const TileWeights cut_x = tx1 - tx + 1 < dense ? tileWeights(tx, tx1) : TileWeights{};
+            const TileWeights cut_y = ty1 - ty + 1 < dense ? tileWeights(ty, ty1) : TileWeights{};
+            const TileWeights& weights_x = cut_x.empty() ? whole_tile : cut_x;
+            const TileWeights& weights_y = cut_y.empty() ? whole_tile : cut_y;
             std::array<std::array<float, 3>, 256> wx;
             for (int64_t x = tx; x <= tx1; ++x) {
-                const auto w = quadraticWeights(static_cast<double>(tx), xm,
-                                                static_cast<double>(tx1), static_cast<double>(x));
+                const auto& w = weights_x[static_cast<size_t>(x - tx)];
                 for (size_t i = 0; i < 3; ++i)
                     wx[static_cast<size_t>(x - tx)][i] = static_cast<float>(w[i]);
             }
             for (int64_t y = ty; y <= ty1; ++y) {
-                const auto wy = quadraticWeights(static_cast<double>(ty), ym,
-                                                 static_cast<double>(ty1), static_cast<double>(y));
+                const auto& wy = weights_y[static_cast<size_t>(y - ty)];
                 float column[3][3];  // [node i][channel]
                 for (size_t i = 0; i < 3; ++i)
                     for (size_t k = 0; k < 3; ++k)
