@@ -353,6 +353,11 @@ void addBenchCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& 
                      "Newton steps per seed of the exact frame's distance")
         ->check(CLI::Range(0, 64))
         ->capture_default_str();
+    playback
+        ->add_option("--log-scale", playback_options->log_scale,
+                     "log_rel_l2's tone mapping, as score's (a fraction of the peak)")
+        ->check(CLI::Range(1e-12, 1.0))
+        ->capture_default_str();
     playback->add_flag("!--no-exact", playback_options->exact,
                        "skip the exact frame (and the error figures)");
     playback->add_option("--json", *playback_json_path, "also write the results as JSON here");

@@ -36,6 +36,7 @@ struct PlaybackBenchOptions {
     double smooth_tolerance = 1e-4;  // fit::ModelRenderOptions::smooth_tolerance
     bool frame_tolerance = true;     // fit::ModelRenderOptions::frame_tolerance, as model render
     bool exact = true;               // false: no exact frame, no error figures
+    double log_scale = 1e-3;         // log_rel_l2's tone mapping, as score's --log-scale
     int dense_tile_px = render::TileOptions{}.dense_tile_px;  // the fast frames' tiles
     int coarse_tile_px = render::TileOptions{}.coarse_tile_px;
     // The exact frame's Newton distance (the renderer's default is 4 seeds, 4 steps); more of
@@ -57,7 +58,8 @@ struct PlaybackBenchResult {
     double max_rel_err = -1.0;  // -1 when not run
     double max_abs_err = -1.0;
     double rel_l2 = -1.0;
-    double peak = 0.0;  // the exact frame's brightest value (the fast one's without it)
+    double log_rel_l2 = -1.0;  // relative L2 of the tone-mapped frames (fit::toneMapScore)
+    double peak = 0.0;         // the exact frame's brightest value (the fast one's without it)
     int threads = 0;
     // The best frame's tile engine: dense tiles x ghosts interpolated and drawn per pixel, and its
     // clocks (classification while the tiles are built; drawing).

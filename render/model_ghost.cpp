@@ -223,7 +223,6 @@ std::shared_ptr<const GhostOutline> buildOutline(const BezierLoop& loop,
     for (int c = 0; c < 3; ++c)
         peak = std::max({peak, shading.border_rgb[c], shading.inner_rgb[c]});
     o->tolerance = options.smooth_tolerance * std::max(peak, options.tolerance_peak);
-    o->flat_blocks = options.tolerance_peak > 0.0;
     Flattener f;
     f.tolerance_mm = o->tolerance_mm;
     f.region_lo = {(0.5 - m.centre_x_px) / m.px_per_mm_x, (0.5 - m.centre_y_px) / m.px_per_mm_y};
@@ -1185,32 +1184,6 @@ GhostSampleMemo::Entry* GhostSampleMemo::find(const GhostPrimitive& ghost, doubl
     return &slot.entry;
 }
 
-// Whether the ghost's value varies by no more than twice `tolerance` over the signed distances
-// [a, b] (mm), and if so its middle value per channel. Eq. 6.4 is monotone on each side of the
-// outline and continuous across it, so over [a, b] it lies between its values at the ends and,
-// where the interval holds the outline, the border's. A pixel's mean lies between the least and
-// the greatest of them too, whatever its distances within.
-std::optional<std::array<double, 3>> flatOver(const GhostShading& s,
-                                              double a,
-                                              double b,
-                                              double tolerance) {
-    std::array<double, 3> middle{};
-    for (size_t c = 0; c < 3; ++c) {
-        const auto at = [&](double d) {
-            return transferIntensity(d, s.border_rgb[c], s.inner_rgb[c], s.inner_falloff_mm,
-                                     s.outer_falloff_mm, s.inner_exponent, s.outer_exponent);
-        };
-        double lo = std::min(at(a), at(b)), hi = std::max(at(a), at(b));
-        if (a < 0.0 && b > 0.0) {
-            lo = std::min(lo, s.border_rgb[c]);
-            hi = std::max(hi, s.border_rgb[c]);
-        }
-        if (!(hi - lo <= 2.0 * tolerance)) return std::nullopt;
-        middle[c] = 0.5 * (lo + hi);
-    }
-    return middle;
-}
-
 GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
                                 int64_t x0,
                                 int64_t y0,
@@ -1278,30 +1251,6 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
         mid.signed_distance_mm = in ? -n.distance_mm : n.distance_mm;
         if (mid.side_known) mid.value = shadeFromNearest(g, c, n.distance_mm, n.point_mm, in);
     }
-    // A block over which the ghost varies by no more than twice the tolerance is its middle value:
-    // every pixel's mean lies within the tolerance of it. The pixels' distances lie within r of the
-    // middle's (the distance is 1-Lipschitz), their means reach reach_mm beyond, and the middle's
-    // distance is the chords' (within a sagitta) where Newton did not refine it; where its side is
-    // not known, the interval holds both. Asked where the block would otherwise be drawn per pixel
-    // or split: across the outline, of a ghost dim against the tolerance. Only where the
-    // tolerance is a frame's (GhostDrawOptions::tolerance_peak): against a ghost's own peak it
-    // hardly ever holds there, and the fit's frames stay drawn as they were.
-    const auto flatBlock = [&] {
-        if (!o.flat_blocks) return false;
-        const double spread = r + o.reach_mm + 2.0 * o.tolerance_mm;
-        const double d = mid.signed_distance_mm;
-        const double a = mid.side_known ? d - spread : -(std::abs(d) + spread);
-        const double b = mid.side_known ? d + spread : std::abs(d) + spread;
-        const auto flat = flatOver(s, a, b, o.tolerance);
-        if (!flat) return false;
-        bool lit = false;
-        for (size_t k = 0; k < 3; ++k) lit = lit || (*flat)[k] != 0.0;
-        cover.kind = lit ? GhostBlockKind::Smooth : GhostBlockKind::Outside;
-        for (auto& row : cover.nodes)
-            for (auto& node : row)
-                for (size_t k = 0; k < 3; ++k) node[k] = static_cast<float>((*flat)[k]);
-        return true;
-    };
     // Whether the block lies on one branch of the loop (passed on to its parts, and used for its
     // own samples): within a block on one branch, from the middle's nearest point; else from the
     // chords near the block. Not for the smallest blocks that will be drawn per pixel, which have
@@ -1333,7 +1282,6 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
     // Unknown side: the middle lies within h of the outline, where no block is Outside or
     // inside the inner falloff (r is at least the half pixel diagonal) and every block is Edge.
     if (!mid.side_known) {
-        if (flatBlock()) return cover;
         if (!finest || branch) findBranch();
         return cover;
     }
@@ -1354,7 +1302,6 @@ GhostBlockCover coverGhostBlock(const GhostPrimitive& g,
     // The edge, where a pixel's mean bends the value within a pixel, is drawn per pixel; so are
     // the ends of the falloffs, where eq. 6.4's slope jumps, except in the smallest blocks.
     if (std::abs(d) - r <= 2.0 * h) {
-        if (flatBlock()) return cover;
         if (!finest || branch) findBranch();
         return cover;
     }

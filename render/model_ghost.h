@@ -98,9 +98,6 @@ struct GhostOutline {
     double tolerance_mm = 0.0;  // the chords' largest distance from the curve
     double reach_mm = 0.0;      // half a pixel's diagonal: how far a pixel's mean looks
     double tolerance = 0.0;     // smooth_tolerance times the peak, in the shading's unit
-    // Blocks over which the ghost varies by at most twice `tolerance` are drawn as one value,
-    // wherever they lie (coverGhostBlock); set for a frame's tolerance (tolerance_peak).
-    bool flat_blocks = false;
 };
 
 struct GhostPrimitive {
