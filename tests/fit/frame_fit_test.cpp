@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <random>
 
@@ -324,6 +325,55 @@ TEST(FrameFit, ARestartFarFromThePredictionIsKeptWhenItExplainsTheFrameBetter) {
         ASSERT_TRUE(report.has_value()) << report.error().message;
         EXPECT_EQ(ghosts[0], plain[0]);
     }
+}
+
+// A frame drawn for people (ModelRenderOptions::frame_tolerance, as model render and predict draw)
+// holds every ghost to the smooth tolerance of the frame's brightest ghost's peak: dim ghosts are
+// interpolated in larger blocks and fewer tiles are drawn per pixel, the frame staying within the
+// same 2e-3 of its peak of the exact evaluation as with each ghost's own tolerance. The budget
+// follows the intensity scale, so a frame at twice the intensity is twice the frame, to the bit.
+TEST(RenderGhostStates, AFramesToleranceHoldsDimGhostsToTheBrightestGhostsPeak) {
+    const int64_t w = 480, h = 320;
+    render::SensorToImage m;
+    m.px_per_mm_x = static_cast<double>(w) / kSensorW;
+    m.px_per_mm_y = static_cast<double>(h) / kSensorH;
+    m.centre_x_px = 0.5 * static_cast<double>(w);
+    m.centre_y_px = 0.5 * static_cast<double>(h);
+    std::vector<GhostState> ghosts = {disc(-7.0, 0.0, 4.0, 1000.0, 800.0),
+                                      disc(6.0, 2.0, 3.0, 5.0, 4.0),
+                                      disc(2.0, -5.0, 2.0, 0.5, 2.0)};
+    for (size_t i = 1; i < ghosts.size(); ++i) {  // dim, with wide and steep falloffs
+        ghosts[i].shading.outer_falloff_mm = 2.0;
+        ghosts[i].shading.inner_exponent = 0.5;
+        ghosts[i].shading.outer_exponent = 0.5;
+    }
+    ModelRenderOptions own, frame, exact;
+    render::TileStats own_stats, frame_stats;
+    own.stats = &own_stats;
+    frame.frame_tolerance = true;
+    frame.stats = &frame_stats;
+    exact.evaluation = render::GhostEvaluation::Exact;
+    const ImageRGB a = renderGhostStates(ghosts, m, w, h, own);
+    const ImageRGB b = renderGhostStates(ghosts, m, w, h, frame);
+    const ImageRGB e = renderGhostStates(ghosts, m, w, h, exact);
+    double peak = 0.0, worst_own = 0.0, worst_frame = 0.0;
+    for (size_t i = 0; i < e.pixels.size(); ++i) {
+        peak = std::max(peak, static_cast<double>(e.pixels[i]));
+        worst_own = std::max(worst_own, std::abs(static_cast<double>(a.pixels[i]) - e.pixels[i]));
+        worst_frame =
+            std::max(worst_frame, std::abs(static_cast<double>(b.pixels[i]) - e.pixels[i]));
+    }
+    ASSERT_GT(peak, 0.0);
+    EXPECT_LT(worst_own / peak, 2e-3);
+    EXPECT_LT(worst_frame / peak, 2e-3);
+    EXPECT_LT(frame_stats.ghost_tiles_edge, own_stats.ghost_tiles_edge);
+    EXPECT_NE(a.pixels, b.pixels);
+    ModelRenderOptions twice = frame;
+    twice.stats = nullptr;
+    twice.intensity_scale = 2.0;
+    const ImageRGB d = renderGhostStates(ghosts, m, w, h, twice);
+    ASSERT_EQ(d.pixels.size(), b.pixels.size());
+    for (size_t i = 0; i < d.pixels.size(); ++i) ASSERT_EQ(d.pixels[i], 2.0f * b.pixels[i]) << i;
 }
 
 }  // namespace
