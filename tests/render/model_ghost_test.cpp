@@ -345,7 +345,8 @@ TEST(ModelGhostFast, MatchesTheExactEvaluationOnRandomFrames) {
 // A frame's tolerance (GhostDrawOptions::tolerance_peak, what flarelab model render draws with):
 // every ghost's blocks are held to the smooth tolerance of the frame's brightest ghost's peak, so
 // that dim ghosts are interpolated in larger blocks and drawn per pixel less often. Random frames
-// of one bright ghost among dim ones of every kind of shading (peaks 1e-4 to 1 of the bright one):
+// of one bright ghost among seven dim ones of every kind of shading (their intensities scaled by
+// 1e-6 to 1e-2 of the bright one's scale):
 // the frame stays within the same 2e-3 of its peak as with each ghost's own tolerance, and fewer
 // tiles are drawn per pixel.
 TEST(ModelGhostFast, AFramesToleranceDrawsDimGhostsCoarselyWithinTheFramesBudget) {
