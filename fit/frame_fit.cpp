@@ -989,12 +989,7 @@ Result<FrameFitReport> fitFrame(const FitFrame& frame,
     // and overshoot together.) The cores share each ghost's cost evaluation instead.
     std::vector<size_t> order(ghosts.size());
     for (size_t g = 0; g < order.size(); ++g) order[g] = g;
-    const auto peak = [&](size_t g) {
-        double v = 0.0;
-        for (int c = 0; c < 3; ++c)
-            v = std::max({v, ghosts[g].shading.border_rgb[c], ghosts[g].shading.inner_rgb[c]});
-        return v;
-    };
+    const auto peak = [&](size_t g) { return render::shadingPeak(ghosts[g].shading); };
     std::stable_sort(order.begin(), order.end(),
                      [&](size_t a, size_t b) { return peak(a) > peak(b); });
     // Ghosts whose fit from a restart was kept: their prior (the prediction the restart

@@ -276,10 +276,9 @@ ImageRGB renderRotatedGhostStates(std::span<const GhostState> ghosts,
     double frame_peak = 0.0;
     if (options.frame_tolerance)
         for (const GhostState& g : ghosts)
-            for (int c = 0; c < 3; ++c)
-                for (const double v : {g.shading.border_rgb[c], g.shading.inner_rgb[c]})
-                    if (const double scaled = v * options.intensity_scale; std::isfinite(scaled))
-                        frame_peak = std::max(frame_peak, scaled);
+            if (const double scaled = render::shadingPeak(g.shading) * options.intensity_scale;
+                std::isfinite(scaled))
+                frame_peak = std::max(frame_peak, scaled);
     tbb::parallel_for(size_t{0}, ghosts.size(), [&](size_t i) {
         const GhostState& g = ghosts[i];
         render::GhostShading shading = g.shading;

@@ -351,6 +351,14 @@ struct GhostShading {
 // Errors name the field ("inner_rgb[1]") and the violated bound.
 Status validateShading(const GhostShading& shading);
 
+// The ghost's peak: its largest border or inner value over the channels (0 for none above 0).
+inline double shadingPeak(const GhostShading& shading) {
+    double peak = 0.0;
+    for (size_t c = 0; c < 3; ++c)
+        peak = std::max({peak, shading.border_rgb[c], shading.inner_rgb[c]});
+    return peak;
+}
+
 // The RGB value at a given signed distance (eq. 6.4 per channel).
 std::array<double, 3> shadeAtDistance(const GhostShading& shading, double signed_distance_mm);
 

@@ -219,10 +219,8 @@ std::shared_ptr<const GhostOutline> buildOutline(const BezierLoop& loop,
     const double mm_per_px = 1.0 / std::min(m.px_per_mm_x, m.px_per_mm_y);
     o->tolerance_mm = options.sagitta_px * mm_per_px;
     o->reach_mm = 0.5 * std::hypot(1.0 / m.px_per_mm_x, 1.0 / m.px_per_mm_y);
-    double peak = 0.0;
-    for (int c = 0; c < 3; ++c)
-        peak = std::max({peak, shading.border_rgb[c], shading.inner_rgb[c]});
-    o->tolerance = options.smooth_tolerance * std::max(peak, options.tolerance_peak);
+    o->tolerance =
+        options.smooth_tolerance * std::max(shadingPeak(shading), options.tolerance_peak);
     Flattener f;
     f.tolerance_mm = o->tolerance_mm;
     f.region_lo = {(0.5 - m.centre_x_px) / m.px_per_mm_x, (0.5 - m.centre_y_px) / m.px_per_mm_y};
