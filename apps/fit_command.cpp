@@ -46,6 +46,12 @@ struct FitState {
     int shape_frames = fit::ShadingRefitOptions{}.shape_frames_per_ghost;
     double shape_outline = fit::ShadingRefitOptions{}.shape_min_outline_in_frame;
     double start_share = fit::SweepFitOptions{}.start_min_share;
+    int min_track_frames = fit::SweepFitOptions{}.min_track_frames;
+    double min_energy_fraction = fit::SweepFitOptions{}.min_energy_fraction;
+    int max_missed = fit::SweepFitOptions{}.max_missed;
+    int max_circles = fit::DetectOptions{}.max_circles;
+    double transform_fraction = fit::CostOptions{}.transform_fraction;
+    double robust_scale = fit::CostOptions{}.robust_scale;
     double light_margin_px = fit::DetectOptions{}.light_margin_px;
     std::optional<double> light_power_dn_s;
     bool keep_samples = false;
@@ -183,6 +189,12 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.shading.shape_frames_per_ghost = s.shape_frames;
     options.shading.shape_min_outline_in_frame = s.shape_outline;
     options.start_min_share = s.start_share;
+    options.min_track_frames = s.min_track_frames;
+    options.min_energy_fraction = s.min_energy_fraction;
+    options.max_missed = s.max_missed;
+    options.detect.max_circles = s.max_circles;
+    options.frame.cost.transform_fraction = s.transform_fraction;
+    options.frame.cost.robust_scale = s.robust_scale;
     options.detect.light_margin_px = s.light_margin_px;
     if (s.paths) {
         if (!lens) {
@@ -617,6 +629,33 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                     "at least this share of the most ghosts any probe shows (1: the most)")
         ->capture_default_str()
         ->check(CLI::Range(0.0, 1.0));
+    fit->add_option("--min-track-frames", fs->min_track_frames,
+                    "tracks of fewer fitted frames are not modelled (docs/fit-scoring.md)")
+        ->capture_default_str()
+        ->check(CLI::Range(1, 1000));
+    fit->add_option("--min-energy-fraction", fs->min_energy_fraction,
+                    "a ghost whose light in a frame is below this share of all the ghosts' light "
+                    "there ends (0: none ends; below 1)")
+        ->capture_default_str()
+        ->check(CLI::Range(0.0, 1.0));
+    fit->add_option("--max-missed", fs->max_missed,
+                    "fitted frames a track may go undetected before it ends")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 1000));
+    fit->add_option("--max-circles", fs->max_circles,
+                    "overlapping circular ghosts the detection finds in one frame, at most")
+        ->capture_default_str()
+        ->check(CLI::Range(0, 1000));
+    fit->add_option("--transform-fraction", fs->transform_fraction,
+                    "the cost's asinh transform is linear up to this share of the frame's 99th "
+                    "percentile (or 3 noise sigmas, the larger), logarithmic above")
+        ->capture_default_str()
+        ->check(CLI::Range(0.0, 1e6));
+    fit->add_option("--robust-scale", fs->robust_scale,
+                    "the cost's Cauchy loss scale, in units of the transformed values: larger "
+                    "residuals count less (stars, hot pixels, other ghosts' misfit)")
+        ->capture_default_str()
+        ->check(CLI::Range(1e-3, 1e6));
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 

@@ -128,9 +128,9 @@ TEST(FitCommand, ASparseFitIsScoredOnTheFramesItLeftOut) {
             << a["angle_deg"];
     }
     EXPECT_EQ(left, (std::vector<double>{0.5, 1.5}));
-    const CommandRun fixed = run({"score", model.string(), "--lens", lensFile(), "--json",
-                                  "--halfway", "1", "--random", "0", "--fitted", "1",
-                                  "--light-mask-px", "7.5"});
+    const CommandRun fixed =
+        run({"score", model.string(), "--lens", lensFile(), "--json", "--halfway", "1", "--random",
+             "0", "--fitted", "1", "--light-mask-px", "7.5"});
     ASSERT_EQ(fixed.code, 0) << fixed.err;
     const auto fixed_json = nlohmann::json::parse(fixed.out);
     for (const auto& a : fixed_json["angles"])
@@ -150,9 +150,8 @@ TEST(FitCommand, ASparseFitIsScoredOnTheFramesItLeftOut) {
         << old_score.err;
     const auto old_json = nlohmann::json::parse(old_score.out);
     for (const auto& a : old_json["angles"])
-        EXPECT_TRUE(a["light_mask_px"] == 0.0 ||
-                    std::abs(a["light_mask_px"].get<double>() - 0.03 * std::hypot(160.0, 107.0)) <
-                        1e-9)
+        EXPECT_TRUE(a["light_mask_px"] == 0.0 || std::abs(a["light_mask_px"].get<double>() -
+                                                          0.03 * std::hypot(160.0, 107.0)) < 1e-9)
             << old_score.out;
     fs::remove(older_path);
     // One image per angle, three frames wide.
@@ -281,6 +280,46 @@ TEST(FitCommand, RefusesWhatItCannotUse) {
     // (A model scored with another lens than its own: FitsARecordedSweepAndScoresTheModel.)
 }
 
+// The tracking and cost knobs reach the fit: a culling share of 0.9 ends every ghost that shares
+// its frame with a brighter one, so the model holds fewer ghosts than with the default share;
+// values out of range are refused by name.
+TEST(FitCommand, TheTrackAndCostKnobsReachTheFit) {
+    const fs::path model = tempPath("knobs.flm");
+    const auto ghostsWith = [&](std::vector<std::string> extra) -> int64_t {
+        std::vector<std::string> args = {"fit", sweepDir(),     "--lens", lensFile(),
+                                         "-o",  model.string(), "--quiet"};
+        args.insert(args.end(), extra.begin(), extra.end());
+        const CommandRun fitted = run(args);
+        EXPECT_EQ(fitted.code, 0) << fitted.err;
+        auto read = fit::readModel(model.string());
+        EXPECT_TRUE(read.has_value());
+        return read ? static_cast<int64_t>(read->ghosts.size()) : -1;
+    };
+    const int64_t every = ghostsWith({"--min-energy-fraction", "0"});
+    const int64_t culled = ghostsWith({"--min-energy-fraction", "0.9"});
+    EXPECT_GE(every, 2);
+    EXPECT_LT(culled, every);
+    // Tracks shorter than the sweep are dropped when every track must span all 5 frames.
+    EXPECT_LE(ghostsWith({"--min-track-frames", "5"}), ghostsWith({"--min-track-frames", "1"}));
+    for (const auto& [flag, value] :
+         std::vector<std::pair<std::string, std::string>>{{"--min-track-frames", "0"},
+                                                          {"--min-energy-fraction", "-0.1"},
+                                                          {"--min-energy-fraction", "1"},
+                                                          {"--max-missed", "-1"},
+                                                          {"--max-circles", "-1"},
+                                                          {"--transform-fraction", "-1"},
+                                                          {"--robust-scale", "0"}}) {
+        const CommandRun r = run({"fit", sweepDir(), "--lens", lensFile(), flag, value, "-o",
+                                  model.string(), "--quiet"});
+        EXPECT_NE(r.code, 0) << flag << " " << value;
+        EXPECT_NE(r.err.find(flag == "--min-energy-fraction" && value == "1" ? "min_energy_fraction"
+                                                                             : flag),
+                  std::string::npos)
+            << flag << ": " << r.err;
+    }
+    fs::remove(model);
+}
+
 TEST(FitCommand, PathsSeedTheTracksFromThePrescription) {
     // The recorded Heliar sweep, 0 to 2 deg: with --paths its ghosts are the lens's paths, each
     // one track, so the model holds no more ghosts than the lens has paths lit there.
@@ -353,13 +392,13 @@ TEST(FitCommand, TheSweepsLensSettingsReachTheModelAndContradictionsAreRefused) 
              "--quiet"});
     EXPECT_EQ(r.code, 0) << r.err;
     // A power measured apart overrides the record; one that is no power is refused.
-    r = run({"fit", sweep.string(), "-o", model.string(), "--light-power-dn-s", "1.5e9",
-             "--quiet"});
+    r = run(
+        {"fit", sweep.string(), "-o", model.string(), "--light-power-dn-s", "1.5e9", "--quiet"});
     ASSERT_EQ(r.code, 0) << r.err;
     EXPECT_EQ(fit::readModel(model.string())->capture.light_power_dn_s, 1.5e9);
     for (const char* bad : {"0", "-3", "inf", "nan"}) {
-        r = run({"fit", sweep.string(), "-o", model.string(), "--light-power-dn-s", bad,
-                 "--quiet"});
+        r = run(
+            {"fit", sweep.string(), "-o", model.string(), "--light-power-dn-s", bad, "--quiet"});
         EXPECT_NE(r.code, 0) << bad;
         EXPECT_NE(r.err.find("light-power-dn-s"), std::string::npos) << bad << ": " << r.err;
     }
