@@ -52,6 +52,7 @@ struct FitState {
     int max_circles = fit::DetectOptions{}.max_circles;
     double transform_fraction = fit::CostOptions{}.transform_fraction;
     double robust_scale = fit::CostOptions{}.robust_scale;
+    bool residual_detection = false;
     double light_margin_px = fit::DetectOptions{}.light_margin_px;
     std::optional<double> light_power_dn_s;
     bool keep_samples = false;
@@ -195,6 +196,7 @@ int runFit(const FitState& s, std::ostream& out, std::ostream& err) {
     options.detect.max_circles = s.max_circles;
     options.frame.cost.transform_fraction = s.transform_fraction;
     options.frame.cost.robust_scale = s.robust_scale;
+    options.residual_detection = s.residual_detection;
     options.detect.light_margin_px = s.light_margin_px;
     if (s.paths) {
         if (!lens) {
@@ -656,6 +658,9 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                     "residuals count less (stars, hot pixels, other ghosts' misfit)")
         ->capture_default_str()
         ->check(CLI::Range(1e-3, 1e6));
+    fit->add_flag("--residual-detection", fs->residual_detection,
+                  "in frames detected in full, detect again in what the fitted ghosts leave and "
+                  "start tracks there");
     fit->add_flag("--quiet", fs->quiet, "no progress on stderr");
     fit->callback([fs, &out, &err, &exit_code] { exit_code = runFit(*fs, out, err); });
 

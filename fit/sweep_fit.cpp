@@ -370,10 +370,14 @@ private:
     // back, nor with the paths as seeds (the seeds start the tracks).
     DetectOptions detectOptionsAt(size_t j, bool any_live, bool extend) const {
         DetectOptions detect = detect_;
-        const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));
-        if (any_live && from_start % options_.detect_every != 0) detect.circles = false;
-        if (extend || options_.path_seeds) detect.circles = false;
+        if (!fullDetectionAt(j, any_live, extend)) detect.circles = false;
         return detect;
+    }
+    // Whether frame j is detected in full (see detectOptionsAt).
+    bool fullDetectionAt(size_t j, bool any_live, bool extend) const {
+        const int64_t from_start = std::abs(static_cast<int64_t>(j) - static_cast<int64_t>(start_));
+        if (any_live && from_start % options_.detect_every != 0) return false;
+        return !extend && !options_.path_seeds;
     }
     // Frame `index` loaded and detected into the source's memory on another thread while this
     // pass fits the frame before it (FrameSource::prefetch), with the options the pass will
@@ -763,6 +767,83 @@ Status SweepFitter::processFrame(
             ++share_->frames_fitted;
         }
     }
+    // Residual detection (SweepFitOptions::residual_detection): in a frame detected in full, what
+    // the fitted ghosts leave unexplained (the frame less their model, above the sky) is detected
+    // again, and each residual blob that no ghost stands for becomes a new track, fitted with
+    // every other ghost held. A small bright ghost on top of broad ones is no component of its
+    // own in the frame, and often no circle the detector keeps; in the residual it is.
+    if (options_.residual_detection && allow_new && !ghosts.empty() &&
+        fullDetectionAt(j, !live.empty(), extend) &&
+        static_cast<int>(live.size() + born.size()) < options_.max_ghosts) {
+        const auto t_residual = Clock::now();
+        std::vector<GhostState> drawn = ghosts;
+        drawn.insert(drawn.end(), fixed.begin(), fixed.end());
+        const ImageRGB drawn_model =
+            drawFrameModel(*frame, *detection, drawn, options_.frame.cost.distance);
+        FitFrame residual;
+        residual.image = ImageRGB(frame->image.width, frame->image.height);
+        residual.angle_deg = frame->angle_deg;
+        residual.mapping = frame->mapping;
+        residual.channels = frame->channels;
+        const int64_t pixel_count = frame->image.width * frame->image.height;
+        for (int64_t i = 0; i < pixel_count; ++i) {
+            const bool left_out = detection->excluded[static_cast<size_t>(i)] != 0;
+            for (int c = 0; c < 3; ++c) {
+                const size_t k = static_cast<size_t>(3 * i + c);
+                const double v = static_cast<double>(frame->image.pixels[k]) -
+                                 static_cast<double>(drawn_model.pixels[k]) +
+                                 detection->background[static_cast<size_t>(c)];
+                residual.image.pixels[k] = left_out ? std::numeric_limits<float>::quiet_NaN()
+                                                    : static_cast<float>(std::max(0.0, v));
+            }
+        }
+        DetectOptions residual_options = detectOptionsAt(j, !live.empty(), extend);
+        residual_options.find_light = false;  // the light's disc is left out (NaN) above
+        auto found = detectGhosts(residual, residual_options);
+        if (!found) return found.error().withContext("frame " + std::to_string(j) + " residual");
+        std::vector<GhostState> extra;
+        for (const GhostCandidate& candidate : found->candidates) {
+            if (static_cast<int>(live.size() + born.size() + extra.size()) >= options_.max_ghosts)
+                break;
+            const GhostState& initial = candidate.initial;
+            if (outside(initial) || peakSigmas(initial) < kFadedSigmas ||
+                ghostSize(initial) > 4.0 * frame_diagonal_mm)
+                continue;
+            const Eigen::Vector2d centre_mm{
+                (candidate.centroid_px.x() - mapping.centre_x_px) / mapping.px_per_mm_x,
+                (candidate.centroid_px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
+            const double candidate_radius = ghostSize(initial);
+            const auto near = [&](const GhostState& state) {
+                const double radius = std::max(ghostSize(state), 2.0 * pixel_mm);
+                const double box_x =
+                    state.shape.centre_x_mm + 0.5 * (state.shape.right_mm - state.shape.left_mm);
+                return (std::hypot(centre_mm.x() - box_x, centre_mm.y() - state.shape.centre_y_mm) +
+                        std::abs(candidate_radius - radius)) /
+                           radius <=
+                       options_.duplicate_radius;
+            };
+            bool explained = false;
+            for (const GhostState& state : drawn) explained = explained || near(state);
+            for (const GhostState& state : extra) explained = explained || near(state);
+            if (!explained) extra.push_back(initial);
+        }
+        if (!extra.empty()) {
+            std::vector<GhostState> starts = extra;
+            auto more = fitFrame(*frame, *detection, extra, options_.frame, {}, drawn);
+            if (!more)
+                return more.error().withContext("frame " + std::to_string(j) + " (" +
+                                                std::to_string(angle) + " deg), residual");
+            result_.evaluations += more->evaluations;
+            for (size_t k = 0; k < extra.size(); ++k) {
+                startTrack(starts[k]);
+                ghosts.push_back(extra[k]);
+                report.ghosts.push_back(k < more->ghosts.size() ? more->ghosts[k]
+                                                                : GhostFitReport{});
+            }
+        }
+        result_.stages.fit_ms += msSince(t_residual);
+    }
+
     const auto ghostCost = [&](size_t k) {
         return k < report.ghosts.size() ? report.ghosts[k].final_cost : 0.0;
     };

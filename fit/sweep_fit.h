@@ -121,6 +121,9 @@ struct SweepFitOptions {
     // paths are never ended as duplicates of each other, and the pieces of one path become one
     // track. Empty: the tracks come from detections alone (a lens with no prescription).
     PathSeeder path_seeds;
+    // In frames detected in full, detect again in what the fitted ghosts leave (the frame less
+    // their model) and start tracks from what no ghost stands for (processFrame). Off by default.
+    bool residual_detection = false;
     // When set and it becomes true, the fit stops before its next frame with an Unsupported
     // error "sweep fit: cancelled" (a daemon's job being cancelled or the daemon stopping).
     const std::atomic<bool>* cancel = nullptr;

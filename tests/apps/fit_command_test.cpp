@@ -301,6 +301,7 @@ TEST(FitCommand, TheTrackAndCostKnobsReachTheFit) {
     EXPECT_LT(culled, every);
     // Tracks shorter than the sweep are dropped when every track must span all 5 frames.
     EXPECT_LE(ghostsWith({"--min-track-frames", "5"}), ghostsWith({"--min-track-frames", "1"}));
+    EXPECT_GE(ghostsWith({"--residual-detection"}), 1);
     for (const auto& [flag, value] :
          std::vector<std::pair<std::string, std::string>>{{"--min-track-frames", "0"},
                                                           {"--min-energy-fraction", "-0.1"},

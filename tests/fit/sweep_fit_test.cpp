@@ -706,6 +706,38 @@ TEST(SweepFit, ASmallBrightGhostIsNotTakenForTheLightOnceTheLightIsOutOfView) {
     }
 }
 
+// A small bright disc inside a broad dim one, both moving together, with the circle detector
+// off: the frame holds one component, which the detection takes for one ghost. With residual
+// detection, what the first fit leaves is detected again, and the small disc gets a track of its
+// own, fitted in every frame.
+TEST(SweepFit, ResidualDetectionFindsASmallBrightGhostInsideABroadOne) {
+    const std::vector<TrueGhost> truth = {{-2.0, 0.3, 6.0, 20.0, 0.0},
+                                          {-4.0, 0.3, 0.6, 400.0, 0.0}};
+    const auto angles = angleRange(0.0, 0.5, 9);
+    SweepFitOptions options = quickOptions();
+    options.detect.circles = false;
+    // Frames in which some track's sample sits on the small disc.
+    const auto framesOnTheSmallDisc = [&](const SweepFitResult& result) {
+        std::vector<bool> found(angles.size(), false);
+        for (const auto& track : result.tracks)
+            for (const auto& sample : track.samples) {
+                const GhostState want = trueState(truth[1], sample.angle_deg);
+                if (std::abs(boxCentreX(sample.state) - want.shape.centre_x_mm) < 0.5 &&
+                    ghostSize(sample.state) < 2.0)
+                    found[static_cast<size_t>(std::lround(sample.angle_deg / 0.5))] = true;
+            }
+        return static_cast<int>(std::count(found.begin(), found.end(), true));
+    };
+    auto plain = fitSweepFrames(syntheticSource(truth, angles), options);
+    ASSERT_TRUE(plain) << plain.error().message;
+    EXPECT_EQ(framesOnTheSmallDisc(*plain), 0) << describe(*plain);
+    options.residual_detection = true;
+    auto residual = fitSweepFrames(syntheticSource(truth, angles), options);
+    ASSERT_TRUE(residual) << residual.error().message;
+    EXPECT_EQ(framesOnTheSmallDisc(*residual), static_cast<int>(angles.size()))
+        << describe(*residual);
+}
+
 TEST(SweepFit, GhostsThatMergeAndSplitKeepTheirOwnPaths) {
     // A small bright disc moving right and a large dim one moving left, 1 mm closer every frame,
     // overlap from about 1.1 to 4.9 deg and are concentric at 3 deg. From detections alone the
