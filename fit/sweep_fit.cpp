@@ -556,16 +556,18 @@ Status SweepFitter::processFrame(
             (candidates[c].centroid_px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
     // How far a detection is from a ghost: centre and radius differences over the radius.
     // Centres alone would call concentric discs of different sizes (every ghost at 0 degrees) one.
-    const auto normalisedDistance = [&](const GhostState& state, size_t c) {
+    const auto distanceTo = [&](const GhostState& state, const Eigen::Vector2d& centre_mm,
+                                double candidate_radius) {
         const double radius = std::max(ghostSize(state), 2.0 * pixel_mm);
         // The box's centre: what a detection's centroid estimates.
         const double box_x =
             state.shape.centre_x_mm + 0.5 * (state.shape.right_mm - state.shape.left_mm);
-        const double candidate_radius = ghostSize(candidates[c].initial);
-        return (std::hypot(centroid_mm[c].x() - box_x,
-                           centroid_mm[c].y() - state.shape.centre_y_mm) +
+        return (std::hypot(centre_mm.x() - box_x, centre_mm.y() - state.shape.centre_y_mm) +
                 std::abs(candidate_radius - radius)) /
                radius;
+    };
+    const auto normalisedDistance = [&](const GhostState& state, size_t c) {
+        return distanceTo(state, centroid_mm[c], ghostSize(candidates[c].initial));
     };
 
     // The brightest of the ghost's border and inner intensities, in noise sigmas.
@@ -814,13 +816,7 @@ Status SweepFitter::processFrame(
                 (candidate.centroid_px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
             const double candidate_radius = ghostSize(initial);
             const auto near = [&](const GhostState& state) {
-                const double radius = std::max(ghostSize(state), 2.0 * pixel_mm);
-                const double box_x =
-                    state.shape.centre_x_mm + 0.5 * (state.shape.right_mm - state.shape.left_mm);
-                return (std::hypot(centre_mm.x() - box_x, centre_mm.y() - state.shape.centre_y_mm) +
-                        std::abs(candidate_radius - radius)) /
-                           radius <=
-                       options_.duplicate_radius;
+                return distanceTo(state, centre_mm, candidate_radius) <= options_.duplicate_radius;
             };
             bool explained = false;
             for (const GhostState& state : drawn) explained = explained || near(state);
