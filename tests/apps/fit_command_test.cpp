@@ -280,8 +280,8 @@ TEST(FitCommand, RefusesWhatItCannotUse) {
     // (A model scored with another lens than its own: FitsARecordedSweepAndScoresTheModel.)
 }
 
-// The tracking and cost knobs reach the fit: a culling share of 0.9 ends every ghost that shares
-// its frame with a brighter one, so the model holds fewer ghosts than with the default share;
+// The tracking and cost knobs reach the fit: a culling share of 0.9 ends every ghost holding less
+// than nine tenths of its frame's ghost light, so the model holds fewer ghosts than with no cull;
 // values out of range are refused by name.
 TEST(FitCommand, TheTrackAndCostKnobsReachTheFit) {
     const fs::path model = tempPath("knobs.flm");
