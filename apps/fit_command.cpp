@@ -72,6 +72,7 @@ struct ScoreState {
     double log_scale = fit::ScoreOptions{}.log_scale;
     std::optional<double> light_mask_px;
     uint64_t seed = 1;
+    bool measured = false;
     bool json = false;
 };
 
@@ -385,9 +386,23 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
         err << "flarelab: score: " << model.error().message << "\n";
         return 1;
     }
-    auto lens = captureLens(s.lens_file, *model, s.model, err);
-    if (!lens) return 1;
-    if (!model->lens.prescription_sha256.empty()) {
+    if (s.measured && s.sweep.empty()) {
+        err << "flarelab: score: --measured scores against the frames of the sweep the model "
+               "was fitted to: give it with --sweep\n";
+        return 2;
+    }
+    if (s.lens_file.empty() && !s.measured) {
+        err << "flarelab: score: --lens is required (the prescription to simulate the truth "
+               "with), or --measured --sweep S to score against the captured frames\n";
+        return 2;
+    }
+    std::optional<optics::Lens> lens;
+    if (!s.measured) {
+        auto made = captureLens(s.lens_file, *model, s.model, err);
+        if (!made) return 1;
+        lens = std::move(*made);
+    }
+    if (!s.measured && !model->lens.prescription_sha256.empty()) {
         auto digest = hdr::sha256File(s.lens_file);
         if (!digest) {
             err << "flarelab: score: " << digest.error().message << "\n";
@@ -450,8 +465,23 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
             << (colour ? "differ, so it is scored against the colour (RGB) truth"
                        : "agree, so it is scored against the monochrome (green) truth")
             << "\n";
-    auto truth = drivers::simulatedGhostTruth(*lens, model->capture.width_px,
-                                              model->capture.height_px, {}, colour);
+    Result<fit::TruthSource> truth = fit::TruthSource{};
+    if (s.measured) {
+        // Only captured angles have frames: the fitted and the left-out ones.
+        options.halfway_angles = 0;
+        options.random_angles = 0;
+        auto sweep = hdr::readSweepManifest(s.sweep);
+        if (!sweep) {
+            err << "flarelab: score: " << sweep.error().message << "\n";
+            return 2;
+        }
+        // The frames in the sensor millimetres the fit used: the model's record.
+        truth = fit::measuredTruth(*sweep, model->lens.sensor_width_mm,
+                                   model->lens.sensor_height_mm);
+    } else {
+        truth = drivers::simulatedGhostTruth(*lens, model->capture.width_px,
+                                             model->capture.height_px, {}, colour);
+    }
     if (!truth) {
         err << "flarelab: score: " << truth.error().message << "\n";
         return 1;
@@ -502,8 +532,12 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
         out << j.dump(2) << "\n";
         return 0;
     }
-    out << "score: " << s.model << " against " << s.lens_file << " (simulated, ghosts only, "
-        << "the light's disc left out)\n";
+    if (s.measured)
+        out << "score: " << s.model << " against the frames of " << s.sweep
+            << " (measured: noise included, background subtracted, the light's disc left out)\n";
+    else
+        out << "score: " << s.model << " against " << s.lens_file << " (simulated, ghosts only, "
+            << "the light's disc left out)\n";
     out << "  angle_deg  kind      rel_L2  energy_err  log_rel_L2  masked  disc_px  PSNR_dB\n";
     for (const auto& a : report->angles)
         out << "  " << std::setw(9) << std::fixed << std::setprecision(3) << a.angle_deg << "  "
@@ -669,8 +703,9 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
         "score",
         "score a model against the simulator's noiseless ghosts at fitted and held-out angles");
     score->add_option("MODEL", ss->model, "model file")->required();
-    score->add_option("--lens", ss->lens_file, "the lens prescription the sweep was simulated with")
-        ->required();
+    score->add_option("--lens", ss->lens_file,
+                      "the lens prescription the sweep was simulated with (required unless "
+                      "--measured)");
     score->add_option("--angles", ss->angles, "held-out angles to score (deg), comma separated")
         ->delimiter(',');
     score->add_option("--halfway", ss->halfway, "half-way angles scored when --angles is not given")
@@ -694,6 +729,10 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                       "(default: the disc the fit left out of its frames, as the model records "
                       "it; 3% of the frame's diagonal for a model that does not)");
     score->add_option("--seed", ss->seed, "seed of the random angles")->capture_default_str();
+    score->add_flag("--measured", ss->measured,
+                    "score against the --sweep's own frames (background subtracted, noise "
+                    "included) at the fitted and left-out angles, instead of the simulator: for "
+                    "a lens without a prescription");
     score->add_flag("--json", ss->json, "print the scores as JSON");
     score->callback([ss, &out, &err, &exit_code] { exit_code = runScore(*ss, out, err); });
 }

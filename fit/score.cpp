@@ -1,8 +1,11 @@
 #include "fit/score.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
+#include <cstdio>
 #include <limits>
+#include <memory>
 #include <random>
 #include <string>
 
@@ -291,6 +294,77 @@ Result<ScoreReport> scoreModel(const FlareModel& model,
         if (s.count > 0) report.by_kind.emplace_back(kind, s);
     }
     return report;
+}
+
+namespace {
+constexpr size_t kSkyProbes = 9;  // frames whose lowest background is the sky
+}  // namespace
+
+Result<TruthSource> measuredTruth(const hdr::Sweep& sweep,
+                                  double sensor_width_mm,
+                                  double sensor_height_mm,
+                                  const DetectOptions& detect) {
+    if (!(sensor_width_mm > 0.0 && sensor_height_mm > 0.0 && std::isfinite(sensor_width_mm) &&
+          std::isfinite(sensor_height_mm)))
+        return makeError(ErrorCode::InvalidArgument,
+                         "measured truth: the sensor size must be finite and > 0");
+    // The options are checked once on a tiny black frame, so that a bad one is refused here
+    // rather than at the first angle.
+    {
+        auto probe = frameFromImage(ImageRGB(4, 4), 0.0, sensor_width_mm, sensor_height_mm);
+        if (!probe) return probe.error().withContext("measured truth");
+        if (auto checked = detectGhosts(*probe, detect); !checked)
+            return checked.error().withContext("measured truth");
+    }
+    // The sky: the lowest background of frames spread over the sweep, as the fit takes it
+    // (fit/sweep_fit.h). A frame's own background may hold a veil larger than the frame, which
+    // is ghost light the model draws.
+    std::array<double, 3> sky = {std::numeric_limits<double>::infinity(),
+                                 std::numeric_limits<double>::infinity(),
+                                 std::numeric_limits<double>::infinity()};
+    const size_t n = sweep.frames.size();
+    if (n == 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "measured truth: sweep " + sweep.directory + " holds no frames");
+    const size_t probes = std::min<size_t>(n, kSkyProbes);
+    for (size_t i = 0; i < probes; ++i) {
+        const size_t index = probes == 1 ? n / 2 : i * (n - 1) / (probes - 1);
+        auto frame = loadFitFrame(sweep, index, sensor_width_mm, sensor_height_mm);
+        if (!frame) return frame.error().withContext("measured truth");
+        auto detection = detectGhosts(*frame, detect);
+        if (!detection) return detection.error().withContext(sweep.frames[index].exr_file);
+        for (size_t c = 0; c < 3; ++c) sky[c] = std::min(sky[c], detection->background[c]);
+    }
+    auto shared = std::make_shared<const hdr::Sweep>(sweep);
+    return TruthSource([shared, sensor_width_mm, sensor_height_mm, detect,
+                        sky](double angle_deg) -> Result<TruthFrame> {
+        size_t index = shared->frames.size();
+        for (size_t k = 0; k < shared->frames.size(); ++k)
+            if (std::abs(shared->frames[k].angle_deg - angle_deg) <= 1e-6) {
+                index = k;
+                break;
+            }
+        if (index == shared->frames.size()) {
+            char angle[32];
+            std::snprintf(angle, sizeof angle, "%.6g", angle_deg);
+            return makeError(ErrorCode::InvalidArgument,
+                             "measured truth: sweep " + shared->directory +
+                                 " holds no frame captured at " + angle +
+                                 " deg (only captured angles can be scored against the frames)");
+        }
+        auto frame = loadFitFrame(*shared, index, sensor_width_mm, sensor_height_mm);
+        if (!frame) return frame.error();
+        auto detection = detectGhosts(*frame, detect);
+        if (!detection) return detection.error().withContext(shared->frames[index].exr_file);
+        TruthFrame truth;
+        truth.image = std::move(frame->image);
+        for (size_t i = 0; i < truth.image.pixels.size(); ++i) {
+            float& v = truth.image.pixels[i];
+            v = static_cast<float>(v - sky[i % 3]);
+        }
+        if (detection->light.found) truth.light_px = detection->light.centre_px;
+        return truth;
+    });
 }
 
 }  // namespace flarelab::fit

@@ -1,7 +1,7 @@
 // ============================================================================
 //  flarelab fit: TruthFrame, TruthSource, AngleKind, angleKindName, ScoredAngle, ScoreOptions,
 //                AngleScore, ScoreSummary, ScoreReport, ScoreImages, scoreAngles, scoreModel,
-//                compareImages, toneMapScore
+//                compareImages, toneMapScore, measuredTruth
 // ============================================================================
 //
 // A model scored against ground truth: the model drawn at an angle (renderModel) against what
@@ -39,8 +39,10 @@
 
 #include "common/image.h"
 #include "common/result.h"
+#include "fit/detect.h"
 #include "fit/model_eval.h"
 #include "fit/model_file.h"
+#include "hdr/sweep.h"
 
 namespace flarelab::fit {
 
@@ -157,5 +159,23 @@ Result<ScoreReport> scoreModel(const FlareModel& model,
                                const ScoreOptions& options = {},
                                const std::function<void(int done, int total)>& progress = {},
                                const std::function<Status(const ScoreImages&)>& images = {});
+
+// The sweep's own frames as the truth (`score --measured`), for a lens whose prescription the lab
+// does not have: at each captured angle, the frame less the sky (the lowest background, per
+// channel, that detectGhosts finds in 9 frames spread over the sweep, as the fit takes it: a
+// frame's own background may hold a veil larger than the frame), not clamped (the noise's lower
+// half stays; the log image counts values below 0 as 0), and the light where the detection finds
+// it (its disc's radius is the model's, as always). Unlike the simulator's truth these hold the
+// camera's noise, so a perfect model scores the noise's share of the ghost light rather than 0,
+// the light's glare beyond the disc counts as ghost light, and the masked share is mostly the
+// light itself; the ranking of models fitted to one sweep is what they are for. Frames are read
+// when asked for (from several threads at once). An angle no frame of the sweep was captured at
+// (within 1e-6 deg) is an InvalidArgument naming it and the sweep; a frame that cannot be read,
+// its error with the file's name. InvalidArgument for sensor sizes not > 0, a sweep without
+// frames or bad detection options.
+Result<TruthSource> measuredTruth(const hdr::Sweep& sweep,
+                                  double sensor_width_mm,
+                                  double sensor_height_mm,
+                                  const DetectOptions& detect = {});
 
 }  // namespace flarelab::fit

@@ -256,6 +256,52 @@ TEST(FitCommand, AColourCaptureIsFittedAndScoredInColour) {
     fs::remove(model);
 }
 
+// A lab without the prescription scores a sparse fit against the sweep's own frames: the
+// fitted and the left-out ones, no others (no frame was captured between them); the model
+// explains most of their ghost light, and an empty model none of it.
+TEST(FitCommand, ASparseFitIsScoredAgainstTheSweepsOwnFrames) {
+    const fs::path model = tempPath("measured.flm");
+    const fs::path empty = tempPath("measured-empty.flm");
+    ASSERT_EQ(run({"fit", sweepDir(), "--lens", lensFile(), "--every", "2", "-o", model.string(),
+                   "--quiet"})
+                  .code,
+              0);
+    const auto medianOf = [&](const fs::path& path) {
+        const CommandRun scored =
+            run({"score", path.string(), "--measured", "--sweep", sweepDir(), "--json"});
+        EXPECT_EQ(scored.code, 0) << scored.err;
+        if (scored.code != 0) return -1.0;
+        const auto json = nlohmann::json::parse(scored.out);
+        EXPECT_EQ(json["by_kind"].size(), 2u) << scored.out;
+        EXPECT_EQ(json["by_kind"]["left-out"]["count"].get<int>(), 2) << scored.out;
+        EXPECT_EQ(json["by_kind"]["fitted"]["count"].get<int>(), 3) << scored.out;
+        for (const auto& a : json["angles"])
+            for (const char* key : {"rel_l2", "energy_error", "log_rel_l2", "light_mask_px"})
+                EXPECT_TRUE(std::isfinite(a[key].get<double>())) << key;
+        return json["heldout_rel_l2"]["median"].get<double>();
+    };
+    const double fitted = medianOf(model);
+    EXPECT_GT(fitted, 0.0);
+    EXPECT_LT(fitted, 0.5);
+    auto read = fit::readModel(model.string());
+    ASSERT_TRUE(read.has_value()) << read.error().message;
+    read->ghosts.clear();
+    ASSERT_TRUE(fit::writeModel(empty.string(), *read));
+    EXPECT_NEAR(medianOf(empty), 1.0, 1e-9);
+    // What it needs: the sweep, whose frames it scores against; without --measured, the lens.
+    CommandRun r = run({"score", model.string(), "--measured", "--json"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("--sweep"), std::string::npos) << r.err;
+    r = run({"score", model.string(), "--sweep", sweepDir(), "--json"});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("--lens is required"), std::string::npos) << r.err;
+    r = run({"score", model.string(), "--measured", "--sweep", sweepDir(), "--angles", "0.25"});
+    EXPECT_NE(r.code, 0);
+    EXPECT_NE(r.err.find("no frame captured at 0.25"), std::string::npos) << r.err;
+    fs::remove(model);
+    fs::remove(empty);
+}
+
 TEST(FitCommand, RefusesWhatItCannotUse) {
     const fs::path model = tempPath("refused.flm");
     // The recorded sweep has no pixel pitch: without --lens or --sensor-mm the sensor is unknown.

@@ -3,7 +3,12 @@
 
 #include <gtest/gtest.h>
 
+#include <unistd.h>
+
 #include <cmath>
+#include <filesystem>
+#include <string>
+#include <vector>
 
 namespace flarelab::fit {
 namespace {
@@ -245,6 +250,92 @@ TEST(Score, TheLightsDiscIsTheOneTheFitRecorded) {
     auto old = scoreModel(model, truth, options);
     ASSERT_TRUE(old) << old.error().message;
     EXPECT_NEAR(old->angles.front().light_mask_px, 0.03 * std::hypot(64.0, 64.0), 1e-12);
+}
+
+// The measured truth (`score --measured`): a sweep of three 64 x 48 frames on a sky of 5, each
+// with a light (a disc of 4 px radius at 5000 on the left) and a ghost (a 10 x 10 px square of
+// 40 on the right); the middle frame also holds a veil of 3 over the whole frame (a ghost larger
+// than the frame). The truth is each frame less the sky, the veil kept; the light where it is.
+TEST(MeasuredTruth, TheFramesLessTheSkyWithTheLightWhereItIs) {
+    namespace fs = std::filesystem;
+    const fs::path root =
+        fs::temp_directory_path() / ("flarelab_measured_truth_" + std::to_string(::getpid()));
+    fs::remove_all(root);
+    constexpr int64_t kW = 64, kH = 48;
+    constexpr float kSky = 5.0f, kVeil = 3.0f, kGhost = 40.0f, kLight = 5000.0f;
+    const std::vector<double> angles = {0.0, 0.5, 1.0};
+    hdr::SweepHeader header;
+    header.software_version = "test";
+    header.lens.description = "test lens";
+    header.camera.description = "test camera";
+    header.capture.from_deg = 0.0;
+    header.capture.to_deg = 1.0;
+    header.capture.step_deg = 0.5;
+    header.capture.width_px = kW;
+    header.capture.height_px = kH;
+    auto writer = hdr::SweepWriter::create((root / "sweep").string(), header);
+    ASSERT_TRUE(writer) << writer.error().message;
+    std::vector<ImageRGB> frames;
+    for (size_t i = 0; i < angles.size(); ++i) {
+        ImageRGB image(kW, kH);
+        for (int64_t y = 0; y < kH; ++y)
+            for (int64_t x = 0; x < kW; ++x) {
+                float v = kSky + (i == 1 ? kVeil : 0.0f);
+                // A little texture, so that the sky is a level with noise around it.
+                v += 0.01f * static_cast<float>((x * 7 + y * 13) % 5 - 2);
+                if (x >= 40 && x < 50 && y >= 19 && y < 29) v += kGhost;
+                if (std::hypot(x + 0.5 - 16.0, y + 0.5 - 24.0) < 4.0) v += kLight;
+                for (int c = 0; c < 3; ++c) image.at(x, y)[c] = v;
+            }
+        hdr::SweepFrame frame;
+        frame.angle_deg = angles[i];
+        auto added = writer->addFrame(image, frame);
+        ASSERT_TRUE(added) << added.error().message;
+        frames.push_back(std::move(image));
+    }
+    ASSERT_TRUE(writer->finish());
+    const hdr::Sweep sweep = writer->sweep();
+    auto truth = measuredTruth(sweep, 6.4, 4.8);
+    ASSERT_TRUE(truth) << truth.error().message;
+    for (size_t i = 0; i < angles.size(); ++i) {
+        auto t = (*truth)(angles[i]);
+        ASSERT_TRUE(t) << t.error().message;
+        ASSERT_EQ(t->image.width, kW);
+        ASSERT_EQ(t->image.height, kH);
+        // The same sky is taken from every frame: the lowest background of the frames (the
+        // first's and the last's level), not the middle frame's own, which holds the veil.
+        const double subtracted = frames[i].at(0, 0)[1] - t->image.at(0, 0)[1];
+        EXPECT_NEAR(subtracted, kSky, 0.03) << angles[i];
+        for (int64_t y = 0; y < kH; ++y)
+            for (int64_t x = 0; x < kW; ++x)
+                for (int c = 0; c < 3; ++c)
+                    ASSERT_NEAR(t->image.at(x, y)[c], frames[i].at(x, y)[c] - subtracted, 1e-3)
+                        << x << ", " << y;
+        EXPECT_NEAR(t->image.at(60, 5)[1], i == 1 ? kVeil : 0.0, 0.03) << angles[i];
+        EXPECT_NEAR(t->image.at(45, 24)[1], kGhost + (i == 1 ? kVeil : 0.0), 0.03) << angles[i];
+        ASSERT_TRUE(t->light_px.has_value()) << angles[i];
+        EXPECT_NEAR(t->light_px->x(), 16.0, 1.0);
+        EXPECT_NEAR(t->light_px->y(), 24.0, 1.0);
+    }
+    // Angles no frame was captured at, and what cannot be a truth at all.
+    for (const double between : {0.25, -1.0, std::nan("")}) {
+        auto t = (*truth)(between);
+        ASSERT_FALSE(t) << between;
+        EXPECT_EQ(t.error().code, ErrorCode::InvalidArgument);
+        EXPECT_NE(t.error().message.find("no frame captured at"), std::string::npos)
+            << t.error().message;
+    }
+    EXPECT_FALSE(measuredTruth(sweep, 0.0, 4.8));
+    EXPECT_FALSE(measuredTruth(sweep, 6.4, std::nan("")));
+    DetectOptions bad;
+    bad.threshold_sigmas = -1.0;
+    EXPECT_FALSE(measuredTruth(sweep, 6.4, 4.8, bad));
+    hdr::Sweep empty = sweep;
+    empty.frames.clear();
+    auto none = measuredTruth(empty, 6.4, 4.8);
+    ASSERT_FALSE(none);
+    EXPECT_NE(none.error().message.find("no frames"), std::string::npos) << none.error().message;
+    fs::remove_all(root);
 }
 
 }  // namespace
