@@ -316,6 +316,9 @@ Result<TruthSource> measuredTruth(const hdr::Sweep& sweep,
         if (auto checked = detectGhosts(*probe, detect); !checked)
             return checked.error().withContext("measured truth");
     }
+    // Only the sky and the light are taken from a frame's detection: no circles sought.
+    DetectOptions light_only = detect;
+    light_only.max_circles = 0;
     // The sky: the lowest background of frames spread over the sweep, as the fit takes it
     // (fit/sweep_fit.h). A frame's own background may hold a veil larger than the frame, which
     // is ghost light the model draws.
@@ -331,12 +334,12 @@ Result<TruthSource> measuredTruth(const hdr::Sweep& sweep,
         const size_t index = probes == 1 ? n / 2 : i * (n - 1) / (probes - 1);
         auto frame = loadFitFrame(sweep, index, sensor_width_mm, sensor_height_mm);
         if (!frame) return frame.error().withContext("measured truth");
-        auto detection = detectGhosts(*frame, detect);
+        auto detection = detectGhosts(*frame, light_only);
         if (!detection) return detection.error().withContext(sweep.frames[index].exr_file);
         for (size_t c = 0; c < 3; ++c) sky[c] = std::min(sky[c], detection->background[c]);
     }
     auto shared = std::make_shared<const hdr::Sweep>(sweep);
-    return TruthSource([shared, sensor_width_mm, sensor_height_mm, detect,
+    return TruthSource([shared, sensor_width_mm, sensor_height_mm, detect = light_only,
                         sky](double angle_deg) -> Result<TruthFrame> {
         size_t index = shared->frames.size();
         for (size_t k = 0; k < shared->frames.size(); ++k)
