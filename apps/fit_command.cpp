@@ -391,6 +391,11 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
                "was fitted to: give it with --sweep\n";
         return 2;
     }
+    if (s.measured && !s.lens_file.empty()) {
+        err << "flarelab: score: --measured scores against the sweep's frames and simulates "
+               "nothing: leave --lens out, or --measured to score against the simulator\n";
+        return 2;
+    }
     if (s.lens_file.empty() && !s.measured) {
         err << "flarelab: score: --lens is required (the prescription to simulate the truth "
                "with), or --measured --sweep S to score against the captured frames\n";
@@ -534,7 +539,7 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
     }
     if (s.measured)
         out << "score: " << s.model << " against the frames of " << s.sweep
-            << " (measured: noise included, background subtracted, the light's disc left out)\n";
+            << " (measured: noise included, the sky subtracted, the light's disc left out)\n";
     else
         out << "score: " << s.model << " against " << s.lens_file << " (simulated, ghosts only, "
             << "the light's disc left out)\n";
@@ -701,7 +706,8 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
     auto ss = std::make_shared<ScoreState>();
     CLI::App* score = app.add_subcommand(
         "score",
-        "score a model against the simulator's noiseless ghosts at fitted and held-out angles");
+        "score a model against the simulator's noiseless ghosts at fitted and held-out angles "
+        "(or, with --measured, against its sweep's own frames)");
     score->add_option("MODEL", ss->model, "model file")->required();
     score->add_option("--lens", ss->lens_file,
                       "the lens prescription the sweep was simulated with (required unless "
@@ -730,7 +736,7 @@ void addFitCommands(CLI::App& app, std::ostream& out, std::ostream& err, int& ex
                       "it; 3% of the frame's diagonal for a model that does not)");
     score->add_option("--seed", ss->seed, "seed of the random angles")->capture_default_str();
     score->add_flag("--measured", ss->measured,
-                    "score against the --sweep's own frames (background subtracted, noise "
+                    "score against the --sweep's own frames (the sky subtracted, noise "
                     "included) at the fitted and left-out angles, instead of the simulator: for "
                     "a lens without a prescription");
     score->add_flag("--json", ss->json, "print the scores as JSON");

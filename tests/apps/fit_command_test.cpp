@@ -295,6 +295,9 @@ TEST(FitCommand, ASparseFitIsScoredAgainstTheSweepsOwnFrames) {
     r = run({"score", model.string(), "--sweep", sweepDir(), "--json"});
     EXPECT_EQ(r.code, 2);
     EXPECT_NE(r.err.find("--lens is required"), std::string::npos) << r.err;
+    r = run({"score", model.string(), "--measured", "--sweep", sweepDir(), "--lens", lensFile()});
+    EXPECT_EQ(r.code, 2);
+    EXPECT_NE(r.err.find("simulates nothing"), std::string::npos) << r.err;
     r = run({"score", model.string(), "--measured", "--sweep", sweepDir(), "--angles", "0.25"});
     EXPECT_NE(r.code, 0);
     EXPECT_NE(r.err.find("no frame captured at 0.25"), std::string::npos) << r.err;
