@@ -297,7 +297,27 @@ Result<ScoreReport> scoreModel(const FlareModel& model,
 }
 
 namespace {
+
 constexpr size_t kSkyProbes = 9;  // frames whose lowest background is the sky
+
+struct DetectedFrame {
+    FitFrame frame;
+    FrameDetection detection;
+};
+
+// Frame `index` of the sweep and its detection; errors name the frame's file.
+Result<DetectedFrame> loadAndDetect(const hdr::Sweep& sweep,
+                                    size_t index,
+                                    double sensor_width_mm,
+                                    double sensor_height_mm,
+                                    const DetectOptions& detect) {
+    auto frame = loadFitFrame(sweep, index, sensor_width_mm, sensor_height_mm);
+    if (!frame) return frame.error();
+    auto detection = detectGhosts(*frame, detect);
+    if (!detection) return detection.error().withContext(sweep.frames[index].exr_file);
+    return DetectedFrame{std::move(*frame), std::move(*detection)};
+}
+
 }  // namespace
 
 Result<TruthSource> measuredTruth(const hdr::Sweep& sweep,
@@ -308,46 +328,34 @@ Result<TruthSource> measuredTruth(const hdr::Sweep& sweep,
           std::isfinite(sensor_height_mm)))
         return makeError(ErrorCode::InvalidArgument,
                          "measured truth: the sensor size must be finite and > 0");
-    // The options are checked once on a tiny black frame, so that a bad one is refused here
-    // rather than at the first angle.
-    {
-        auto probe = frameFromImage(ImageRGB(4, 4), 0.0, sensor_width_mm, sensor_height_mm);
-        if (!probe) return probe.error().withContext("measured truth");
-        if (auto checked = detectGhosts(*probe, detect); !checked)
-            return checked.error().withContext("measured truth");
-    }
+    const size_t n = sweep.frames.size();
+    if (n == 0)
+        return makeError(ErrorCode::InvalidArgument,
+                         "measured truth: sweep " + sweep.directory + " holds no frames");
     // Only the sky and the light are taken from a frame's detection: no circles sought.
     DetectOptions light_only = detect;
     light_only.max_circles = 0;
     // The sky: the lowest background of frames spread over the sweep, as the fit takes it
     // (fit/sweep_fit.h). A frame's own background may hold a veil larger than the frame, which
-    // is ghost light the model draws.
+    // is ghost light the model draws. Bad detection options are refused here, at the first probe.
     std::array<double, 3> sky = {std::numeric_limits<double>::infinity(),
                                  std::numeric_limits<double>::infinity(),
                                  std::numeric_limits<double>::infinity()};
-    const size_t n = sweep.frames.size();
-    if (n == 0)
-        return makeError(ErrorCode::InvalidArgument,
-                         "measured truth: sweep " + sweep.directory + " holds no frames");
     const size_t probes = std::min<size_t>(n, kSkyProbes);
     for (size_t i = 0; i < probes; ++i) {
         const size_t index = probes == 1 ? n / 2 : i * (n - 1) / (probes - 1);
-        auto frame = loadFitFrame(sweep, index, sensor_width_mm, sensor_height_mm);
-        if (!frame) return frame.error().withContext("measured truth");
-        auto detection = detectGhosts(*frame, light_only);
-        if (!detection) return detection.error().withContext(sweep.frames[index].exr_file);
-        for (size_t c = 0; c < 3; ++c) sky[c] = std::min(sky[c], detection->background[c]);
+        auto probe = loadAndDetect(sweep, index, sensor_width_mm, sensor_height_mm, light_only);
+        if (!probe) return probe.error().withContext("measured truth");
+        for (size_t c = 0; c < 3; ++c) sky[c] = std::min(sky[c], probe->detection.background[c]);
     }
     auto shared = std::make_shared<const hdr::Sweep>(sweep);
-    return TruthSource([shared, sensor_width_mm, sensor_height_mm, detect = light_only,
+    return TruthSource([shared, sensor_width_mm, sensor_height_mm, light_only,
                         sky](double angle_deg) -> Result<TruthFrame> {
-        size_t index = shared->frames.size();
-        for (size_t k = 0; k < shared->frames.size(); ++k)
-            if (std::abs(shared->frames[k].angle_deg - angle_deg) <= 1e-6) {
-                index = k;
-                break;
-            }
-        if (index == shared->frames.size()) {
+        const auto& frames = shared->frames;
+        const auto at = std::find_if(frames.begin(), frames.end(), [&](const hdr::SweepFrame& f) {
+            return std::abs(f.angle_deg - angle_deg) <= 1e-6;
+        });
+        if (at == frames.end()) {
             char angle[32];
             std::snprintf(angle, sizeof angle, "%.6g", angle_deg);
             return makeError(ErrorCode::InvalidArgument,
@@ -355,17 +363,16 @@ Result<TruthSource> measuredTruth(const hdr::Sweep& sweep,
                                  " holds no frame captured at " + angle +
                                  " deg (only captured angles can be scored against the frames)");
         }
-        auto frame = loadFitFrame(*shared, index, sensor_width_mm, sensor_height_mm);
-        if (!frame) return frame.error();
-        auto detection = detectGhosts(*frame, detect);
-        if (!detection) return detection.error().withContext(shared->frames[index].exr_file);
+        auto got = loadAndDetect(*shared, static_cast<size_t>(at - frames.begin()),
+                                 sensor_width_mm, sensor_height_mm, light_only);
+        if (!got) return got.error();
         TruthFrame truth;
-        truth.image = std::move(frame->image);
+        truth.image = std::move(got->frame.image);
         for (size_t i = 0; i < truth.image.pixels.size(); ++i) {
             float& v = truth.image.pixels[i];
             v = static_cast<float>(v - sky[i % 3]);
         }
-        if (detection->light.found) truth.light_px = detection->light.centre_px;
+        if (got->detection.light.found) truth.light_px = got->detection.light.centre_px;
         return truth;
     });
 }
