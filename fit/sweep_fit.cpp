@@ -549,11 +549,12 @@ Status SweepFitter::processFrame(
 
     // Detections in mm.
     const auto& candidates = detection->candidates;
+    const auto toMm = [&](const Eigen::Vector2d& px) -> Eigen::Vector2d {
+        return {(px.x() - mapping.centre_x_px) / mapping.px_per_mm_x,
+                (px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
+    };
     std::vector<Eigen::Vector2d> centroid_mm(candidates.size());
-    for (size_t c = 0; c < candidates.size(); ++c)
-        centroid_mm[c] = {
-            (candidates[c].centroid_px.x() - mapping.centre_x_px) / mapping.px_per_mm_x,
-            (candidates[c].centroid_px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
+    for (size_t c = 0; c < candidates.size(); ++c) centroid_mm[c] = toMm(candidates[c].centroid_px);
     // How far a detection is from a ghost: centre and radius differences over the radius.
     // Centres alone would call concentric discs of different sizes (every ghost at 0 degrees) one.
     const auto distanceTo = [&](const GhostState& state, const Eigen::Vector2d& centre_mm,
@@ -811,9 +812,7 @@ Status SweepFitter::processFrame(
             if (outside(initial) || peakSigmas(initial) < kFadedSigmas ||
                 ghostSize(initial) > 4.0 * frame_diagonal_mm)
                 continue;
-            const Eigen::Vector2d centre_mm{
-                (candidate.centroid_px.x() - mapping.centre_x_px) / mapping.px_per_mm_x,
-                (candidate.centroid_px.y() - mapping.centre_y_px) / mapping.px_per_mm_y};
+            const Eigen::Vector2d centre_mm = toMm(candidate.centroid_px);
             const double candidate_radius = ghostSize(initial);
             const auto near = [&](const GhostState& state) {
                 return distanceTo(state, centre_mm, candidate_radius) <= options_.duplicate_radius;
