@@ -401,23 +401,23 @@ int runScore(const ScoreState& s, std::ostream& out, std::ostream& err) {
                "with), or --measured --sweep S to score against the captured frames\n";
         return 2;
     }
+    // The simulator's truth needs the lens the model was fitted with; the measured one none.
     std::optional<optics::Lens> lens;
     if (!s.measured) {
-        auto made = captureLens(s.lens_file, *model, s.model, err);
-        if (!made) return 1;
-        lens = std::move(*made);
-    }
-    if (!s.measured && !model->lens.prescription_sha256.empty()) {
-        auto digest = hdr::sha256File(s.lens_file);
-        if (!digest) {
-            err << "flarelab: score: " << digest.error().message << "\n";
-            return 1;
-        }
-        if (*digest != model->lens.prescription_sha256) {
-            err << "flarelab: score: " << s.lens_file << " is not the lens the model was fitted "
-                << "with (" << model->lens.prescription_file << ", sha256 "
-                << model->lens.prescription_sha256 << ")\n";
-            return 2;
+        lens = captureLens(s.lens_file, *model, s.model, err);
+        if (!lens) return 1;
+        if (!model->lens.prescription_sha256.empty()) {
+            auto digest = hdr::sha256File(s.lens_file);
+            if (!digest) {
+                err << "flarelab: score: " << digest.error().message << "\n";
+                return 1;
+            }
+            if (*digest != model->lens.prescription_sha256) {
+                err << "flarelab: score: " << s.lens_file << " is not the lens the model was "
+                    << "fitted with (" << model->lens.prescription_file << ", sha256 "
+                    << model->lens.prescription_sha256 << ")\n";
+                return 2;
+            }
         }
     }
     fit::ScoreOptions options;
